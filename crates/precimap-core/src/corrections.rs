@@ -1,0 +1,94 @@
+//! Pose corrections at anchors (DESIGN §2). Anchor `i` sits at arc length `i·Δ` along its
+//! trajectory; a measurement at anchor coordinate `u = s/Δ` takes the linear interpolation of the
+//! corrections at `⌊u⌋` and `⌊u⌋+1`. A correction moves a point as
+//! `p' = t0 + δt + Exp(δθ)·r` (t0 scan-head position, r measurement vector).
+
+use crate::geom::rotate_small;
+use serde::{Deserialize, Serialize};
+
+/// `[δtx, δty, δtz, δθx, δθy, δθz]`: translation in metres, rotation vector in radians, world frame.
+pub type Correction = [f64; 6];
+
+/// Corrections of one trajectory for the contiguous anchor range `first_anchor..first_anchor+len`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryCorrections {
+    pub first_anchor: u32,
+    pub values: Vec<Correction>,
+}
+
+impl TrajectoryCorrections {
+    /// All-zero corrections for anchors `first..=last`.
+    pub fn zeros(first: u32, last: u32) -> Self {
+        Self { first_anchor: first, values: vec![[0.0; 6]; (last - first + 1) as usize] }
+    }
+
+    pub fn last_anchor(&self) -> u32 {
+        self.first_anchor + self.values.len() as u32 - 1
+    }
+
+    /// Correction at anchor `i` (clamped to the range: beyond its ends a trajectory keeps the
+    /// end anchor's correction).
+    #[inline]
+    pub fn anchor(&self, i: u32) -> &Correction {
+        let k = i.saturating_sub(self.first_anchor) as usize;
+        &self.values[k.min(self.values.len() - 1)]
+    }
+
+    /// Interpolated correction at anchor `i` plus fraction `lambda`.
+    #[inline]
+    pub fn at(&self, i: u32, lambda: f32) -> Correction {
+        let a = self.anchor(i);
+        let b = self.anchor(i + 1);
+        let l = lambda as f64;
+        let mut out = [0.0; 6];
+        for k in 0..6 {
+            out[k] = a[k] + (b[k] - a[k]) * l;
+        }
+        out
+    }
+
+    /// Largest change between two correction sets of the same trajectory, as the displacement of
+    /// a point at `range_m` from the scan head: `|Δδt| + range·|Δδθ|`.
+    pub fn max_change_m(&self, other: &Self, range_m: f64) -> f64 {
+        let first = self.first_anchor.min(other.first_anchor);
+        let last = self.last_anchor().max(other.last_anchor());
+        (first..=last)
+            .map(|i| {
+                let (a, b) = (self.anchor(i), other.anchor(i));
+                let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+                let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
+                dt + range_m * dr
+            })
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Applies a correction: `t0 + δt + Exp(δθ)·r`.
+#[inline]
+pub fn apply(t0: [f64; 3], r: [f64; 3], c: &Correction) -> [f64; 3] {
+    let rr = rotate_small([c[3], c[4], c[5]], r);
+    [t0[0] + c[0] + rr[0], t0[1] + c[1] + rr[1], t0[2] + c[2] + rr[2]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn interpolation_and_clamping() {
+        let c = TrajectoryCorrections { first_anchor: 10, values: vec![[0.0; 6], [1.0, 2.0, 0.0, 0.0, 0.0, 0.1]] };
+        let v = c.at(10, 0.25);
+        assert!((v[0] - 0.25).abs() < 1e-12 && (v[1] - 0.5).abs() < 1e-12 && (v[5] - 0.025).abs() < 1e-9);
+        assert_eq!(c.at(11, 0.5)[0], 1.0);
+        assert_eq!(c.at(3, 0.5)[0], 0.0);
+        let z = TrajectoryCorrections::zeros(10, 11);
+        assert!((c.max_change_m(&z, 10.0) - (5f64.sqrt() + 1.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn apply_rotates_about_scan_head() {
+        let c = [0.1, 0.0, 0.0, 0.0, 0.0, std::f64::consts::FRAC_PI_2];
+        let p = apply([10.0, 0.0, 0.0], [1.0, 0.0, 0.0], &c);
+        assert!((p[0] - 10.1).abs() < 1e-12 && (p[1] - 1.0).abs() < 1e-12);
+    }
+}

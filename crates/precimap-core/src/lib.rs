@@ -1,0 +1,17 @@
+//! Pure domain types shared by every precimap crate.
+//!
+//! Nothing in here does I/O: rotations and poses ([`geom`]), trajectories with arc length
+//! ([`trajectory`]), the estimation parameters with the paper's defaults ([`params`]), tile keys
+//! ([`tile`]) and the per-anchor pose corrections ([`corrections`]).
+
+pub mod corrections;
+pub mod geom;
+pub mod params;
+pub mod tile;
+pub mod trajectory;
+
+pub use corrections::{Correction, TrajectoryCorrections};
+pub use geom::{Mat3, Vec3};
+pub use params::{IterationStep, Parameters};
+pub use tile::TileKey;
+pub use trajectory::{Pose, Trajectory, TrajectoryError};

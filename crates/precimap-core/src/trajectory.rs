@@ -1,0 +1,189 @@
+//! A GNSS/IMU trajectory: poses at (typically 200 Hz) time stamps, interpolated in between, with
+//! the cumulative arc length that places anchors (DESIGN §2).
+
+use crate::geom::{rot_from_rpy, so3_exp, so3_log, Mat3, Vec3};
+
+/// One pose of the body frame in the world (projected CRS) frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    pub position: Vec3,
+    pub rotation: Mat3,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum TrajectoryError {
+    #[error("trajectory has {0} samples; at least 2 are needed to interpolate")]
+    TooShort(usize),
+    #[error("sample {index}: time {time} is not after the previous time {previous}; samples must be strictly increasing in time")]
+    NotIncreasing { index: usize, time: f64, previous: f64 },
+    #[error("sample {index}: {field} is not a finite number")]
+    NotFinite { index: usize, field: &'static str },
+}
+
+/// Poses at strictly increasing times.
+#[derive(Clone, Debug)]
+pub struct Trajectory {
+    times: Vec<f64>,
+    positions: Vec<Vec3>,
+    /// roll, pitch, yaw in degrees, exactly as read (kept for lossless round trips).
+    rpy_deg: Vec<[f64; 3]>,
+    rotations: Vec<Mat3>,
+    /// Rotation vector from sample i to i+1 in the body frame: `R_{i+1} = R_i · Exp(ω_i)`.
+    segment_rotations: Vec<Vec3>,
+    /// Cumulative arc length of the positions, metres.
+    arc: Vec<f64>,
+}
+
+impl Trajectory {
+    pub fn new(times: Vec<f64>, positions: Vec<Vec3>, rpy_deg: Vec<[f64; 3]>) -> Result<Self, TrajectoryError> {
+        let n = times.len();
+        assert!(positions.len() == n && rpy_deg.len() == n, "trajectory columns differ in length");
+        if n < 2 {
+            return Err(TrajectoryError::TooShort(n));
+        }
+        for i in 0..n {
+            let t = times[i];
+            if !t.is_finite() {
+                return Err(TrajectoryError::NotFinite { index: i, field: "time" });
+            }
+            for (k, name) in ["x", "y", "z"].iter().enumerate() {
+                if !positions[i][k].is_finite() {
+                    return Err(TrajectoryError::NotFinite { index: i, field: name });
+                }
+            }
+            for (k, name) in ["roll", "pitch", "yaw"].iter().enumerate() {
+                if !rpy_deg[i][k].is_finite() {
+                    return Err(TrajectoryError::NotFinite { index: i, field: name });
+                }
+            }
+            if i > 0 && t <= times[i - 1] {
+                return Err(TrajectoryError::NotIncreasing { index: i, time: t, previous: times[i - 1] });
+            }
+        }
+        let rotations: Vec<Mat3> =
+            rpy_deg.iter().map(|a| rot_from_rpy(a[0].to_radians(), a[1].to_radians(), a[2].to_radians())).collect();
+        let segment_rotations = rotations.windows(2).map(|w| so3_log(&(w[0].transpose() * w[1]))).collect();
+        let mut arc = Vec::with_capacity(n);
+        let mut s = 0.0;
+        arc.push(0.0);
+        for w in positions.windows(2) {
+            s += (w[1] - w[0]).norm();
+            arc.push(s);
+        }
+        Ok(Self { times, positions, rpy_deg, rotations, segment_rotations, arc })
+    }
+
+    pub fn len(&self) -> usize {
+        self.times.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.times.is_empty()
+    }
+
+    pub fn times(&self) -> &[f64] {
+        &self.times
+    }
+
+    pub fn positions(&self) -> &[Vec3] {
+        &self.positions
+    }
+
+    pub fn rpy_deg(&self) -> &[[f64; 3]] {
+        &self.rpy_deg
+    }
+
+    pub fn rotations(&self) -> &[Mat3] {
+        &self.rotations
+    }
+
+    /// First and last time stamp.
+    pub fn time_span(&self) -> (f64, f64) {
+        (self.times[0], self.times[self.times.len() - 1])
+    }
+
+    /// True when `t` lies within the sampled time span.
+    pub fn covers(&self, t: f64) -> bool {
+        let (a, b) = self.time_span();
+        t >= a && t <= b
+    }
+
+    /// Total arc length in metres.
+    pub fn length_m(&self) -> f64 {
+        self.arc[self.arc.len() - 1]
+    }
+
+    /// Segment index `i` and fraction `λ` with `times[i] ≤ t ≤ times[i+1]`; `None` outside the span.
+    pub fn locate(&self, t: f64) -> Option<(usize, f64)> {
+        if !self.covers(t) {
+            return None;
+        }
+        let i = match self.times.binary_search_by(|x| x.total_cmp(&t)) {
+            Ok(i) => i.min(self.times.len() - 2),
+            Err(i) => i - 1,
+        };
+        let (t0, t1) = (self.times[i], self.times[i + 1]);
+        Some((i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)))
+    }
+
+    /// Interpolated pose: positions linearly, rotations along the geodesic between samples.
+    pub fn pose_at(&self, t: f64) -> Option<Pose> {
+        let (i, lambda) = self.locate(t)?;
+        Some(self.pose_in_segment(i, lambda))
+    }
+
+    pub fn pose_in_segment(&self, i: usize, lambda: f64) -> Pose {
+        let position = self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda;
+        let rotation = self.rotations[i] * so3_exp(&(self.segment_rotations[i] * lambda));
+        Pose { position, rotation }
+    }
+
+    /// Arc length at time `t`, linearly interpolated (metres since the first sample).
+    pub fn arc_length_at(&self, t: f64) -> Option<f64> {
+        let (i, lambda) = self.locate(t)?;
+        Some(self.arc[i] + (self.arc[i + 1] - self.arc[i]) * lambda)
+    }
+
+    /// Arc length at every sample (metres since the first sample).
+    pub fn arc_lengths(&self) -> &[f64] {
+        &self.arc
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn straight() -> Trajectory {
+        let times: Vec<f64> = (0..11).map(|i| 100.0 + i as f64 * 0.5).collect();
+        let positions = times.iter().map(|t| Vec3::new((t - 100.0) * 10.0, 0.0, 0.0)).collect();
+        let rpy = times.iter().map(|t| [0.0, 0.0, (t - 100.0) * 2.0]).collect();
+        Trajectory::new(times, positions, rpy).unwrap()
+    }
+
+    #[test]
+    fn interpolates_position_rotation_and_arc() {
+        let tr = straight();
+        let p = tr.pose_at(101.25).unwrap();
+        assert!((p.position.x - 12.5).abs() < 1e-12);
+        let (_, _, yaw) = crate::geom::rpy_from_rot(&p.rotation);
+        assert!((yaw.to_degrees() - 2.5).abs() < 1e-9);
+        assert!((tr.arc_length_at(101.25).unwrap() - 12.5).abs() < 1e-12);
+        assert!(tr.pose_at(99.0).is_none());
+        assert!(tr.pose_at(105.0).is_some());
+        assert_eq!(tr.length_m(), 50.0);
+    }
+
+    #[test]
+    fn rejects_bad_samples() {
+        let e = Trajectory::new(vec![0.0, 0.0], vec![Vec3::zeros(); 2], vec![[0.0; 3]; 2]).unwrap_err();
+        assert!(matches!(e, TrajectoryError::NotIncreasing { index: 1, .. }));
+        let e = Trajectory::new(vec![0.0, 1.0], vec![Vec3::zeros(), Vec3::new(f64::NAN, 0.0, 0.0)], vec![[0.0; 3]; 2])
+            .unwrap_err();
+        assert_eq!(e, TrajectoryError::NotFinite { index: 1, field: "x" });
+        assert_eq!(
+            Trajectory::new(vec![0.0], vec![Vec3::zeros()], vec![[0.0; 3]]).unwrap_err(),
+            TrajectoryError::TooShort(1)
+        );
+    }
+}

@@ -1,0 +1,1 @@
+//! Accuracy against simulated truth: strip offset spread, surface error, trajectory error.

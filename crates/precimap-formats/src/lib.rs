@@ -1,0 +1,1 @@
+//! Public file formats at the edge: campaign manifest, trajectory CSV, LAS/LAZ strips.

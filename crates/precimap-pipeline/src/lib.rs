@@ -1,0 +1,1 @@
+//! In-process orchestration of a campaign: ingest, tiles, iterations, export, report.

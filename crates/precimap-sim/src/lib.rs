@@ -1,0 +1,3 @@
+//! Simulated mobile-mapping campaigns that know their truth.
+
+pub mod truth;
