@@ -1,1 +1,19 @@
 //! Public file formats at the edge: campaign manifest, trajectory CSV, LAS/LAZ strips.
+//!
+//! Everything read here comes from users, so nothing panics on file contents: every problem is an
+//! error naming the file and the place in it (JSON path, line, point index) and what to do.
+//! Files written here appear atomically (temporary + rename).
+
+mod atomic;
+mod error;
+pub mod manifest;
+pub mod strip;
+pub mod trajectory_csv;
+
+pub use error::FormatError;
+pub use manifest::{
+    load_manifest, parse_manifest, resolve_uri, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
+    TrajectoryRef,
+};
+pub use strip::{read_strip, rewrite_strip, strip_info, NewPoint, StripInfo, StripPoints, StripWriter};
+pub use trajectory_csv::{read_trajectory_csv, write_trajectory_csv};

@@ -1,0 +1,766 @@
+//! Campaign manifest (DESIGN §1): which trajectories and strips form a campaign, the scanners'
+//! mounting, and optional parameter overrides.
+//!
+//! Validation walks the JSON value before deserializing so that a user sees *every* problem at
+//! once, each with its JSON path and what to do about it, instead of fixing them one serde error
+//! at a time.
+
+use precimap_core::Parameters;
+use serde::{Deserialize, Serialize};
+use serde_json::{Map, Value};
+use std::collections::{BTreeMap, HashMap};
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub name: String,
+    /// Scanner name → mounting on the vehicle.
+    pub scanners: BTreeMap<String, ScannerSpec>,
+    pub trajectories: Vec<TrajectoryRef>,
+    pub strips: Vec<StripRef>,
+    #[serde(default)]
+    pub parameters: Parameters,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScannerSpec {
+    /// Scan head position in the body frame (x forward, y left, z up), metres.
+    pub lever_arm_m: [f64; 3],
+    /// Nominal mounting rotation roll, pitch, yaw in degrees.
+    #[serde(default)]
+    pub boresight_deg: [f64; 3],
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrajectoryRef {
+    pub id: String,
+    /// Relative to the manifest's folder (see [`resolve_uri`]).
+    pub uri: String,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StripRef {
+    pub id: String,
+    /// Id of an entry of `trajectories`.
+    pub trajectory: String,
+    /// Key of `scanners`.
+    pub scanner: String,
+    /// Relative to the manifest's folder (see [`resolve_uri`]).
+    pub uri: String,
+}
+
+/// One problem: a JSON path like `$.strips[2].trajectory` and a message that says what is wrong
+/// and what to do.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ManifestProblem {
+    pub path: String,
+    pub message: String,
+}
+
+impl fmt::Display for ManifestProblem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.path, self.message)
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ManifestError {
+    #[error("cannot read manifest {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Displays every problem, one per line, as `file: $.path: message`.
+    #[error("{}", render_problems(file.as_deref(), problems))]
+    Invalid { file: Option<PathBuf>, problems: Vec<ManifestProblem> },
+}
+
+fn render_problems(file: Option<&Path>, problems: &[ManifestProblem]) -> String {
+    let prefix = file.map(|f| format!("{}: ", f.display())).unwrap_or_default();
+    if problems.is_empty() {
+        return format!("{prefix}invalid manifest");
+    }
+    problems.iter().map(|p| format!("{prefix}{p}")).collect::<Vec<_>>().join("\n")
+}
+
+/// Reads and validates a manifest file; problems carry the file name.
+pub fn load_manifest(path: &Path) -> Result<Manifest, ManifestError> {
+    let text =
+        std::fs::read_to_string(path).map_err(|source| ManifestError::Io { path: path.to_path_buf(), source })?;
+    parse_manifest(&text).map_err(|e| match e {
+        ManifestError::Invalid { problems, .. } => ManifestError::Invalid { file: Some(path.to_path_buf()), problems },
+        other => other,
+    })
+}
+
+/// Parses and validates manifest text, collecting all problems rather than stopping at the first.
+pub fn parse_manifest(text: &str) -> Result<Manifest, ManifestError> {
+    let invalid = |problems| ManifestError::Invalid { file: None, problems };
+    let value: Value = match serde_json::from_str(text) {
+        Ok(v) => v,
+        Err(e) => return Err(invalid(vec![json_syntax_problem(&e)])),
+    };
+    let problems = Checker::check(&value);
+    if !problems.is_empty() {
+        return Err(invalid(problems));
+    }
+    // The walk above mirrors the serde model; should they ever disagree, serde's message still
+    // reaches the user instead of a panic.
+    serde_json::from_value(value).map_err(|e| invalid(vec![problem("$", e.to_string())]))
+}
+
+fn json_syntax_problem(e: &serde_json::Error) -> ManifestProblem {
+    let full = e.to_string();
+    let suffix = format!(" at line {} column {}", e.line(), e.column());
+    let what = full.strip_suffix(&suffix).unwrap_or(&full);
+    problem(
+        "$",
+        format!(
+            "malformed JSON at line {}, column {}: {what}; fix the syntax there (common causes: a trailing comma, \
+             a missing quote or bracket, NaN/Infinity or out-of-range numbers)",
+            e.line(),
+            e.column()
+        ),
+    )
+}
+
+fn problem(path: &str, message: impl Into<String>) -> ManifestProblem {
+    ManifestProblem { path: path.to_string(), message: message.into() }
+}
+
+const EXAMPLE_URI: &str = "\"strips/p01-left.laz\"";
+
+/// Resolves a manifest URI against the manifest's folder. Only relative paths inside that folder
+/// are allowed: absolute paths, any scheme (`file://`, `s3://`, `http:`...), `..` components,
+/// backslashes, empty strings, NUL and other control characters are rejected. `.` components are
+/// dropped. (This is a lexical check: a symlink inside the folder can still point elsewhere.)
+pub fn resolve_uri(manifest_dir: &Path, uri: &str) -> Result<PathBuf, String> {
+    let advice = format!("use a path relative to the manifest's folder, such as {EXAMPLE_URI}");
+    if uri.is_empty() {
+        return Err(format!("uri is empty; {advice}"));
+    }
+    if uri.chars().any(char::is_control) {
+        return Err(format!("uri {uri:?} contains a control character (NUL, newline...); {advice}"));
+    }
+    if uri.contains('\\') {
+        return Err(format!("uri {uri:?} contains a backslash; separate folders with '/' and {advice}"));
+    }
+    if let Some((scheme, _)) = uri.split_once(':') {
+        let looks_like_scheme = scheme.chars().next().is_some_and(|c| c.is_ascii_alphabetic())
+            && scheme.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.'));
+        return Err(if looks_like_scheme {
+            format!("uri {uri:?} has a scheme or drive ({scheme:?}); only files inside the manifest's folder may be read: {advice}")
+        } else {
+            format!("uri {uri:?} contains ':'; {advice}")
+        });
+    }
+    if uri.starts_with('/') {
+        return Err(format!("uri {uri:?} is an absolute path; {advice}"));
+    }
+    let mut out = manifest_dir.to_path_buf();
+    let mut named = false;
+    for part in uri.split('/') {
+        match part {
+            "" => return Err(format!("uri {uri:?} has an empty path component ('//' or a trailing '/'); {advice}")),
+            "." => {}
+            ".." => {
+                return Err(format!(
+                    "uri {uri:?} contains '..'; files outside the manifest's folder may not be read: {advice}"
+                ))
+            }
+            p => {
+                out.push(p);
+                named = true;
+            }
+        }
+    }
+    if !named {
+        return Err(format!("uri {uri:?} does not name a file; {advice}"));
+    }
+    Ok(out)
+}
+
+/// Ids become object-store keys and file names: keep them to a portable, harmless alphabet.
+fn id_problem(id: &str, what: &str) -> Option<String> {
+    let ok_chars = id.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+    if (1..=64).contains(&id.len()) && ok_chars && !id.starts_with('.') {
+        return None;
+    }
+    Some(format!(
+        "{what} {id:?} is not a safe file name: use 1–64 characters from A–Z, a–z, 0–9, '.', '_' and '-', \
+         not starting with '.' (ids become file names and object keys)"
+    ))
+}
+
+fn type_name(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+/// `$.a.b` for plain keys, `$.a["odd key"]` otherwise, so every path can be pasted into a JSONPath tool.
+fn child(path: &str, key: &str) -> String {
+    let plain = key.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && key.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    if plain {
+        format!("{path}.{key}")
+    } else {
+        format!("{path}[{}]", Value::String(key.to_string()))
+    }
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut prev = row[0];
+        row[0] = i + 1;
+        for (j, &cb) in b.iter().enumerate() {
+            let cur = row[j + 1];
+            row[j + 1] = (prev + usize::from(ca != cb)).min(row[j] + 1).min(cur + 1);
+            prev = cur;
+        }
+    }
+    row[b.len()]
+}
+
+fn suggestion(key: &str, allowed: &[String]) -> String {
+    allowed
+        .iter()
+        .map(|a| (edit_distance(key, a), a))
+        .filter(|(d, a)| *d <= 2.max(a.len() / 4))
+        .min()
+        .map(|(_, a)| format!("did you mean {a:?}? "))
+        .unwrap_or_default()
+}
+
+struct Checker {
+    problems: Vec<ManifestProblem>,
+}
+
+const TOP_FIELDS: [&str; 5] = ["name", "scanners", "trajectories", "strips", "parameters"];
+const SCANNER_FIELDS: [&str; 2] = ["lever_arm_m", "boresight_deg"];
+const TRAJECTORY_FIELDS: [&str; 2] = ["id", "uri"];
+const STRIP_FIELDS: [&str; 4] = ["id", "trajectory", "scanner", "uri"];
+
+impl Checker {
+    fn check(root: &Value) -> Vec<ManifestProblem> {
+        let mut c = Checker { problems: Vec::new() };
+        let Some(top) = c.object("$", root, &TOP_FIELDS.map(String::from)) else {
+            return c.problems;
+        };
+
+        if let Some(v) = c.required("$", top, "name", "a short campaign name, e.g. \"hannover-double-8\"") {
+            match v.as_str() {
+                Some(s) if s.trim().is_empty() => c.push("$.name", "is empty; give the campaign a name"),
+                Some(_) => {}
+                None => c.wrong_type("$.name", v, "a string"),
+            }
+        }
+        let scanners = c.scanners(top);
+        let trajectories = c.trajectories(top);
+        c.strips(top, scanners.as_ref(), trajectories.as_ref());
+        if let Some(v) = top.get("parameters") {
+            c.parameters(v);
+        }
+        c.problems
+    }
+
+    fn push(&mut self, path: &str, message: impl Into<String>) {
+        self.problems.push(problem(path, message));
+    }
+
+    fn wrong_type(&mut self, path: &str, v: &Value, expected: &str) {
+        self.push(path, format!("expected {expected}, found {}", type_name(v)));
+    }
+
+    /// The value as an object, reporting a wrong type and every unknown key.
+    fn object<'v>(&mut self, path: &str, v: &'v Value, allowed: &[String]) -> Option<&'v Map<String, Value>> {
+        let Some(map) = v.as_object() else {
+            self.wrong_type(path, v, "an object");
+            return None;
+        };
+        for key in map.keys() {
+            if !allowed.contains(key) {
+                self.push(
+                    &child(path, key),
+                    format!(
+                        "unknown field {key:?}; {}remove it (allowed here: {})",
+                        suggestion(key, allowed),
+                        allowed.join(", ")
+                    ),
+                );
+            }
+        }
+        Some(map)
+    }
+
+    fn required<'v>(&mut self, path: &str, map: &'v Map<String, Value>, key: &str, hint: &str) -> Option<&'v Value> {
+        let v = map.get(key);
+        if v.is_none() {
+            self.push(&child(path, key), format!("missing required field {key:?}; add it: {hint}"));
+        }
+        v
+    }
+
+    fn required_str<'v>(&mut self, path: &str, map: &'v Map<String, Value>, key: &str, hint: &str) -> Option<&'v str> {
+        let v = self.required(path, map, key, hint)?;
+        let s = v.as_str();
+        if s.is_none() {
+            self.wrong_type(&child(path, key), v, "a string");
+        }
+        s
+    }
+
+    fn id(&mut self, path: &str, map: &Map<String, Value>, what: &str) -> Option<String> {
+        let id = self.required_str(path, map, "id", "a unique name such as \"p01\"")?;
+        if let Some(m) = id_problem(id, what) {
+            self.push(&child(path, "id"), m);
+        }
+        Some(id.to_string())
+    }
+
+    fn uri(&mut self, path: &str, map: &Map<String, Value>) {
+        if let Some(uri) =
+            self.required_str(path, map, "uri", &format!("a path relative to the manifest, e.g. {EXAMPLE_URI}"))
+        {
+            // The folder is irrelevant for the lexical checks.
+            if let Err(m) = resolve_uri(Path::new(""), uri) {
+                self.push(&child(path, "uri"), m);
+            }
+        }
+    }
+
+    fn vec3(&mut self, path: &str, v: &Value, unit: &str) {
+        let numbers: Option<Vec<f64>> = v.as_array().and_then(|a| a.iter().map(Value::as_f64).collect());
+        match numbers {
+            Some(n) if n.len() == 3 => {
+                if n.iter().any(|x| !x.is_finite()) {
+                    self.push(path, format!("values must be finite numbers ({unit})"));
+                }
+            }
+            _ => self.push(path, format!("expected an array of 3 numbers [x, y, z] ({unit}), found {}", describe(v))),
+        }
+    }
+
+    /// Returns the scanner names when `scanners` is usable, for the strips' reference checks.
+    fn scanners(&mut self, top: &Map<String, Value>) -> Option<Vec<String>> {
+        let v = self.required(
+            "$",
+            top,
+            "scanners",
+            "an object of scanner name → {\"lever_arm_m\": [x, y, z]}, e.g. {\"left\": {\"lever_arm_m\": [-0.6, 0.35, 0.45]}}",
+        )?;
+        let Some(map) = v.as_object() else {
+            self.wrong_type("$.scanners", v, "an object of scanner name → scanner");
+            return None;
+        };
+        let allowed = SCANNER_FIELDS.map(String::from);
+        for (name, spec) in map {
+            let path = child("$.scanners", name);
+            if let Some(m) = id_problem(name, "scanner name") {
+                self.push(&path, m);
+            }
+            let Some(fields) = self.object(&path, spec, &allowed) else { continue };
+            if let Some(la) = self.required(
+                &path,
+                fields,
+                "lever_arm_m",
+                "the scan head's offset [x, y, z] in metres in the body frame",
+            ) {
+                self.vec3(&child(&path, "lever_arm_m"), la, "metres, body frame x forward, y left, z up");
+            }
+            if let Some(b) = fields.get("boresight_deg") {
+                self.vec3(&child(&path, "boresight_deg"), b, "roll, pitch, yaw in degrees");
+            }
+        }
+        Some(map.keys().cloned().collect())
+    }
+
+    fn trajectories(&mut self, top: &Map<String, Value>) -> Option<Vec<String>> {
+        let v = self.required("$", top, "trajectories", "an array of {\"id\": ..., \"uri\": ...}")?;
+        let Some(items) = v.as_array() else {
+            self.wrong_type("$.trajectories", v, "an array");
+            return None;
+        };
+        let allowed = TRAJECTORY_FIELDS.map(String::from);
+        let mut seen: HashMap<String, usize> = HashMap::new();
+        for (i, item) in items.iter().enumerate() {
+            let path = format!("$.trajectories[{i}]");
+            let Some(map) = self.object(&path, item, &allowed) else { continue };
+            if let Some(id) = self.id(&path, map, "trajectory id") {
+                if let Some(first) = seen.get(&id) {
+                    self.push(
+                        &child(&path, "id"),
+                        format!("duplicate trajectory id {id:?} (also $.trajectories[{first}]); give every trajectory a unique id"),
+                    );
+                } else {
+                    seen.insert(id, i);
+                }
+            }
+            self.uri(&path, map);
+        }
+        Some(seen.into_keys().collect())
+    }
+
+    fn strips(&mut self, top: &Map<String, Value>, scanners: Option<&Vec<String>>, trajectories: Option<&Vec<String>>) {
+        let Some(v) = self.required("$", top, "strips", "an array of {\"id\", \"trajectory\", \"scanner\", \"uri\"}")
+        else {
+            return;
+        };
+        let Some(items) = v.as_array() else {
+            self.wrong_type("$.strips", v, "an array");
+            return;
+        };
+        if items.is_empty() {
+            self.push(
+                "$.strips",
+                "is empty; list at least one strip (a LAS/LAZ file of one scanner on one trajectory)",
+            );
+        }
+        let allowed = STRIP_FIELDS.map(String::from);
+        let mut seen: HashMap<String, usize> = HashMap::new();
+        for (i, item) in items.iter().enumerate() {
+            let path = format!("$.strips[{i}]");
+            let Some(map) = self.object(&path, item, &allowed) else { continue };
+            if let Some(id) = self.id(&path, map, "strip id") {
+                if let Some(first) = seen.get(&id) {
+                    self.push(
+                        &child(&path, "id"),
+                        format!("duplicate strip id {id:?} (also $.strips[{first}]); give every strip a unique id"),
+                    );
+                } else {
+                    seen.insert(id, i);
+                }
+            }
+            if let Some(t) = self.required_str(&path, map, "trajectory", "the id of an entry of $.trajectories") {
+                // When $.trajectories itself is broken that is reported once, not again per strip.
+                if trajectories.is_some_and(|ids| !ids.iter().any(|x| x == t)) {
+                    self.push(
+                        &child(&path, "trajectory"),
+                        format!(
+                            "trajectory {t:?} is not listed; add a trajectory with id {t:?} to $.trajectories or fix \
+                             the strip's trajectory field"
+                        ),
+                    );
+                }
+            }
+            if let Some(s) = self.required_str(&path, map, "scanner", "a key of $.scanners") {
+                if let Some(names) = scanners.filter(|names| !names.iter().any(|x| x == s)) {
+                    let known = if names.is_empty() { "none".to_string() } else { names.join(", ") };
+                    self.push(
+                        &child(&path, "scanner"),
+                        format!(
+                            "scanner {s:?} is not listed (known: {known}); add {s:?} to $.scanners or fix the strip's \
+                             scanner field"
+                        ),
+                    );
+                }
+            }
+            self.uri(&path, map);
+        }
+    }
+
+    fn parameters(&mut self, v: &Value) {
+        let before = self.problems.len();
+        // The defaults' JSON shape is the schema: new fields in core are picked up automatically.
+        let template = match serde_json::to_value(Parameters::default()) {
+            Ok(t) => t,
+            Err(e) => return self.push("$.parameters", format!("internal error describing parameters: {e}")),
+        };
+        self.like("$.parameters", v, &template, false);
+        if self.problems.len() > before {
+            return;
+        }
+        match serde_json::from_value::<Parameters>(v.clone()) {
+            Ok(p) => {
+                for pp in p.problems() {
+                    self.push(
+                        &format!("$.parameters.{}", pp.field),
+                        format!("{}; change the value (or omit the field to use the paper's default)", pp.problem),
+                    );
+                }
+            }
+            Err(e) => self.push("$.parameters", e.to_string()),
+        }
+    }
+
+    /// Checks `v` against the shape of `template`. Objects nested in arrays (schedule steps)
+    /// need the fields core declares required; the top-level parameters object needs none
+    /// (every field has a default).
+    fn like(&mut self, path: &str, v: &Value, template: &Value, all_required: bool) {
+        match template {
+            Value::Object(t) => {
+                let allowed: Vec<String> = t.keys().cloned().collect();
+                let Some(map) = self.object(path, v, &allowed) else { return };
+                for (key, sub) in t {
+                    match map.get(key) {
+                        Some(x) => self.like(&child(path, key), x, sub, true),
+                        None if all_required => {
+                            self.push(&child(path, key), format!("missing required field {key:?}; add it"))
+                        }
+                        None => {}
+                    }
+                }
+            }
+            Value::Array(t) => {
+                let Some(items) = v.as_array() else { return self.wrong_type(path, v, "an array") };
+                if let Some(element) = t.first() {
+                    for (i, x) in items.iter().enumerate() {
+                        let item = format!("{path}[{i}]");
+                        self.like(&item, x, element, false);
+                        if let Some(map) = x.as_object() {
+                            for key in precimap_core::IterationStep::REQUIRED_FIELDS {
+                                if !map.contains_key(key) {
+                                    self.push(&child(&item, key), format!("missing required field {key:?}; add it"));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            Value::Number(_) if !v.is_number() => self.wrong_type(path, v, "a number"),
+            Value::String(_) if !v.is_string() => self.wrong_type(path, v, "a string"),
+            Value::Bool(_) if !v.is_boolean() => self.wrong_type(path, v, "a boolean"),
+            _ => {}
+        }
+    }
+}
+
+/// Short description of a value for messages: the value itself when small.
+fn describe(v: &Value) -> String {
+    let s = v.to_string();
+    if s.len() <= 40 {
+        s
+    } else {
+        type_name(v).to_string()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOOD: &str = r#"{
+      "name": "hannover-double-8",
+      "scanners": {
+        "left":  {"lever_arm_m": [-0.6,  0.35, 0.45], "boresight_deg": [0, 0, 0]},
+        "right": {"lever_arm_m": [-0.6, -0.35, 0.45]}
+      },
+      "trajectories": [{"id": "p01", "uri": "trajectories/p01.csv"}, {"id": "p02", "uri": "./trajectories/p02.csv"}],
+      "strips": [
+        {"id": "p01-left", "trajectory": "p01", "scanner": "left", "uri": "strips/p01-left.laz"},
+        {"id": "p02-right", "trajectory": "p02", "scanner": "right", "uri": "strips/p02-right.las"}
+      ],
+      "parameters": {"anchor_spacing_m": 1.0, "schedule": [{"grid_m": 0.1, "threshold_m": 0.3}]}
+    }"#;
+
+    fn with(edit: impl FnOnce(&mut Value)) -> String {
+        let mut v: Value = serde_json::from_str(GOOD).unwrap();
+        edit(&mut v);
+        v.to_string()
+    }
+
+    fn problems(text: &str) -> Vec<ManifestProblem> {
+        match parse_manifest(text) {
+            Err(ManifestError::Invalid { problems, .. }) => problems,
+            other => panic!("expected problems, got {other:?}"),
+        }
+    }
+
+    fn has(problems: &[ManifestProblem], path: &str, needle: &str) -> bool {
+        problems.iter().any(|p| p.path == path && p.message.contains(needle))
+    }
+
+    #[test]
+    fn good_manifest_parses_with_defaults() {
+        let m = parse_manifest(GOOD).unwrap();
+        assert_eq!(m.scanners["right"].boresight_deg, [0.0; 3]);
+        assert_eq!(m.parameters.anchor_spacing_m, 1.0);
+        assert_eq!(m.parameters.tile_size_m, 15.0);
+        assert_eq!(m.strips[1].scanner, "right");
+        // Serializing and parsing again is the identity (the simulator writes manifests).
+        let again = parse_manifest(&serde_json::to_string(&m).unwrap()).unwrap();
+        assert_eq!(again, m);
+        let no_params = with(|v| {
+            v.as_object_mut().unwrap().remove("parameters");
+        });
+        assert_eq!(parse_manifest(&no_params).unwrap().parameters, Parameters::default());
+    }
+
+    #[test]
+    fn unknown_fields_at_every_level() {
+        let text = with(|v| {
+            v["nmae"] = Value::from("x");
+            v["parameters"]["anchor_spacing"] = Value::from(1.0);
+            v["parameters"]["schedule"][0]["grid"] = Value::from(1.0);
+            v["strips"][1]["scaner"] = Value::from("left");
+            v["scanners"]["left"]["lever_arm"] = Value::from(1.0);
+            v["trajectories"][0]["url"] = Value::from("x");
+        });
+        let p = problems(&text);
+        assert!(has(&p, "$.nmae", "did you mean \"name\""), "{p:#?}");
+        assert!(has(&p, "$.parameters.anchor_spacing", "did you mean \"anchor_spacing_m\""), "{p:#?}");
+        assert!(has(&p, "$.parameters.schedule[0].grid", "unknown field"), "{p:#?}");
+        assert!(has(&p, "$.strips[1].scaner", "did you mean \"scanner\""), "{p:#?}");
+        assert!(has(&p, "$.scanners.left.lever_arm", "unknown field"), "{p:#?}");
+        assert!(has(&p, "$.trajectories[0].url", "unknown field"), "{p:#?}");
+        assert_eq!(p.len(), 6, "{p:#?}");
+    }
+
+    #[test]
+    fn duplicate_ids() {
+        let text = with(|v| {
+            v["trajectories"][1]["id"] = Value::from("p01");
+            v["strips"][1]["id"] = Value::from("p01-left");
+            v["strips"][1]["trajectory"] = Value::from("p01");
+        });
+        let p = problems(&text);
+        assert!(has(&p, "$.trajectories[1].id", "duplicate trajectory id \"p01\" (also $.trajectories[0])"), "{p:#?}");
+        assert!(has(&p, "$.strips[1].id", "duplicate strip id \"p01-left\" (also $.strips[0])"), "{p:#?}");
+        assert_eq!(p.len(), 2, "{p:#?}");
+    }
+
+    #[test]
+    fn missing_trajectory_and_scanner() {
+        let text = with(|v| {
+            v["strips"][1]["trajectory"] = Value::from("p07");
+            v["strips"][0]["scanner"] = Value::from("middle");
+        });
+        let p = problems(&text);
+        assert!(
+            has(
+                &p,
+                "$.strips[1].trajectory",
+                "add a trajectory with id \"p07\" to $.trajectories or fix the strip's trajectory field"
+            ),
+            "{p:#?}"
+        );
+        assert!(has(&p, "$.strips[0].scanner", "scanner \"middle\" is not listed (known: left, right)"), "{p:#?}");
+    }
+
+    #[test]
+    fn unsafe_uris() {
+        for (uri, needle) in [
+            ("file:///etc/passwd", "scheme"),
+            ("../x.las", "'..'"),
+            ("/abs.las", "absolute"),
+            ("s3://b/k", "scheme"),
+            ("http://example.com/a.laz", "scheme"),
+            ("C:/data/a.laz", "drive"),
+            ("strips\\a.laz", "backslash"),
+            ("", "empty"),
+            ("a\0b.las", "control"),
+            ("strips/../../x.las", "'..'"),
+            ("strips//a.las", "empty path component"),
+            (".", "does not name a file"),
+        ] {
+            let text = with(|v| v["strips"][0]["uri"] = Value::from(uri));
+            let p = problems(&text);
+            assert!(has(&p, "$.strips[0].uri", needle), "{uri:?}: {p:#?}");
+            assert!(resolve_uri(Path::new("/m"), uri).is_err());
+        }
+        let text = with(|v| v["trajectories"][1]["uri"] = Value::from("/etc/passwd"));
+        assert!(has(&problems(&text), "$.trajectories[1].uri", "absolute"));
+        assert_eq!(resolve_uri(Path::new("/m"), "./strips/a.laz").unwrap(), Path::new("/m/strips/a.laz"));
+        assert_eq!(resolve_uri(Path::new("m"), "a.laz").unwrap(), Path::new("m/a.laz"));
+    }
+
+    #[test]
+    fn malformed_json_has_line_and_column() {
+        let p = problems("{\n  \"name\": \"x\",\n  \"strips\": [1,],\n}");
+        assert_eq!(p.len(), 1);
+        assert_eq!(p[0].path, "$");
+        assert!(p[0].message.contains("malformed JSON at line 3, column"), "{}", p[0].message);
+        // Out-of-range numbers cannot sneak in as infinities.
+        let text = with(|v| v["scanners"]["left"]["lever_arm_m"][0] = Value::from(1.0)).replacen("[1.0,", "[1e999,", 1);
+        assert!(problems(&text)[0].message.contains("malformed JSON"), "{text}");
+    }
+
+    #[test]
+    fn types_missing_fields_and_ids() {
+        let text = with(|v| {
+            v.as_object_mut().unwrap().remove("name");
+            v["scanners"]["left"]["lever_arm_m"] = serde_json::json!([1, 2]);
+            v["scanners"]["right"].as_object_mut().unwrap().remove("lever_arm_m");
+            v["scanners"]["bad/name"] = serde_json::json!({"lever_arm_m": [0, 0, 0]});
+            v["trajectories"][0]["id"] = Value::from(".hidden");
+            v["trajectories"][1]["uri"] = Value::from(5);
+            v["strips"][0].as_object_mut().unwrap().remove("uri");
+            v["parameters"]["tile_size_m"] = Value::from("15");
+            v["parameters"]["schedule"][0].as_object_mut().unwrap().remove("threshold_m");
+        });
+        let p = problems(&text);
+        assert!(has(&p, "$.name", "missing required field \"name\""), "{p:#?}");
+        assert!(has(&p, "$.scanners.left.lever_arm_m", "3 numbers"), "{p:#?}");
+        assert!(has(&p, "$.scanners.right.lever_arm_m", "missing required field \"lever_arm_m\""), "{p:#?}");
+        assert!(has(&p, "$.scanners[\"bad/name\"]", "not a safe file name"), "{p:#?}");
+        assert!(has(&p, "$.trajectories[0].id", "not a safe file name"), "{p:#?}");
+        assert!(has(&p, "$.trajectories[1].uri", "expected a string, found a number"), "{p:#?}");
+        assert!(has(&p, "$.strips[0].uri", "missing required field \"uri\""), "{p:#?}");
+        // The renamed trajectory is really gone, so the strip that used it is reported too.
+        assert!(has(&p, "$.strips[0].trajectory", "trajectory \"p01\" is not listed"), "{p:#?}");
+        assert!(has(&p, "$.parameters.tile_size_m", "expected a number, found a string"), "{p:#?}");
+        assert!(has(&p, "$.parameters.schedule[0].threshold_m", "missing required field"), "{p:#?}");
+        assert_eq!(p.len(), 10, "{p:#?}");
+        assert!(has(&problems("[]"), "$", "expected an object, found an array"));
+        let long = "a".repeat(65);
+        assert!(has(&problems(&with(|v| v["strips"][0]["id"] = Value::from(long))), "$.strips[0].id", "1–64"));
+    }
+
+    #[test]
+    fn empty_strips_and_parameter_ranges() {
+        let text = with(|v| {
+            v["strips"] = serde_json::json!([]);
+            v["parameters"]["anchor_spacing_m"] = Value::from(-1.0);
+            v["parameters"]["schedule"][0]["grid_m"] = Value::from(0.0);
+        });
+        let p = problems(&text);
+        assert!(has(&p, "$.strips", "is empty"), "{p:#?}");
+        assert!(has(&p, "$.parameters.anchor_spacing_m", "positive"), "{p:#?}");
+        assert!(has(&p, "$.parameters.schedule[0].grid_m", "positive"), "{p:#?}");
+        assert_eq!(p.len(), 3, "{p:#?}");
+    }
+
+    #[test]
+    fn all_problems_at_once_and_display_names_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("campaign.json");
+        let text = with(|v| {
+            v["extra"] = Value::from(1);
+            v["parameters"]["bogus"] = Value::from(1);
+            v["strips"][0]["uri"] = Value::from("../x.las");
+            v["strips"][1]["trajectory"] = Value::from("p07");
+            v["trajectories"][1]["id"] = Value::from("p01");
+        });
+        std::fs::write(&file, text).unwrap();
+        let e = load_manifest(&file).unwrap_err();
+        let ManifestError::Invalid { file: Some(f), problems } = &e else { panic!("{e:?}") };
+        assert_eq!(f, &file);
+        let paths: Vec<&str> = problems.iter().map(|p| p.path.as_str()).collect();
+        for want in
+            ["$.extra", "$.parameters.bogus", "$.strips[0].uri", "$.strips[1].trajectory", "$.trajectories[1].id"]
+        {
+            assert!(paths.contains(&want), "{want} missing from {paths:?}");
+        }
+        assert_eq!(problems.len(), 5, "{problems:#?}");
+        let shown = e.to_string();
+        assert_eq!(shown.lines().count(), 5, "{shown}");
+        for line in shown.lines() {
+            assert!(line.starts_with(&format!("{}: $", file.display())), "{line}");
+        }
+        let missing = load_manifest(&dir.path().join("none.json")).unwrap_err();
+        assert!(matches!(missing, ManifestError::Io { .. }) && missing.to_string().contains("none.json"));
+    }
+}

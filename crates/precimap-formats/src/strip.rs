@@ -1,0 +1,720 @@
+//! Strips: LAS 1.2–1.4 and LAZ point clouds in acquisition order (DESIGN §1), via the `las` crate.
+//!
+//! Points are handled as raw records in batches (`PointData`) rather than as `las::Point`s: reading
+//! decodes only the fields estimation needs, and rewriting patches x/y/z in place so every other
+//! byte of a record (flags, extra bytes, colour, waveform...) is carried over untouched.
+//!
+//! Headers are sanity-checked against the file size before the `las` crate sees them: a damaged
+//! header must give an error, never a huge allocation or an arithmetic overflow.
+
+use crate::atomic::PendingFile;
+use crate::FormatError;
+use las::point::Format;
+use las::{Builder, Header, PointData, PointDataBuilder, Reader, Transform, Vector, Version, Writer};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+/// Points per batch: large enough to amortise per-call overhead, small enough to stay in cache-ish
+/// memory (64 Ki points × ≤ 67 bytes ≈ 4 MB).
+const BATCH: usize = 1 << 16;
+
+/// Record layout (LAS 1.4 R15, tables 7–17). x, y, z are always the first 12 bytes.
+mod layout {
+    pub const FLAGS2: usize = 15;
+    pub const LEGACY_SCAN_RANK: usize = 16;
+    pub const LEGACY_GPS: usize = 20;
+    pub const EXT_CLASSIFICATION: usize = 16;
+    pub const EXT_USER_DATA: usize = 17;
+    pub const EXT_SCAN_ANGLE: usize = 18;
+    pub const EXT_POINT_SOURCE: usize = 20;
+    pub const EXT_GPS: usize = 22;
+    pub const FORMAT6_LEN: usize = 30;
+}
+
+/// LAS scan angle unit of point formats 6–10, degrees.
+const SCAN_ANGLE_UNIT_DEG: f32 = 0.006;
+
+/// What estimation needs from a strip, in file (acquisition) order, struct-of-arrays.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StripPoints {
+    pub x: Vec<f64>,
+    pub y: Vec<f64>,
+    pub z: Vec<f64>,
+    pub gps_time: Vec<f64>,
+    /// Scan angle in degrees (LAS 1.4 formats 6–10: the f32 the las crate returns for the 0.006°
+    /// field; formats 0–5: the rank value as degrees).
+    pub scan_angle_deg: Vec<f32>,
+    /// Scanner channel (0–3), 0 for formats without it.
+    pub channel: Vec<u8>,
+}
+
+impl StripPoints {
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+
+    fn with_capacity(n: usize) -> Self {
+        Self {
+            x: Vec::with_capacity(n),
+            y: Vec::with_capacity(n),
+            z: Vec::with_capacity(n),
+            gps_time: Vec::with_capacity(n),
+            scan_angle_deg: Vec::with_capacity(n),
+            channel: Vec::with_capacity(n),
+        }
+    }
+}
+
+/// Header facts about a strip, read without touching the points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StripInfo {
+    pub point_count: u64,
+    pub point_format: u8,
+    pub version: (u8, u8),
+    pub has_gps_time: bool,
+    pub compressed: bool,
+    pub bounds_min: [f64; 3],
+    pub bounds_max: [f64; 3],
+}
+
+fn is_laz_path(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("laz"))
+}
+
+fn point_error(path: &Path, index: u64, message: impl Into<String>) -> FormatError {
+    FormatError::Point { path: path.to_path_buf(), index, message: message.into() }
+}
+
+const DAMAGED: &str = "the file is damaged or was cut off in transfer: re-export or copy it again";
+
+// ---------------------------------------------------------------------------------------------
+// Opening and checking
+
+/// Reads the header with the checks that keep the `las` crate away from impossible values.
+fn open_header(path: &Path) -> Result<(File, Header), FormatError> {
+    let mut file = File::open(path).map_err(|e| FormatError::io(path, "open strip", e))?;
+    let file_len = file.metadata().map_err(|e| FormatError::io(path, "read strip", e))?.len();
+    let raw = las::raw::Header::read_from(BufReader::new(&mut file)).map_err(|e| {
+        FormatError::file(
+            path,
+            format!("not a LAS/LAZ file or its header is damaged ({e}); check that this is a LAS 1.0–1.4 or LAZ file"),
+        )
+    })?;
+    precheck(path, &mut file, file_len, &raw)?;
+    file.seek(SeekFrom::Start(0)).map_err(|e| FormatError::io(path, "read strip", e))?;
+    let header = Header::new(BufReader::new(&mut file))
+        .map_err(|e| FormatError::file(path, format!("cannot read the LAS header or its VLRs ({e}); {DAMAGED}")))?;
+    file.seek(SeekFrom::Start(0)).map_err(|e| FormatError::io(path, "read strip", e))?;
+    Ok((file, header))
+}
+
+fn precheck(path: &Path, file: &mut File, file_len: u64, raw: &las::raw::Header) -> Result<(), FormatError> {
+    let format = Format::new(raw.point_data_record_format).map_err(|_| {
+        FormatError::file(
+            path,
+            format!(
+                "header names point format {}, which is not a LAS 1.4 format (0–10); the header is damaged",
+                raw.point_data_record_format
+            ),
+        )
+    })?;
+    let scales = [raw.x_scale_factor, raw.y_scale_factor, raw.z_scale_factor];
+    let offsets = [raw.x_offset, raw.y_offset, raw.z_offset];
+    if scales.iter().any(|s| !s.is_finite() || *s == 0.0) || offsets.iter().any(|o| !o.is_finite()) {
+        return Err(FormatError::file(
+            path,
+            format!(
+                "header scale {scales:?} / offset {offsets:?} cannot turn stored integers into coordinates; {DAMAGED}"
+            ),
+        ));
+    }
+    let legacy = u64::from(raw.number_of_point_records);
+    let n = if legacy != 0 { legacy } else { raw.large_file.map_or(0, |l| l.number_of_point_records) };
+    let offset = u64::from(raw.offset_to_point_data);
+    let record = u64::from(raw.point_data_record_length);
+    if offset > file_len {
+        return Err(FormatError::file(
+            path,
+            format!("header says the points start at byte {offset}, but the file has only {file_len} bytes; {DAMAGED}"),
+        ));
+    }
+    // The las crate computes this end offset unchecked; garbage here must not overflow.
+    let Some(end) = n.checked_mul(record).and_then(|b| b.checked_add(offset)) else {
+        return Err(FormatError::file(path, format!("header declares an impossible {n} points; {DAMAGED}")));
+    };
+    if !format.is_compressed && end > file_len {
+        let complete = (file_len - offset) / record.max(1);
+        return Err(point_error(
+            path,
+            complete,
+            format!(
+                "truncated: the header declares {n} points of {record} bytes, but the file ends after {complete} \
+                 complete points (at byte {file_len} of {end}); {DAMAGED}"
+            ),
+        ));
+    }
+    let io = |e| FormatError::io(path, "read strip", e);
+    if format.is_compressed && file_len >= offset + 8 {
+        // LAZ: point data starts with the chunk table's offset; a table past the end means a cut
+        // file, and a wild chunk count would make the decoder reserve gigabytes.
+        file.seek(SeekFrom::Start(offset)).map_err(io)?;
+        let table = read_u64(file).map_err(io)?;
+        if table > offset && table != u64::MAX {
+            if table.saturating_add(8) > file_len {
+                return Err(FormatError::file(
+                    path,
+                    format!(
+                        "truncated: the LAZ chunk table should be at byte {table}, but the file has only {file_len} \
+                         bytes; {DAMAGED}"
+                    ),
+                ));
+            }
+            file.seek(SeekFrom::Start(table + 4)).map_err(io)?;
+            let chunks = u64::from(read_u32(file).map_err(io)?);
+            if chunks > file_len {
+                return Err(FormatError::file(path, format!("LAZ chunk table claims {chunks} chunks; {DAMAGED}")));
+            }
+        }
+    }
+    if let Some(evlr) = raw.evlr.filter(|e| e.number_of_evlrs > 0 && e.start_of_first_evlr > 0) {
+        // The las crate reads the first EVLR and allocates its declared (u64) length.
+        let start = evlr.start_of_first_evlr;
+        let fits = if start.saturating_add(60) <= file_len {
+            file.seek(SeekFrom::Start(start + 20)).map_err(io)?;
+            let len = read_u64(file).map_err(io)?;
+            start.saturating_add(60).saturating_add(len) <= file_len
+        } else {
+            false
+        };
+        if !fits {
+            return Err(FormatError::file(
+                path,
+                format!("the extended VLR at byte {start} runs past the end of the file ({file_len} bytes); {DAMAGED}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+fn read_u64(r: &mut impl Read) -> std::io::Result<u64> {
+    let mut b = [0u8; 8];
+    r.read_exact(&mut b)?;
+    Ok(u64::from_le_bytes(b))
+}
+
+fn read_u32(r: &mut impl Read) -> std::io::Result<u32> {
+    let mut b = [0u8; 4];
+    r.read_exact(&mut b)?;
+    Ok(u32::from_le_bytes(b))
+}
+
+/// A strip opened for reading point batches.
+struct Source {
+    path: PathBuf,
+    reader: Reader,
+    n: u64,
+    next: u64,
+}
+
+impl Source {
+    fn open(path: &Path) -> Result<Self, FormatError> {
+        let (file, header) = open_header(path)?;
+        let n = header.number_of_points();
+        if header.point_format().is_compressed {
+            // The decoder steps through records by the LAZ item sizes (and panics on zero), so
+            // they must describe exactly the header's record length.
+            let record = u64::from(header.point_format().len());
+            let items = header.laz_vlr().map(|v| v.items_size()).map_err(|e| {
+                FormatError::file(path, format!("cannot read the LAZ compression description ({e}); {DAMAGED}"))
+            })?;
+            if items != record {
+                return Err(FormatError::file(
+                    path,
+                    format!("LAZ items describe {items}-byte points but the header says {record} bytes; {DAMAGED}"),
+                ));
+            }
+        }
+        let reader = Reader::new(BufReader::with_capacity(1 << 20, file))
+            .map_err(|e| FormatError::file(path, format!("cannot start decoding the point data ({e}); {DAMAGED}")))?;
+        Ok(Self { path: path.to_path_buf(), reader, n, next: 0 })
+    }
+
+    fn batch_buffer(&self) -> PointData {
+        PointDataBuilder::new().for_header(self.reader.header()).build()
+    }
+
+    /// Fills `pd` with the next batch; returns the index of its first point, or None at the end.
+    fn next_batch(&mut self, pd: &mut PointData) -> Result<Option<u64>, FormatError> {
+        if self.next >= self.n {
+            return Ok(None);
+        }
+        let first = self.next;
+        match self.reader.fill_points(BATCH as u64, pd) {
+            Ok(0) => Err(point_error(&self.path, first, format!("point data ends early; {DAMAGED}"))),
+            Ok(k) => {
+                self.next += k;
+                Ok(Some(first))
+            }
+            Err(e) => Err(self.locate_failure(first, e)),
+        }
+    }
+
+    /// Batches fail as a whole; re-decode the failed batch point by point to name the bad point.
+    fn locate_failure(&self, first: u64, batch_error: las::Error) -> FormatError {
+        let last = (first + BATCH as u64).min(self.n);
+        let found = (|| {
+            let file = File::open(&self.path).ok()?;
+            let mut r = Reader::new(BufReader::new(file)).ok()?;
+            r.seek(first).ok()?;
+            let mut one = PointDataBuilder::new().for_header(r.header()).build();
+            (first..last).find_map(|i| r.fill_points(1, &mut one).err().map(|e| (i, e)))
+        })();
+        match found {
+            Some((i, e)) => point_error(&self.path, i, format!("cannot decode point data ({e}); {DAMAGED}")),
+            None => point_error(
+                &self.path,
+                first,
+                format!("cannot decode points {first}..{last} ({batch_error}); {DAMAGED}"),
+            ),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+
+/// Header facts only: cheap, does not decode points.
+pub fn strip_info(path: &Path) -> Result<StripInfo, FormatError> {
+    let (_, header) = open_header(path)?;
+    let format = header.point_format();
+    let number = format
+        .to_u8()
+        .map_err(|e| FormatError::file(path, format!("unsupported point format ({e}); re-export as LAS 1.2–1.4")))?;
+    let b = header.bounds();
+    Ok(StripInfo {
+        point_count: header.number_of_points(),
+        point_format: number,
+        version: (header.version().major, header.version().minor),
+        has_gps_time: format.has_gps_time,
+        compressed: format.is_compressed,
+        bounds_min: [b.min.x, b.min.y, b.min.z],
+        bounds_max: [b.max.x, b.max.y, b.max.z],
+    })
+}
+
+/// Reads the fields estimation needs. The whole strip is held in memory (bounded by strip size).
+pub fn read_strip(path: &Path) -> Result<StripPoints, FormatError> {
+    let mut src = Source::open(path)?;
+    let format = *src.reader.header().point_format();
+    if !format.has_gps_time {
+        let number = format.to_u8().unwrap_or(0);
+        return Err(FormatError::file(
+            path,
+            format!(
+                "point format {number} has no GPS time, which is required to place points on the trajectory; \
+                 re-export with GPS time: point format 1, 3 or 6–10"
+            ),
+        ));
+    }
+    if src.n == 0 {
+        return Err(FormatError::file(path, "has no points; export the strip again or remove it from the manifest"));
+    }
+    // LAS sizes were checked against the file; a LAZ header's count is not trusted for reservation.
+    let reserve = if format.is_compressed { src.n.min(1 << 24) } else { src.n };
+    let mut out = StripPoints::with_capacity(usize::try_from(reserve).unwrap_or(0));
+    let t = *src.reader.header().transforms();
+    let (gps_at, extended) = if format.is_extended { (layout::EXT_GPS, true) } else { (layout::LEGACY_GPS, false) };
+    let mut pd = src.batch_buffer();
+    while let Some(first) = src.next_batch(&mut pd)? {
+        let record_len = pd.record_len();
+        for (j, rec) in pd.raw_bytes().chunks_exact(record_len).enumerate() {
+            let [x, y, z] = decode_xyz(rec, &t);
+            let gps = f64::from_le_bytes(bytes8(rec, gps_at));
+            if !gps.is_finite() {
+                return Err(point_error(
+                    path,
+                    first + j as u64,
+                    format!("GPS time is {gps}, not a finite number; the point data is damaged: re-export the strip"),
+                ));
+            }
+            let (angle, channel) = if extended {
+                let raw = i16::from_le_bytes([rec[layout::EXT_SCAN_ANGLE], rec[layout::EXT_SCAN_ANGLE + 1]]);
+                (f32::from(raw) * SCAN_ANGLE_UNIT_DEG, (rec[layout::FLAGS2] >> 4) & 3)
+            } else {
+                (f32::from(rec[layout::LEGACY_SCAN_RANK] as i8), 0)
+            };
+            out.x.push(x);
+            out.y.push(y);
+            out.z.push(z);
+            out.gps_time.push(gps);
+            out.scan_angle_deg.push(angle);
+            out.channel.push(channel);
+        }
+    }
+    Ok(out)
+}
+
+#[inline]
+fn bytes4(rec: &[u8], at: usize) -> [u8; 4] {
+    [rec[at], rec[at + 1], rec[at + 2], rec[at + 3]]
+}
+
+#[inline]
+fn bytes8(rec: &[u8], at: usize) -> [u8; 8] {
+    let mut b = [0u8; 8];
+    b.copy_from_slice(&rec[at..at + 8]);
+    b
+}
+
+#[inline]
+fn decode_xyz(rec: &[u8], t: &Vector<Transform>) -> [f64; 3] {
+    [
+        t.x.direct(i32::from_le_bytes(bytes4(rec, 0))),
+        t.y.direct(i32::from_le_bytes(bytes4(rec, 4))),
+        t.z.direct(i32::from_le_bytes(bytes4(rec, 8))),
+    ]
+}
+
+/// Integer coordinates for `xyz` on the file's grid, or a message saying why they do not fit.
+/// One grid step of margin at each end keeps the header's rounded bounds inside i32 as well.
+fn quantize(xyz: [f64; 3], t: &Vector<Transform>) -> Result<[i32; 3], String> {
+    if xyz.iter().any(|v| !v.is_finite()) {
+        return Err(format!("coordinates ({}, {}, {}) are not finite numbers", xyz[0], xyz[1], xyz[2]));
+    }
+    let mut out = [0i32; 3];
+    for (k, (v, tr)) in xyz.iter().zip([t.x, t.y, t.z]).enumerate() {
+        let q = ((v - tr.offset) / tr.scale).round();
+        let (lo, hi) = (f64::from(i32::MIN) + 1.0, f64::from(i32::MAX) - 1.0);
+        if !(lo..=hi).contains(&q) {
+            let axis = ["x", "y", "z"][k];
+            return Err(format!(
+                "{axis} = {v} does not fit the file's coordinate grid (scale {}, offset {}: representable {} to {}); \
+                 use an offset near the data or a coarser scale",
+                tr.scale,
+                tr.offset,
+                tr.direct(i32::MIN + 1),
+                tr.direct(i32::MAX - 1)
+            ));
+        }
+        out[k] = q as i32;
+    }
+    Ok(out)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+
+/// The file under a `las::Writer`. Once poisoned (after any error) it swallows all output while
+/// keeping consistent positions: the `las` writer finalises itself on drop and panics if that
+/// fails, so an abandoned writer must be able to "finish" into the void.
+struct Sink {
+    inner: BufWriter<File>,
+    poisoned: Arc<AtomicBool>,
+    pos: u64,
+    len: u64,
+}
+
+impl Sink {
+    fn fail<T>(&self, e: std::io::Error) -> std::io::Result<T> {
+        self.poisoned.store(true, Ordering::Relaxed);
+        Err(e)
+    }
+}
+
+impl Write for Sink {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = if self.poisoned.load(Ordering::Relaxed) {
+            buf.len()
+        } else {
+            match self.inner.write(buf) {
+                Ok(n) => n,
+                Err(e) => return self.fail(e),
+            }
+        };
+        self.pos += n as u64;
+        self.len = self.len.max(self.pos);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        if self.poisoned.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        self.inner.flush().or_else(|e| self.fail(e))
+    }
+}
+
+impl Seek for Sink {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        if self.poisoned.load(Ordering::Relaxed) {
+            let base = match to {
+                SeekFrom::Start(p) => return Ok(self.set_pos(p)),
+                SeekFrom::Current(d) => self.pos.checked_add_signed(d),
+                SeekFrom::End(d) => self.len.checked_add_signed(d),
+            };
+            return Ok(self.set_pos(base.unwrap_or(0)));
+        }
+        match self.inner.seek(to) {
+            Ok(p) => Ok(self.set_pos(p)),
+            Err(e) => self.fail(e),
+        }
+    }
+}
+
+impl Sink {
+    fn set_pos(&mut self, p: u64) -> u64 {
+        self.pos = p;
+        self.len = self.len.max(p);
+        p
+    }
+}
+
+/// A strip being written to a hidden temporary that is renamed into place by `finish`.
+struct OutStrip {
+    path: PathBuf,
+    writer: Option<Writer<Sink>>,
+    poisoned: Arc<AtomicBool>,
+    pending: Option<PendingFile>,
+}
+
+impl OutStrip {
+    fn create(path: &Path, header: Header) -> Result<Self, FormatError> {
+        let (pending, file) = PendingFile::create(path)?;
+        let poisoned = Arc::new(AtomicBool::new(false));
+        let sink = Sink { inner: BufWriter::with_capacity(1 << 20, file), poisoned: poisoned.clone(), pos: 0, len: 0 };
+        let writer = Writer::new(sink, header)
+            .map_err(|e| FormatError::file(path, format!("cannot start writing the strip: {e}")))?;
+        Ok(Self { path: path.to_path_buf(), writer: Some(writer), poisoned, pending: Some(pending) })
+    }
+
+    fn broken(&self) -> FormatError {
+        FormatError::file(&self.path, "an earlier write to this strip failed; the file was not created")
+    }
+
+    fn write(&mut self, pd: &PointData) -> Result<(), FormatError> {
+        let Some(w) = self.writer.as_mut().filter(|_| !self.poisoned.load(Ordering::Relaxed)) else {
+            return Err(self.broken());
+        };
+        w.write_points(pd).map_err(|e| {
+            self.poisoned.store(true, Ordering::Relaxed);
+            FormatError::file(&self.path, format!("cannot write points: {e}"))
+        })
+    }
+
+    fn finish(mut self) -> Result<(), FormatError> {
+        let Some(mut w) = self.writer.take().filter(|_| !self.poisoned.load(Ordering::Relaxed)) else {
+            return Err(self.broken());
+        };
+        if let Err(e) = w.close() {
+            // A writer whose close failed would retry (and panic) on drop; leaking it in this
+            // already-failed case is the only safe exit.
+            self.poisoned.store(true, Ordering::Relaxed);
+            std::mem::forget(w);
+            return Err(FormatError::file(&self.path, format!("cannot finish the strip: {e}")));
+        }
+        let sink =
+            w.into_inner().map_err(|e| FormatError::file(&self.path, format!("cannot finish the strip: {e}")))?;
+        if sink.poisoned.load(Ordering::Relaxed) {
+            return Err(self.broken());
+        }
+        sink.inner.into_inner().map_err(|e| FormatError::io(&self.path, "write strip", e.into_error()))?;
+        match self.pending.take() {
+            Some(p) => p.commit(),
+            None => Err(self.broken()),
+        }
+    }
+}
+
+impl Drop for OutStrip {
+    fn drop(&mut self) {
+        if let Some(w) = self.writer.take() {
+            // Abandoned (error or early drop): finish into the void; `pending` then deletes the temporary.
+            self.poisoned.store(true, Ordering::Relaxed);
+            drop(w);
+        }
+    }
+}
+
+/// One point for [`StripWriter::push`].
+#[derive(Clone, Copy, Debug, Default)]
+pub struct NewPoint {
+    pub position: [f64; 3],
+    pub gps_time: f64,
+    /// Degrees, −180..=180; stored in 0.006° units.
+    pub scan_angle_deg: f32,
+    /// Scanner channel 0–3.
+    pub channel: u8,
+    pub intensity: u16,
+    /// 0–15.
+    pub return_number: u8,
+    /// 0–15.
+    pub number_of_returns: u8,
+    pub point_source_id: u16,
+    pub classification: u8,
+}
+
+/// Writes a new strip: LAS 1.4, point format 6, given offset and scale, LAZ if the path ends in
+/// `.laz`. The file appears under its name only when [`StripWriter::finish`] succeeds.
+pub struct StripWriter {
+    out: OutStrip,
+    transforms: Vector<Transform>,
+    batch: PointData,
+    batch_len: usize,
+    written: u64,
+}
+
+impl std::fmt::Debug for StripWriter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StripWriter")
+            .field("path", &self.out.path)
+            .field("points", &(self.written + self.batch_len as u64))
+            .finish_non_exhaustive()
+    }
+}
+
+impl StripWriter {
+    pub fn create(
+        path: &Path,
+        offset: [f64; 3],
+        scale: f64,
+        system_identifier: &str,
+        generating_software: &str,
+    ) -> Result<Self, FormatError> {
+        if !(scale.is_finite() && scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
+            return Err(FormatError::file(
+                path,
+                format!("cannot create strip: scale {scale} must be a positive number and offsets {offset:?} finite"),
+            ));
+        }
+        for (what, s) in [("system identifier", system_identifier), ("generating software", generating_software)] {
+            if s.len() > 32 || !s.is_ascii() {
+                return Err(FormatError::file(
+                    path,
+                    format!("cannot create strip: {what} {s:?} must be ASCII of at most 32 bytes"),
+                ));
+            }
+        }
+        let mut b = Builder::from(Version::new(1, 4));
+        b.point_format = Format::new(6).map_err(|e| FormatError::file(path, e.to_string()))?;
+        b.point_format.is_compressed = is_laz_path(path);
+        let axis = |o: f64| Transform { scale, offset: o };
+        b.transforms = Vector { x: axis(offset[0]), y: axis(offset[1]), z: axis(offset[2]) };
+        b.system_identifier = system_identifier.to_string();
+        b.generating_software = generating_software.to_string();
+        let header =
+            b.into_header().map_err(|e| FormatError::file(path, format!("cannot create strip header: {e}")))?;
+        let transforms = *header.transforms();
+        let batch = PointDataBuilder::new().for_header(&header).build();
+        let out = OutStrip::create(path, header)?;
+        Ok(Self { out, transforms, batch, batch_len: 0, written: 0 })
+    }
+
+    /// Appends a point. An invalid point is rejected with an error naming its index and is not
+    /// written; the writer stays usable.
+    pub fn push(&mut self, p: &NewPoint) -> Result<(), FormatError> {
+        let index = self.written + self.batch_len as u64;
+        let bad = |m: String| point_error(&self.out.path, index, m);
+        let xyz = quantize(p.position, &self.transforms).map_err(bad)?;
+        if !p.gps_time.is_finite() {
+            return Err(bad(format!("GPS time {} is not a finite number", p.gps_time)));
+        }
+        if !(p.scan_angle_deg.is_finite() && (-180.0..=180.0).contains(&p.scan_angle_deg)) {
+            return Err(bad(format!("scan angle {}° is outside −180°..180°", p.scan_angle_deg)));
+        }
+        if p.channel > 3 || p.return_number > 15 || p.number_of_returns > 15 {
+            return Err(bad(format!(
+                "channel {} (0–3), return number {} or number of returns {} (0–15) out of range",
+                p.channel, p.return_number, p.number_of_returns
+            )));
+        }
+        let scan = (p.scan_angle_deg / SCAN_ANGLE_UNIT_DEG).round() as i16;
+
+        let at = self.batch_len * layout::FORMAT6_LEN;
+        let bytes = self.batch.resize_for(self.batch_len + 1);
+        let rec = &mut bytes[at..at + layout::FORMAT6_LEN];
+        rec[0..4].copy_from_slice(&xyz[0].to_le_bytes());
+        rec[4..8].copy_from_slice(&xyz[1].to_le_bytes());
+        rec[8..12].copy_from_slice(&xyz[2].to_le_bytes());
+        rec[12..14].copy_from_slice(&p.intensity.to_le_bytes());
+        rec[14] = (p.number_of_returns << 4) | p.return_number;
+        rec[layout::FLAGS2] = p.channel << 4;
+        rec[layout::EXT_CLASSIFICATION] = p.classification;
+        rec[layout::EXT_USER_DATA] = 0;
+        rec[layout::EXT_SCAN_ANGLE..layout::EXT_SCAN_ANGLE + 2].copy_from_slice(&scan.to_le_bytes());
+        rec[layout::EXT_POINT_SOURCE..layout::EXT_POINT_SOURCE + 2].copy_from_slice(&p.point_source_id.to_le_bytes());
+        rec[layout::EXT_GPS..layout::EXT_GPS + 8].copy_from_slice(&p.gps_time.to_le_bytes());
+        self.batch_len += 1;
+        if self.batch_len == BATCH {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), FormatError> {
+        if self.batch_len > 0 {
+            self.out.write(&self.batch)?;
+            self.written += self.batch_len as u64;
+            self.batch_len = 0;
+            self.batch.resize_for(0);
+        }
+        Ok(())
+    }
+
+    /// Completes the file (header bounds and counts) and moves it into place; returns the number
+    /// of points written.
+    pub fn finish(mut self) -> Result<u64, FormatError> {
+        self.flush()?;
+        let n = self.written;
+        self.out.finish()?;
+        Ok(n)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rewriting
+
+/// Rewrites a strip point by point with new coordinates, keeping every other attribute (all
+/// record bytes including extra bytes, VLRs and EVLRs, point format, version, scale and offset);
+/// LAZ if `dst` ends in `.laz`. `new_xyz(index, old_xyz)` returns the new coordinates. Streams in
+/// batches; `dst` appears only on success (so `dst == src` is safe).
+pub fn rewrite_strip(
+    src: &Path,
+    dst: &Path,
+    mut new_xyz: impl FnMut(usize, [f64; 3]) -> [f64; 3],
+) -> Result<u64, FormatError> {
+    let mut source = Source::open(src)?;
+    let mut b = Builder::from(source.reader.header().clone());
+    // The compressor adds its own laszip VLR; the source's would be stale or duplicated.
+    b.vlrs.retain(|v| !las::laz::is_laszip_vlr(v));
+    b.evlrs.retain(|v| !las::laz::is_laszip_vlr(v));
+    b.point_format.is_compressed = is_laz_path(dst);
+    let header = b.into_header().map_err(|e| FormatError::file(src, format!("cannot copy the header: {e}")))?;
+    let t = *header.transforms();
+    let mut out = OutStrip::create(dst, header)?;
+    let mut pd = source.batch_buffer();
+    while let Some(first) = source.next_batch(&mut pd)? {
+        let n = pd.len();
+        let record_len = pd.record_len();
+        let bytes = pd.resize_for(n);
+        for (j, rec) in bytes.chunks_exact_mut(record_len).enumerate() {
+            let index = first + j as u64;
+            let new = new_xyz(index as usize, decode_xyz(rec, &t));
+            let q = quantize(new, &t).map_err(|m| {
+                point_error(src, index, format!("new coordinates cannot be stored in {}: {m}", dst.display()))
+            })?;
+            rec[0..4].copy_from_slice(&q[0].to_le_bytes());
+            rec[4..8].copy_from_slice(&q[1].to_le_bytes());
+            rec[8..12].copy_from_slice(&q[2].to_le_bytes());
+        }
+        out.write(&pd)?;
+    }
+    out.finish()?;
+    Ok(source.next)
+}
