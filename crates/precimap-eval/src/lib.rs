@@ -1,1 +1,442 @@
 //! Accuracy against simulated truth: strip offset spread, surface error, trajectory error.
+//!
+//! `precimap evaluate --truth CAMP/truth --result OUT` compares the campaign's input ("before")
+//! and the estimation's output ("after") with what the simulator knows:
+//!
+//! - `CAMP/manifest.json`: the campaign (its strips and trajectories, URIs relative to `CAMP`);
+//! - `CAMP/truth/{strip}.truth`: per point, in file order, the noise-free position, true normal,
+//!   surface id and class ([`precimap_sim::truth`]);
+//! - `CAMP/truth/trajectories/{trajectory}.csv`: the true trajectories;
+//! - `OUT/strips/{strip}.las|.laz`, `OUT/trajectories/{trajectory}.csv`, `OUT/report.json`.
+//!
+//! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
+//! a strip per worker; everything accumulated across strips is constant-size or per tile.
+
+mod stats;
+mod trajectory;
+
+pub use stats::{signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, TileStripMeans};
+pub use trajectory::{trajectory_errors, TrajectoryErrors};
+
+use precimap_core::TileKey;
+use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, resolve_uri, FormatError, ManifestError};
+use precimap_sim::truth::{SurfaceClass, TruthError, TruthReader};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Tiles of the strip offset spread (the paper's tile size), keyed by the TRUE position so that
+/// before and after compare the same points.
+pub const SPREAD_TILE_M: f64 = 15.0;
+/// A strip takes part in a tile's spread with at least this many surface points there: fewer give
+/// a mean dominated by noise and local surface detail.
+pub const SPREAD_MIN_POINTS: usize = 200;
+/// Points whose result GPS time differs from the input's by more than this are out of order.
+const GPS_TIME_TOLERANCE_S: f64 = 1e-6;
+
+/// One figure before (input) and after (result) estimation. NaN (JSON `null`) when there was
+/// nothing to measure.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Metric {
+    pub before: f64,
+    pub after: f64,
+}
+
+/// Surface error of the points of one class.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ClassEvaluation {
+    pub points: u64,
+    pub rms_m: Metric,
+    pub mean_m: Metric,
+    pub p95_abs_m: Metric,
+}
+
+/// Surface error of one strip's surface points.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct StripEvaluation {
+    pub id: String,
+    pub points: u64,
+    pub surface_points: u64,
+    pub rms_m: Metric,
+    pub mean_m: Metric,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TrajectoryEvaluation {
+    pub id: String,
+    /// Samples compared (input, result).
+    pub samples_before: u64,
+    pub samples_after: u64,
+    /// Samples outside the true trajectory's time span (input plus result), not compared.
+    pub samples_outside_truth: u64,
+    pub position_rms_m: Metric,
+    pub rotation_rms_deg: Metric,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Evaluation {
+    /// RMS over tile–strip pairs of a strip's mean signed normal error in a 15 m tile minus the
+    /// tile's mean over its strips: how well strips agree, independent of the absolute datum.
+    pub strip_offset_spread_m: Metric,
+    /// RMS of the signed normal error `(p − p_true)·n_true` over all surface points.
+    pub surface_error_rms_m: Metric,
+    /// Mean signed normal error over all surface points: a common (datum) shift.
+    pub surface_error_mean_m: Metric,
+    /// 95th percentile of |signed normal error| over all surface points (±0.25 %).
+    pub surface_error_p95_abs_m: Metric,
+    /// RMS of the 3D position error of all trajectories at their time stamps.
+    pub trajectory_error_rms_m: Metric,
+    /// RMS of the attitude error angle of all trajectories at their time stamps.
+    pub trajectory_rotation_error_rms_deg: Metric,
+    /// The last iteration's `points_used` (report.json) over the number of surface points.
+    pub surface_points_used_share: Option<f64>,
+    /// The last iteration's `points_used` from report.json, if present.
+    pub points_used_last_iteration: Option<u64>,
+    pub tile_strip_pairs: usize,
+    pub surface_points: u64,
+    pub points: u64,
+    pub strips: usize,
+    pub trajectory_samples: u64,
+    /// By surface class name (road, sidewalk, curb, facade, pole, car, roof); foliage has no
+    /// surface and is left out.
+    pub per_class: BTreeMap<String, ClassEvaluation>,
+    pub per_strip: Vec<StripEvaluation>,
+    pub per_trajectory: Vec<TrajectoryEvaluation>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("truth folder {}: {source}; pass the campaign's truth folder (CAMP/truth)", path.display())]
+    TruthDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Manifest(#[from] ManifestError),
+    #[error("{}: {what} {id:?}: {message}", manifest.display())]
+    Uri { manifest: PathBuf, what: &'static str, id: String, message: String },
+    #[error("{what} id {id:?} cannot name a file (it contains a path separator or is . or ..)")]
+    BadId { what: &'static str, id: String },
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    #[error(transparent)]
+    Truth(#[from] TruthError),
+    #[error("strip {strip}: the {which} strip {} has {found} points but its truth {} has {expected}; every point of the input must be kept, in order", path.display(), truth.display())]
+    PointCount { strip: String, which: &'static str, path: PathBuf, truth: PathBuf, found: u64, expected: u64 },
+    #[error("strip {strip}: no result strip: neither {} nor {} exists", las.display(), laz.display())]
+    MissingResultStrip { strip: String, las: PathBuf, laz: PathBuf },
+    #[error("trajectory {trajectory}: no corrected trajectory {}", path.display())]
+    MissingResultTrajectory { trajectory: String, path: PathBuf },
+    #[error("strip {strip}: point {index} of {} has GPS time {found} but the input's has {expected}; result points must keep the input order", path.display())]
+    PointOrder { strip: String, path: PathBuf, index: usize, found: f64, expected: f64 },
+    #[error("strip {strip}: truth point {index} of {} has an invalid normal {normal:?}", path.display())]
+    BadNormal { strip: String, path: PathBuf, index: u64, normal: [f32; 3] },
+    #[error("{}: {message}", path.display())]
+    Report { path: PathBuf, message: String },
+}
+
+/// Evaluates the result folder `result_dir` of `precimap run` against the truth folder
+/// `truth_dir` (`CAMP/truth`; the manifest is `CAMP/manifest.json`).
+pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalError> {
+    let truth_dir =
+        std::fs::canonicalize(truth_dir).map_err(|source| EvalError::TruthDir { path: truth_dir.into(), source })?;
+    // Canonical, so `..` of a symlinked or relative `truth` folder is the campaign folder.
+    let campaign_dir = truth_dir.parent().unwrap_or(&truth_dir).to_path_buf();
+    let manifest_path = campaign_dir.join("manifest.json");
+    let manifest = load_manifest(&manifest_path)?;
+    let input_uri = |what, id: &str, uri: &str| {
+        resolve_uri(&campaign_dir, uri).map_err(|message| EvalError::Uri {
+            manifest: manifest_path.clone(),
+            what,
+            id: id.to_string(),
+            message,
+        })
+    };
+
+    let mut strip_jobs = Vec::with_capacity(manifest.strips.len());
+    for s in &manifest.strips {
+        check_id("strip", &s.id)?;
+        strip_jobs.push((s.id.clone(), input_uri("strip", &s.id, &s.uri)?));
+    }
+    let mut trajectory_jobs = Vec::with_capacity(manifest.trajectories.len());
+    for t in &manifest.trajectories {
+        check_id("trajectory", &t.id)?;
+        trajectory_jobs.push((t.id.clone(), input_uri("trajectory", &t.id, &t.uri)?));
+    }
+
+    let strips: Vec<StripOutcome> = strip_jobs
+        .par_iter()
+        .enumerate()
+        .map(|(k, (id, input))| evaluate_strip(id, k as u32, input, &truth_dir, result_dir))
+        .collect::<Result<_, _>>()?;
+    let trajectories: Vec<(TrajectoryErrors, TrajectoryErrors)> = trajectory_jobs
+        .par_iter()
+        .map(|(id, input)| evaluate_trajectory(id, input, &truth_dir, result_dir))
+        .collect::<Result<_, _>>()?;
+    let report = read_report(&result_dir.join("report.json"))?;
+
+    Ok(assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, report))
+}
+
+fn check_id(what: &'static str, id: &str) -> Result<(), EvalError> {
+    if id.is_empty() || id == "." || id == ".." || id.contains(['/', '\\']) {
+        return Err(EvalError::BadId { what, id: id.to_string() });
+    }
+    Ok(())
+}
+
+/// Everything one strip contributes.
+#[derive(Debug)]
+struct StripOutcome {
+    points: u64,
+    before: ErrorStats,
+    after: ErrorStats,
+    per_class: BTreeMap<u8, (ErrorStats, ErrorStats)>,
+    tiles_before: TileStripMeans,
+    tiles_after: TileStripMeans,
+}
+
+fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
+    let las = result_dir.join("strips").join(format!("{id}.las"));
+    let laz = result_dir.join("strips").join(format!("{id}.laz"));
+    if las.is_file() {
+        Ok(las)
+    } else if laz.is_file() {
+        Ok(laz)
+    } else {
+        Err(EvalError::MissingResultStrip { strip: id.to_string(), las, laz })
+    }
+}
+
+fn evaluate_strip(
+    id: &str,
+    index: u32,
+    input: &Path,
+    truth_dir: &Path,
+    result_dir: &Path,
+) -> Result<StripOutcome, EvalError> {
+    let truth_path = truth_dir.join(format!("{id}.truth"));
+    let mut truth = TruthReader::open(&truth_path)?;
+    let expected = truth.len();
+    let count_error = |which, path: &Path, found: usize| EvalError::PointCount {
+        strip: id.to_string(),
+        which,
+        path: path.to_path_buf(),
+        truth: truth_path.clone(),
+        found: found as u64,
+        expected,
+    };
+    // Cheap checks first: a missing result should not cost reading the input.
+    let result_path = result_strip_path(result_dir, id)?;
+    let before = read_strip(input)?;
+    if before.len() as u64 != expected {
+        return Err(count_error("input", input, before.len()));
+    }
+    let after = read_strip(&result_path)?;
+    if after.len() as u64 != expected {
+        return Err(count_error("result", &result_path, after.len()));
+    }
+    if let Some(i) = (0..after.len()).find(|&i| (after.gps_time[i] - before.gps_time[i]).abs() > GPS_TIME_TOLERANCE_S) {
+        return Err(EvalError::PointOrder {
+            strip: id.to_string(),
+            path: result_path,
+            index: i,
+            found: after.gps_time[i],
+            expected: before.gps_time[i],
+        });
+    }
+
+    let mut out = StripOutcome {
+        points: expected,
+        before: ErrorStats::new(),
+        after: ErrorStats::new(),
+        per_class: BTreeMap::new(),
+        tiles_before: TileStripMeans::new(),
+        tiles_after: TileStripMeans::new(),
+    };
+    let mut i = 0usize;
+    while let Some(t) = truth.next_point()? {
+        let k = i;
+        i += 1;
+        if !t.class.is_surface() {
+            continue;
+        }
+        let pb = [before.x[k], before.y[k], before.z[k]];
+        let pa = [after.x[k], after.y[k], after.z[k]];
+        let bad_normal = || EvalError::BadNormal {
+            strip: id.to_string(),
+            path: truth_path.clone(),
+            index: k as u64,
+            normal: t.normal,
+        };
+        let eb = signed_normal_error(pb, t.position, t.normal).ok_or_else(bad_normal)?;
+        let ea = signed_normal_error(pa, t.position, t.normal).ok_or_else(bad_normal)?;
+        out.before.add(eb);
+        out.after.add(ea);
+        let class = out.per_class.entry(t.class as u8).or_default();
+        class.0.add(eb);
+        class.1.add(ea);
+        let tile = TileKey::of(t.position[0], t.position[1], SPREAD_TILE_M);
+        out.tiles_before.add(tile, index, eb);
+        out.tiles_after.add(tile, index, ea);
+    }
+    Ok(out)
+}
+
+/// Errors of the input and of the corrected trajectory against the truth.
+fn evaluate_trajectory(
+    id: &str,
+    input: &Path,
+    truth_dir: &Path,
+    result_dir: &Path,
+) -> Result<(TrajectoryErrors, TrajectoryErrors), EvalError> {
+    let truth = read_trajectory_csv(&truth_dir.join("trajectories").join(format!("{id}.csv")))?;
+    let result_path = result_dir.join("trajectories").join(format!("{id}.csv"));
+    if !result_path.is_file() {
+        return Err(EvalError::MissingResultTrajectory { trajectory: id.to_string(), path: result_path });
+    }
+    let before = trajectory_errors(&read_trajectory_csv(input)?, &truth);
+    let after = trajectory_errors(&read_trajectory_csv(&result_path)?, &truth);
+    Ok((before, after))
+}
+
+/// `points_used` of the last iteration in report.json; `None` without a report or that field.
+fn read_report(path: &Path) -> Result<Option<u64>, EvalError> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(EvalError::Report { path: path.into(), message: format!("cannot read: {e}") }),
+    };
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| EvalError::Report { path: path.into(), message: format!("not valid JSON: {e}") })?;
+    let last = value.get("iterations").and_then(|it| it.as_array()).and_then(|it| it.last());
+    Ok(last.and_then(|it| it.get("points_used")).and_then(|v| v.as_u64()))
+}
+
+fn metric(before: f64, after: f64) -> Metric {
+    Metric { before, after }
+}
+
+fn assemble(
+    strip_jobs: &[(String, PathBuf)],
+    strips: Vec<StripOutcome>,
+    trajectory_jobs: &[(String, PathBuf)],
+    trajectories: Vec<(TrajectoryErrors, TrajectoryErrors)>,
+    points_used: Option<u64>,
+) -> Evaluation {
+    let (mut before, mut after) = (ErrorStats::new(), ErrorStats::new());
+    let (mut tiles_before, mut tiles_after) = (TileStripMeans::new(), TileStripMeans::new());
+    let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
+    let mut per_strip = Vec::with_capacity(strips.len());
+    let mut points = 0;
+    for ((id, _), s) in strip_jobs.iter().zip(strips) {
+        points += s.points;
+        before.merge(&s.before);
+        after.merge(&s.after);
+        for (class, (b, a)) in &s.per_class {
+            let c = classes.entry(*class).or_default();
+            c.0.merge(b);
+            c.1.merge(a);
+        }
+        tiles_before.merge(s.tiles_before);
+        tiles_after.merge(s.tiles_after);
+        per_strip.push(StripEvaluation {
+            id: id.clone(),
+            points: s.points,
+            surface_points: s.before.count(),
+            rms_m: metric(s.before.rms(), s.after.rms()),
+            mean_m: metric(s.before.mean(), s.after.mean()),
+        });
+    }
+    let (spread_before, pairs) = tiles_before.spread(SPREAD_MIN_POINTS);
+    let (spread_after, _) = tiles_after.spread(SPREAD_MIN_POINTS);
+
+    let per_class = classes
+        .into_iter()
+        .map(|(class, (b, a))| {
+            let name = SurfaceClass::from_u8(class).map_or_else(|| format!("class-{class}"), |c| c.name().to_string());
+            let eval = ClassEvaluation {
+                points: b.count(),
+                rms_m: metric(b.rms(), a.rms()),
+                mean_m: metric(b.mean(), a.mean()),
+                p95_abs_m: metric(b.abs_quantile(0.95), a.abs_quantile(0.95)),
+            };
+            (name, eval)
+        })
+        .collect();
+
+    let (mut traj_before, mut traj_after) = (TrajectoryErrors::default(), TrajectoryErrors::default());
+    let per_trajectory = trajectory_jobs
+        .iter()
+        .zip(&trajectories)
+        .map(|((id, _), (b, a))| {
+            traj_before.merge(b);
+            traj_after.merge(a);
+            TrajectoryEvaluation {
+                id: id.clone(),
+                samples_before: b.samples,
+                samples_after: a.samples,
+                samples_outside_truth: b.outside_truth + a.outside_truth,
+                position_rms_m: metric(b.position_rms_m(), a.position_rms_m()),
+                rotation_rms_deg: metric(b.rotation_rms_deg(), a.rotation_rms_deg()),
+            }
+        })
+        .collect();
+
+    let surface_points = before.count();
+    Evaluation {
+        strip_offset_spread_m: metric(spread_before, spread_after),
+        surface_error_rms_m: metric(before.rms(), after.rms()),
+        surface_error_mean_m: metric(before.mean(), after.mean()),
+        surface_error_p95_abs_m: metric(before.abs_quantile(0.95), after.abs_quantile(0.95)),
+        trajectory_error_rms_m: metric(traj_before.position_rms_m(), traj_after.position_rms_m()),
+        trajectory_rotation_error_rms_deg: metric(traj_before.rotation_rms_deg(), traj_after.rotation_rms_deg()),
+        surface_points_used_share: points_used.filter(|_| surface_points > 0).map(|u| u as f64 / surface_points as f64),
+        points_used_last_iteration: points_used,
+        tile_strip_pairs: pairs,
+        surface_points,
+        points,
+        strips: strip_jobs.len(),
+        trajectory_samples: traj_after.samples,
+        per_class,
+        per_strip,
+        per_trajectory,
+    }
+}
+
+impl Evaluation {
+    /// A plain-text table for terminals (millimetres and millidegrees).
+    pub fn summary(&self) -> String {
+        let mut s = String::new();
+        let mut row = |name: &str, m: &Metric, scale: f64, unit: &str| {
+            let ratio = if m.before > 0.0 { format!("{:>7.1} %", 100.0 * m.after / m.before) } else { String::new() };
+            let _ = writeln!(s, "{name:<34} {:>12.3} {:>12.3} {unit:<5}{ratio}", m.before * scale, m.after * scale);
+        };
+        row("strip offset spread", &self.strip_offset_spread_m, 1e3, "mm");
+        row("surface error RMS", &self.surface_error_rms_m, 1e3, "mm");
+        row("surface error mean", &self.surface_error_mean_m, 1e3, "mm");
+        row("surface |error| 95th percentile", &self.surface_error_p95_abs_m, 1e3, "mm");
+        row("trajectory position error RMS", &self.trajectory_error_rms_m, 1e3, "mm");
+        row("trajectory attitude error RMS", &self.trajectory_rotation_error_rms_deg, 1e3, "mdeg");
+        for (name, c) in &self.per_class {
+            row(&format!("  {name} error RMS ({} points)", c.points), &c.rms_m, 1e3, "mm");
+        }
+        let mut out = format!("{:<34} {:>12} {:>12}\n", "metric", "before", "after");
+        out.push_str(&s);
+        let _ = writeln!(
+            out,
+            "{} strips, {} points, {} surface points, {} tile-strip pairs, {} trajectory samples",
+            self.strips, self.points, self.surface_points, self.tile_strip_pairs, self.trajectory_samples
+        );
+        if let Some(share) = self.surface_points_used_share {
+            let _ = writeln!(out, "points used in the last iteration: {:.1} % of surface points", 100.0 * share);
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,333 @@
+//! Pure, mergeable statistics the evaluation is built from: error moments with an |error|
+//! histogram for percentiles, and per tile–strip means for the strip offset spread.
+
+use precimap_core::TileKey;
+use std::collections::{BTreeMap, HashMap};
+
+/// Smallest |error| the histogram resolves (1 µm); anything below falls into the first bin.
+const HIST_MIN_M: f64 = 1e-6;
+/// Largest |error| the histogram resolves (100 m); anything above falls into the last bin.
+const HIST_MAX_M: f64 = 100.0;
+/// Bin edges grow by this ratio: percentiles are exact to ±0.25 %.
+const HIST_RATIO: f64 = 1.005;
+
+/// Histogram of |error| on logarithmic bins: constant memory (~30 KB) whatever the number of
+/// points, mergeable across strips and threads, percentiles to ±0.25 %.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AbsHistogram {
+    /// `bins[0]`: |e| < HIST_MIN_M; `bins[k]` for k ≥ 1: HIST_MIN_M·r^(k−1) ≤ |e| < HIST_MIN_M·r^k;
+    /// the last bin also takes everything larger.
+    bins: Vec<u64>,
+}
+
+impl Default for AbsHistogram {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl AbsHistogram {
+    pub fn new() -> Self {
+        Self { bins: vec![0; Self::bin_count()] }
+    }
+
+    fn bin_count() -> usize {
+        ((HIST_MAX_M / HIST_MIN_M).ln() / HIST_RATIO.ln()).ceil() as usize + 2
+    }
+
+    fn index(abs: f64) -> usize {
+        if abs.is_nan() || abs < HIST_MIN_M {
+            return 0;
+        }
+        let k = ((abs / HIST_MIN_M).ln() / HIST_RATIO.ln()).floor();
+        // `as` saturates, so +∞ lands in the last bin too.
+        ((k as usize).saturating_add(1)).min(Self::bin_count() - 1)
+    }
+
+    pub fn add(&mut self, e: f64) {
+        self.bins[Self::index(e.abs())] += 1;
+    }
+
+    pub fn merge(&mut self, other: &Self) {
+        for (a, b) in self.bins.iter_mut().zip(&other.bins) {
+            *a += b;
+        }
+    }
+
+    pub fn count(&self) -> u64 {
+        self.bins.iter().sum()
+    }
+
+    /// The `q`-quantile (0 < q ≤ 1, nearest rank) of |error| as the geometric centre of its bin;
+    /// NaN when empty.
+    pub fn quantile(&self, q: f64) -> f64 {
+        let n = self.count();
+        if n == 0 {
+            return f64::NAN;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * n as f64).ceil() as u64).clamp(1, n);
+        let mut seen = 0;
+        for (k, &c) in self.bins.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return match k {
+                    0 => 0.5 * HIST_MIN_M,
+                    k if k == self.bins.len() - 1 => HIST_MAX_M,
+                    k => HIST_MIN_M * HIST_RATIO.powf(k as f64 - 0.5),
+                };
+            }
+        }
+        HIST_MAX_M
+    }
+}
+
+/// Count, mean, RMS and |error| percentiles of signed errors; mergeable.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ErrorStats {
+    count: u64,
+    sum: f64,
+    sum_sq: f64,
+    hist: AbsHistogram,
+}
+
+impl ErrorStats {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    pub fn add(&mut self, e: f64) {
+        self.count += 1;
+        self.sum += e;
+        self.sum_sq += e * e;
+        self.hist.add(e);
+    }
+
+    pub fn merge(&mut self, other: &Self) {
+        self.count += other.count;
+        self.sum += other.sum;
+        self.sum_sq += other.sum_sq;
+        self.hist.merge(&other.hist);
+    }
+
+    pub fn count(&self) -> u64 {
+        self.count
+    }
+
+    /// NaN when empty.
+    pub fn mean(&self) -> f64 {
+        self.sum / self.count as f64
+    }
+
+    /// Root mean square; NaN when empty.
+    pub fn rms(&self) -> f64 {
+        (self.sum_sq / self.count as f64).sqrt()
+    }
+
+    /// `q`-quantile of |error| (±0.25 %); NaN when empty.
+    pub fn abs_quantile(&self, q: f64) -> f64 {
+        self.hist.quantile(q)
+    }
+}
+
+/// Per (tile, strip): number of samples and sum of signed errors.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TileStripMeans {
+    cells: HashMap<(TileKey, u32), (u64, f64)>,
+}
+
+impl TileStripMeans {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    pub fn add(&mut self, tile: TileKey, strip: u32, e: f64) {
+        let c = self.cells.entry((tile, strip)).or_insert((0, 0.0));
+        c.0 += 1;
+        c.1 += e;
+    }
+
+    pub fn merge(&mut self, other: Self) {
+        for (k, (n, s)) in other.cells {
+            let c = self.cells.entry(k).or_insert((0, 0.0));
+            c.0 += n;
+            c.1 += s;
+        }
+    }
+
+    /// Strip offset spread: for every tile–strip pair with at least `min_points` samples its mean
+    /// error; minus the mean of those means over the tile's strips (tiles with one such strip
+    /// carry no inter-strip information and are skipped); RMS over all remaining pairs. Returns
+    /// `(spread, pairs)`, spread NaN when no pair counts. Deterministic (summed in key order).
+    pub fn spread(&self, min_points: usize) -> (f64, usize) {
+        let mut tiles: BTreeMap<TileKey, Vec<(u32, f64)>> = BTreeMap::new();
+        for (&(tile, strip), &(n, sum)) in &self.cells {
+            if n >= min_points as u64 && n > 0 {
+                tiles.entry(tile).or_default().push((strip, sum / n as f64));
+            }
+        }
+        let (mut sum_sq, mut pairs) = (0.0, 0usize);
+        for means in tiles.values_mut() {
+            if means.len() < 2 {
+                continue;
+            }
+            means.sort_by_key(|&(strip, _)| strip);
+            let tile_mean = means.iter().map(|m| m.1).sum::<f64>() / means.len() as f64;
+            sum_sq += means.iter().map(|m| (m.1 - tile_mean).powi(2)).sum::<f64>();
+            pairs += means.len();
+        }
+        if pairs == 0 {
+            return (f64::NAN, 0);
+        }
+        ((sum_sq / pairs as f64).sqrt(), pairs)
+    }
+}
+
+/// [`TileStripMeans::spread`] of `(tile of the true position, strip, signed normal error)` samples.
+pub fn strip_offset_spread(samples: impl Iterator<Item = (TileKey, u32, f64)>, min_points: usize) -> (f64, usize) {
+    let mut acc = TileStripMeans::new();
+    for (tile, strip, e) in samples {
+        acc.add(tile, strip, e);
+    }
+    acc.spread(min_points)
+}
+
+/// Signed distance of a measured point from the true surface along the true normal,
+/// `(p − p_true)·n / |n|`; `None` for a zero or non-finite normal.
+pub fn signed_normal_error(p: [f64; 3], p_true: [f64; 3], n: [f32; 3]) -> Option<f64> {
+    let n = [n[0] as f64, n[1] as f64, n[2] as f64];
+    let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if !(len.is_finite() && len > 1e-6) {
+        return None;
+    }
+    let d = [p[0] - p_true[0], p[1] - p_true[1], p[2] - p_true[2]];
+    Some((d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) / len)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const T0: TileKey = TileKey { tx: 0, ty: 0 };
+    const T1: TileKey = TileKey { tx: 1, ty: 0 };
+    const T2: TileKey = TileKey { tx: 0, ty: 1 };
+
+    fn repeat(tile: TileKey, strip: u32, e: f64, n: usize) -> impl Iterator<Item = (TileKey, u32, f64)> {
+        std::iter::repeat_n((tile, strip, e), n)
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-12
+    }
+
+    #[test]
+    fn two_strips_offset_plus_minus_d() {
+        let d = 0.013;
+        let (s, pairs) = strip_offset_spread(repeat(T0, 0, d, 200).chain(repeat(T0, 1, -d, 300)), 200);
+        assert!(close(s, d) && pairs == 2, "{s} {pairs}");
+    }
+
+    #[test]
+    fn common_offset_gives_zero_spread() {
+        let samples = repeat(T0, 0, 0.05, 250).chain(repeat(T0, 1, 0.05, 250)).chain(repeat(T0, 2, 0.05, 400));
+        let (s, pairs) = strip_offset_spread(samples, 200);
+        assert!(close(s, 0.0) && pairs == 3);
+        // Different common offsets per tile still give zero: only agreement within a tile counts.
+        let samples = repeat(T0, 0, 0.05, 200)
+            .chain(repeat(T0, 1, 0.05, 200))
+            .chain(repeat(T1, 0, -0.3, 200))
+            .chain(repeat(T1, 1, -0.3, 200));
+        assert_eq!(strip_offset_spread(samples, 200), (0.0, 4));
+    }
+
+    #[test]
+    fn noise_averages_out_within_a_tile_strip() {
+        // Zero-mean scatter around the strip's offset does not count, only the offset does.
+        let samples = (0..400).map(|i| (T0, 0, 0.01 + if i % 2 == 0 { 0.004 } else { -0.004 }));
+        let samples = samples.chain((0..400).map(|i| (T0, 1, -0.01 + if i % 2 == 0 { 0.02 } else { -0.02 })));
+        let (s, pairs) = strip_offset_spread(samples, 200);
+        assert!(close(s, 0.01) && pairs == 2);
+    }
+
+    #[test]
+    fn single_strip_tiles_and_sparse_pairs_are_ignored() {
+        let d = 0.02;
+        let samples = repeat(T0, 0, d, 200)
+            .chain(repeat(T0, 1, -d, 200))
+            // A third strip with too few points in T0 is ignored (it would pull the tile mean).
+            .chain(repeat(T0, 2, 1.0, 199))
+            // T1: one strip only (the other has 199 points) → no inter-strip information.
+            .chain(repeat(T1, 0, 0.5, 1000))
+            .chain(repeat(T1, 1, -0.5, 199))
+            // T2: one strip only.
+            .chain(repeat(T2, 3, 0.7, 5000));
+        let (s, pairs) = strip_offset_spread(samples, 200);
+        assert!(close(s, d) && pairs == 2, "{s} {pairs}");
+        let (s, pairs) = strip_offset_spread(repeat(T2, 3, 0.7, 5000), 200);
+        assert!(s.is_nan() && pairs == 0);
+        assert!(strip_offset_spread(std::iter::empty(), 200).0.is_nan());
+    }
+
+    #[test]
+    fn spread_over_several_tiles_is_rms_of_all_pairs() {
+        // T0: strips at +a, −a (deviations ±a); T1: three strips at 0, 0, 3b (mean b; deviations
+        // −b, −b, 2b). RMS over 5 pairs = sqrt((2a² + 6b²) / 5).
+        let (a, b) = (0.01, 0.004);
+        let samples = repeat(T0, 0, a, 200)
+            .chain(repeat(T0, 1, -a, 200))
+            .chain(repeat(T1, 0, 0.0, 300))
+            .chain(repeat(T1, 1, 0.0, 300))
+            .chain(repeat(T1, 2, 3.0 * b, 300));
+        let (s, pairs) = strip_offset_spread(samples, 200);
+        assert!(close(s, ((2.0 * a * a + 6.0 * b * b) / 5.0).sqrt()) && pairs == 5, "{s}");
+    }
+
+    #[test]
+    fn merging_accumulators_equals_one_pass() {
+        let mut a = TileStripMeans::new();
+        let mut b = TileStripMeans::new();
+        for i in 0..300 {
+            a.add(T0, 0, 0.01);
+            b.add(T0, 1, -0.01 + i as f64 * 1e-6);
+        }
+        let mut all = a.clone();
+        all.merge(b.clone());
+        let one: Vec<_> = repeat(T0, 0, 0.01, 300).chain((0..300).map(|i| (T0, 1, -0.01 + i as f64 * 1e-6))).collect();
+        let (s1, p1) = strip_offset_spread(one.into_iter(), 200);
+        let (s2, p2) = all.spread(200);
+        assert!(close(s1, s2) && p1 == p2);
+    }
+
+    #[test]
+    fn error_stats_moments_and_percentiles() {
+        let mut s = ErrorStats::new();
+        assert!(s.rms().is_nan() && s.mean().is_nan() && s.abs_quantile(0.95).is_nan());
+        // 100 errors ±1..±100 mm: |e| p95 (nearest rank) = 95 mm.
+        for k in 1..=100 {
+            s.add(if k % 2 == 0 { k as f64 * 1e-3 } else { -(k as f64) * 1e-3 });
+        }
+        assert_eq!(s.count(), 100);
+        assert!(close(s.mean(), 0.5e-3)); // 50 pairs of (+k, −(k−1)) mm
+        let rms = ((1..=100).map(|k| (k as f64 * 1e-3).powi(2)).sum::<f64>() / 100.0).sqrt();
+        assert!(close(s.rms(), rms));
+        let p95 = s.abs_quantile(0.95);
+        assert!((p95 / 0.095 - 1.0).abs() < 0.0026, "{p95}");
+        let mut t = ErrorStats::new();
+        t.add(1e-9);
+        t.add(f64::INFINITY);
+        assert_eq!(t.abs_quantile(0.5), 0.5e-6);
+        assert_eq!(t.abs_quantile(1.0), 100.0);
+        let mut m = ErrorStats::new();
+        m.merge(&s);
+        assert_eq!(m, s);
+    }
+
+    #[test]
+    fn signed_normal_error_uses_the_normal_direction() {
+        let e = signed_normal_error([1.0, 2.0, 3.5], [1.0, 2.0, 3.0], [0.0, 0.0, 2.0]).unwrap();
+        assert!(close(e, 0.5));
+        let e = signed_normal_error([549_800.3, 5_803_400.0, 0.0], [549_800.0, 5_803_400.2, 0.0], [-1.0, 0.0, 0.0]);
+        assert!((e.unwrap() + 0.3).abs() < 1e-9);
+        assert!(signed_normal_error([0.0; 3], [0.0; 3], [0.0; 3]).is_none());
+        assert!(signed_normal_error([0.0; 3], [0.0; 3], [f32::NAN, 0.0, 1.0]).is_none());
+    }
+}
