@@ -9,6 +9,37 @@ use serde::{Deserialize, Serialize};
 pub struct IterationStep {
     pub grid_m: f64,
     pub threshold_m: f64,
+    /// Estimate attitude corrections in this step. The first, coarse steps solve for translation
+    /// only: while strips are decimetres apart, coarse pixels and wrong associations would be
+    /// absorbed by rotations, which the alternating map then locks in.
+    #[serde(default = "default_true")]
+    pub rotation: bool,
+    /// Latent-map cell edge for this step; `None` uses `cell_size_m`. Coarse first steps use
+    /// larger cells so that strips decimetres apart still fall into the same cell.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cell_m: Option<f64>,
+    /// Cells are unbounded vertical columns: surfaces are told apart by normal only, so strips
+    /// decimetres apart in height are never split by a horizontal cell boundary.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub column_cells: bool,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+impl IterationStep {
+    /// Fields a schedule step must name; the others have defaults.
+    pub const REQUIRED_FIELDS: [&'static str; 2] = ["grid_m", "threshold_m"];
+
+    pub fn new(grid_m: f64, threshold_m: f64) -> Self {
+        Self { grid_m, threshold_m, rotation: true, cell_m: None, column_cells: false }
+    }
+
+    /// The cell edge this step uses.
+    pub fn cell_size(&self, params: &Parameters) -> f64 {
+        self.cell_m.unwrap_or(params.cell_size_m)
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -20,20 +51,33 @@ pub struct Parameters {
     pub tile_size_m: f64,
     /// Points within this distance of a tile border are also emitted to the neighbour (paper: 0.3 m).
     pub tile_overlap_m: f64,
+    /// Points farther than this from the scan head are corrected but not used for estimation:
+    /// far away the scan is sparse and grazing, yet its lever arm would dominate the attitude.
+    pub max_range_m: f64,
+    /// While the vehicle (nearly) stands still, a revolution is used only once the scan head has
+    /// moved this far since the last used one; repeated revolutions add no geometry and make
+    /// scan-image neighbourhoods degenerate.
+    pub min_revolution_advance_m: f64,
     /// Edge of a latent-map cell (voxel) holding local surface models.
     pub cell_size_m: f64,
     /// Points join a cell's surface model when their normals agree within this angle.
     pub normal_group_angle_deg: f64,
-    /// σ of one point-to-surface distance (scanner precision).
+    /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
+    /// share surfaces, pixels and triangles, so they are far from independent; weighting them
+    /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
+    /// by orders of magnitude. 3 cm was measured better on every metric (see ARCHITECTURE.md).
     pub sigma_distance_m: f64,
     /// σ of the prior on the total position correction (GNSS/IMU position accuracy).
     pub sigma_prior_position_m: f64,
-    /// σ of the prior on the total attitude correction.
+    /// σ of the prior on the total attitude correction (GNSS/IMU attitude accuracy).
     pub sigma_prior_rotation_deg: f64,
     /// σ of the change in position correction between neighbouring anchors.
     pub sigma_smooth_position_m: f64,
     /// σ of the change in attitude correction between neighbouring anchors.
     pub sigma_smooth_rotation_deg: f64,
+    /// An anchor's own observations are trusted only in directions carrying at least this share
+    /// of its strongest direction's information (rotations compared as displacements at 10 m).
+    pub weak_information_ratio: f64,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,
     /// Converged when no anchor moves a point at 10 m range by more than this between iterations.
@@ -46,38 +90,44 @@ impl Default for Parameters {
             anchor_spacing_m: 0.5,
             tile_size_m: 15.0,
             tile_overlap_m: 0.3,
+            max_range_m: 100.0,
+            min_revolution_advance_m: 0.03,
             cell_size_m: 1.0,
             normal_group_angle_deg: 30.0,
-            sigma_distance_m: 0.005,
+            sigma_distance_m: 0.03,
             sigma_prior_position_m: 0.3,
-            sigma_prior_rotation_deg: 0.05,
-            sigma_smooth_position_m: 0.02,
-            sigma_smooth_rotation_deg: 0.003,
+            sigma_prior_rotation_deg: 0.02,
+            sigma_smooth_position_m: 0.005,
+            sigma_smooth_rotation_deg: 0.001,
+            weak_information_ratio: 0.01,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
         }
     }
 }
 
-/// The paper's schedule (§7.1): 18 iterations, grid 10 cm → 2 cm (most) → 1 cm, threshold
-/// 0.3 m → 7 mm.
+/// The paper's schedule (§7.1) — grid 10 cm → 2 cm (most) → 1 cm, threshold 0.3 m → 7 mm,
+/// translation only while the strips are far apart — preceded by two capture steps (3 m cells,
+/// 25 cm pixels, 1 m threshold): GNSS/IMU errors of σ 0.3 m per axis put two passes up to ~1 m
+/// apart, beyond the paper's first threshold. 18 iterations in all.
 pub fn default_schedule() -> Vec<IterationStep> {
     let mut s = Vec::with_capacity(18);
-    let mut push = |n: usize, grid_m: f64, threshold_m: f64| {
+    let mut push = |n: usize, grid_m: f64, threshold_m: f64, rotation: bool, cell_m: Option<f64>| {
         for _ in 0..n {
-            s.push(IterationStep { grid_m, threshold_m });
+            s.push(IterationStep { grid_m, threshold_m, rotation, cell_m, column_cells: cell_m.is_some() });
         }
     };
-    push(2, 0.10, 0.30);
-    push(1, 0.10, 0.15);
-    push(1, 0.05, 0.08);
-    push(1, 0.05, 0.05);
-    push(2, 0.02, 0.03);
-    push(5, 0.02, 0.02);
-    push(1, 0.02, 0.015);
-    push(1, 0.02, 0.012);
-    push(2, 0.01, 0.01);
-    push(2, 0.01, 0.007);
+    push(2, 0.25, 1.0, false, Some(3.0));
+    push(1, 0.10, 0.30, false, None);
+    push(1, 0.10, 0.15, true, None);
+    push(1, 0.05, 0.08, true, None);
+    push(1, 0.05, 0.05, true, None);
+    push(2, 0.02, 0.03, true, None);
+    push(4, 0.02, 0.02, true, None);
+    push(1, 0.02, 0.015, true, None);
+    push(1, 0.02, 0.012, true, None);
+    push(2, 0.01, 0.01, true, None);
+    push(2, 0.01, 0.007, true, None);
     s
 }
 
@@ -93,27 +143,51 @@ impl Parameters {
     /// Every out-of-range value, each with its field name.
     pub fn problems(&self) -> Vec<ParameterProblem> {
         let mut out = Vec::new();
-        let mut positive = |field: &str, v: f64| {
+        fn check_positive(out: &mut Vec<ParameterProblem>, field: &str, v: f64) {
             if !(v.is_finite() && v > 0.0) {
                 out.push(ParameterProblem {
                     field: field.into(),
                     problem: format!("must be a positive number, got {v}"),
                 });
             }
-        };
-        positive("anchor_spacing_m", self.anchor_spacing_m);
-        positive("tile_size_m", self.tile_size_m);
-        positive("cell_size_m", self.cell_size_m);
-        positive("normal_group_angle_deg", self.normal_group_angle_deg);
-        positive("sigma_distance_m", self.sigma_distance_m);
-        positive("sigma_prior_position_m", self.sigma_prior_position_m);
-        positive("sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
-        positive("sigma_smooth_position_m", self.sigma_smooth_position_m);
-        positive("sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
-        positive("convergence_tolerance_m", self.convergence_tolerance_m);
+        }
+        macro_rules! positive {
+            ($field:expr, $v:expr) => {
+                check_positive(&mut out, &$field, $v)
+            };
+        }
+        positive!("anchor_spacing_m", self.anchor_spacing_m);
+        positive!("tile_size_m", self.tile_size_m);
+        positive!("cell_size_m", self.cell_size_m);
+        positive!("max_range_m", self.max_range_m);
+        positive!("normal_group_angle_deg", self.normal_group_angle_deg);
+        positive!("sigma_distance_m", self.sigma_distance_m);
+        positive!("sigma_prior_position_m", self.sigma_prior_position_m);
+        positive!("sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
+        positive!("sigma_smooth_position_m", self.sigma_smooth_position_m);
+        positive!("sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
+        positive!("convergence_tolerance_m", self.convergence_tolerance_m);
+        if !(0.0..1.0).contains(&self.weak_information_ratio) {
+            out.push(ParameterProblem { field: "weak_information_ratio".into(), problem: "must be in [0, 1)".into() });
+        }
         for (i, step) in self.schedule.iter().enumerate() {
-            positive(&format!("schedule[{i}].grid_m"), step.grid_m);
-            positive(&format!("schedule[{i}].threshold_m"), step.threshold_m);
+            positive!(&format!("schedule[{i}].grid_m"), step.grid_m);
+            positive!(&format!("schedule[{i}].threshold_m"), step.threshold_m);
+            if let Some(c) = step.cell_m {
+                positive!(&format!("schedule[{i}].cell_m"), c);
+                if !divides(self.tile_size_m, c) {
+                    out.push(ParameterProblem {
+                        field: format!("schedule[{i}].cell_m"),
+                        problem: format!("must divide tile_size_m ({}) into whole cells", self.tile_size_m),
+                    });
+                }
+            }
+        }
+        if !(self.min_revolution_advance_m.is_finite() && self.min_revolution_advance_m >= 0.0) {
+            out.push(ParameterProblem {
+                field: "min_revolution_advance_m".into(),
+                problem: "must be zero or positive".into(),
+            });
         }
         if !(self.tile_overlap_m.is_finite() && self.tile_overlap_m >= 0.0) {
             out.push(ParameterProblem { field: "tile_overlap_m".into(), problem: "must be zero or positive".into() });
@@ -126,20 +200,26 @@ impl Parameters {
         if self.schedule.is_empty() {
             out.push(ParameterProblem { field: "schedule".into(), problem: "needs at least one iteration".into() });
         }
-        if self.cell_size_m > 0.0 && self.tile_size_m > 0.0 {
-            let cells = self.tile_size_m / self.cell_size_m;
-            if (cells - cells.round()).abs() > 1e-9 {
-                out.push(ParameterProblem {
-                    field: "cell_size_m".into(),
-                    problem: format!("must divide tile_size_m ({}) into whole cells", self.tile_size_m),
-                });
-            }
+        // `divides` accepts non-positive sizes: those are reported above already.
+        if !divides(self.tile_size_m, self.cell_size_m) {
+            out.push(ParameterProblem {
+                field: "cell_size_m".into(),
+                problem: format!("must divide tile_size_m ({}) into whole cells", self.tile_size_m),
+            });
         }
         if self.normal_group_angle_deg >= 90.0 {
             out.push(ParameterProblem { field: "normal_group_angle_deg".into(), problem: "must be below 90".into() });
         }
         out
     }
+}
+
+fn divides(tile: f64, cell: f64) -> bool {
+    if !(tile > 0.0 && cell > 0.0) {
+        return true;
+    }
+    let cells = tile / cell;
+    (cells - cells.round()).abs() < 1e-9
 }
 
 #[cfg(test)]
@@ -150,8 +230,12 @@ mod tests {
     fn defaults_follow_the_paper() {
         let p = Parameters::default();
         assert_eq!(p.schedule.len(), 18);
-        assert_eq!(p.schedule[0], IterationStep { grid_m: 0.10, threshold_m: 0.30 });
-        assert_eq!(*p.schedule.last().unwrap(), IterationStep { grid_m: 0.01, threshold_m: 0.007 });
+        assert_eq!(
+            p.schedule[2],
+            IterationStep { grid_m: 0.10, threshold_m: 0.30, rotation: false, cell_m: None, column_cells: false }
+        );
+        assert!(p.schedule.iter().skip(3).all(|s| s.rotation));
+        assert_eq!(*p.schedule.last().unwrap(), IterationStep::new(0.01, 0.007));
         assert!(p.problems().is_empty());
     }
 
@@ -161,6 +245,19 @@ mod tests {
         assert_eq!(p.anchor_spacing_m, 1.0);
         assert_eq!(p.tile_size_m, 15.0);
         assert!(serde_json::from_str::<Parameters>(r#"{"anchor_spacing": 1.0}"#).is_err());
+        let p: Parameters = serde_json::from_str(
+            r#"{"schedule": [{"grid_m": 0.2, "threshold_m": 0.5, "cell_m": 3.0, "column_cells": true, "rotation": false},
+                             {"grid_m": 0.01, "threshold_m": 0.007}]}"#,
+        )
+        .unwrap();
+        assert_eq!(p.schedule[1], IterationStep::new(0.01, 0.007));
+        assert!(p.schedule[0].column_cells && !p.schedule[0].rotation);
+        assert_eq!(p.schedule[0].cell_size(&p), 3.0);
+        let bad = Parameters {
+            schedule: vec![IterationStep { cell_m: Some(4.0), ..IterationStep::new(0.1, 0.1) }],
+            ..Default::default()
+        };
+        assert_eq!(bad.problems()[0].field, "schedule[0].cell_m");
         let bad = Parameters { cell_size_m: 0.7, tile_overlap_m: -1.0, ..Default::default() };
         let fields: Vec<_> = bad.problems().into_iter().map(|p| p.field).collect();
         assert_eq!(fields, vec!["tile_overlap_m", "cell_size_m"]);

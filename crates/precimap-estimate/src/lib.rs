@@ -1,1 +1,25 @@
-//! Strip adjustment numerics: per-strip preparation, latent map, estimate_tile, solve_trajectory.
+//! Strip adjustment numerics (paper §5–6, DESIGN §2–3), pure and free of I/O:
+//!
+//! - [`prepare`]: per strip — point geometry against the trajectory, scan image, normals,
+//!   points keyed into tiles ([`chunk::TileChunk`]);
+//! - [`tile::estimate_tile`]: the map task — latent map of one tile and its normal-equation
+//!   blocks per trajectory;
+//! - [`solve::solve_trajectory`]: the reduce task — one exact block-tridiagonal Gauss–Newton
+//!   step per trajectory with prior and smoothness.
+
+pub mod blocks;
+pub mod chunk;
+mod hash;
+pub mod prepare;
+pub mod solve;
+pub mod stats;
+pub mod tile;
+
+pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
+pub use chunk::TileChunk;
+pub use prepare::{
+    measurement_geometry, prepare_strip, PrepareError, PrepareStats, PreparedStrip, StripContext, StripSamples,
+};
+pub use solve::{solve_trajectory, TrajectorySolution};
+pub use stats::{ResidualHistogram, TileStats};
+pub use tile::{estimate_tile, EstimateError, TileEstimate};

@@ -1,0 +1,518 @@
+//! `estimate_tile`: the map task of one estimation iteration (paper §6.3, DESIGN §2–3).
+//!
+//! 1. Every point of the tile is corrected with the current trajectory corrections.
+//! 2. The latent map is built: points fall into voxel-hashed cells; inside a cell, points whose
+//!    normals agree form a local surface model (LSM: plane with normal `w`, origin `o`, and a
+//!    height raster of pixel size `grid_m`). Each strip's surface (the triangles of its scan
+//!    image) is rasterised into the LSM pixels, so a pixel knows every strip's surface height
+//!    there even when the points are sparser than the pixels (DESIGN §2 "Density matters").
+//! 3. Each point in the tile's core becomes an observation: its height above the LSM plane minus
+//!    the latent height interpolated at its position. Only pixels seen by at least two distinct
+//!    strip passes carry inter-strip information; the others are skipped. A point's own strip is
+//!    part of the pixel mean, so strips step to the common mean instead of swapping places.
+//! 4. Observations within the outlier threshold are linearised and summed into per-anchor 6×6
+//!    normal-equation blocks, keyed by trajectory.
+
+use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
+use crate::chunk::{TileChunk, NO_NEIGHBOUR};
+use crate::hash::FxHashMap;
+use crate::stats::{ResidualHistogram, TileStats};
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::geom::rotate_small;
+use precimap_core::{IterationStep, Parameters, TileKey};
+use std::collections::BTreeMap;
+
+const NONE: u32 = u32::MAX;
+/// Pixel tag once two different strip passes contributed.
+const MULTI: u32 = u32::MAX;
+/// Surface models one cell can hold (distinct normal directions).
+const MAX_MODELS_PER_CELL: usize = 8;
+/// A scan-image triangle is rasterised only if its facet is within 15° of the model's normal:
+/// steeper facets bridge a step (curb, window recess, occlusion) and would bias the heights.
+/// Steepest latent surface (tan 20°) against its model plane at which a point is observed.
+const MAX_SLOPE: f64 = 0.364;
+const FACET_COS: f64 = 0.965_925_826_289_068_3;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum EstimateError {
+    #[error("chunk of strip {strip} belongs to tile {found}, not to tile {expected}")]
+    WrongTile { strip: u32, expected: TileKey, found: TileKey },
+    #[error("chunk of strip {strip} names trajectory {trajectory}, but only {known} trajectories have corrections")]
+    UnknownTrajectory { strip: u32, trajectory: u32, known: usize },
+    #[error("solving trajectory {trajectory}: {message}")]
+    Solve { trajectory: String, message: String },
+}
+
+/// What one tile emits: normal-equation blocks per trajectory and statistics.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TileEstimate {
+    pub tile: TileKey,
+    pub blocks: Vec<TrajectoryBlocks>,
+    pub stats: TileStats,
+}
+
+#[derive(Clone, Copy, Default)]
+struct CellModels {
+    ids: [u32; MAX_MODELS_PER_CELL],
+    len: u8,
+}
+
+/// A local surface model while points are gathered, then its frame and raster.
+#[derive(Clone, Debug)]
+struct SurfaceModel {
+    sum_normal: [f64; 3],
+    sum_position: [f64; 3],
+    count: u32,
+    // Frame, valid after `finish_frame`.
+    w: [f64; 3],
+    e1: [f64; 3],
+    e2: [f64; 3],
+    o: [f64; 3],
+    // Raster, valid after bounds are known: pixel (i, j) has its centre at
+    // u = u0 + (i + 0.5)·g, v = v0 + (j + 0.5)·g.
+    u_min: f64,
+    u_max: f64,
+    v_min: f64,
+    v_max: f64,
+    u0: f64,
+    v0: f64,
+    nu: u32,
+    nv: u32,
+    pixel_offset: usize,
+}
+
+impl SurfaceModel {
+    fn new() -> Self {
+        Self {
+            sum_normal: [0.0; 3],
+            sum_position: [0.0; 3],
+            count: 0,
+            w: [0.0; 3],
+            e1: [0.0; 3],
+            e2: [0.0; 3],
+            o: [0.0; 3],
+            u_min: f64::INFINITY,
+            u_max: f64::NEG_INFINITY,
+            v_min: f64::INFINITY,
+            v_max: f64::NEG_INFINITY,
+            u0: 0.0,
+            v0: 0.0,
+            nu: 0,
+            nv: 0,
+            pixel_offset: 0,
+        }
+    }
+
+    fn finish_frame(&mut self) {
+        let w = normalize(self.sum_normal);
+        let helper = if w[2].abs() < 0.9 { [0.0, 0.0, 1.0] } else { [1.0, 0.0, 0.0] };
+        let e1 = normalize(cross(helper, w));
+        let e2 = cross(w, e1);
+        let c = self.count as f64;
+        self.o = [self.sum_position[0] / c, self.sum_position[1] / c, self.sum_position[2] / c];
+        self.w = w;
+        self.e1 = e1;
+        self.e2 = e2;
+    }
+
+    #[inline]
+    fn project(&self, p: &[f64; 3]) -> (f64, f64, f64) {
+        let d = [p[0] - self.o[0], p[1] - self.o[1], p[2] - self.o[2]];
+        (dot(d, self.e1), dot(d, self.e2), dot(d, self.w))
+    }
+}
+
+#[derive(Clone, Copy, Default)]
+struct Pixel {
+    sum: f32,
+    sum2: f32,
+    count: u32,
+    tag: u32,
+}
+
+impl Pixel {
+    #[inline]
+    fn add(&mut self, h: f32, tag: u32) {
+        if self.count == 0 {
+            self.tag = tag;
+        } else if self.tag != tag {
+            self.tag = MULTI;
+        }
+        self.sum += h;
+        self.sum2 += h * h;
+        self.count += 1;
+    }
+
+    #[inline]
+    fn shared(&self) -> bool {
+        self.count > 0 && self.tag == MULTI
+    }
+
+    #[inline]
+    fn mean(&self) -> f64 {
+        self.sum as f64 / self.count as f64
+    }
+}
+
+#[inline]
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+#[inline]
+fn normalize(a: [f64; 3]) -> [f64; 3] {
+    let n = dot(a, a).sqrt();
+    if n > 0.0 {
+        [a[0] / n, a[1] / n, a[2] / n]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
+}
+
+/// Key of the cell holding `p`; with `columns` the cell is an unbounded vertical column.
+#[inline]
+fn cell_key(p: &[f64; 3], inv_cell: f64, columns: bool) -> u64 {
+    const OFFSET: i64 = 1 << 20;
+    let ix = ((p[0] * inv_cell).floor() as i64 + OFFSET) as u64 & 0x1F_FFFF;
+    let iy = ((p[1] * inv_cell).floor() as i64 + OFFSET) as u64 & 0x1F_FFFF;
+    let iz = if columns { 0 } else { ((p[2] * inv_cell).floor() as i64 + OFFSET) as u64 & 0x1F_FFFF };
+    (ix << 42) | (iy << 21) | iz
+}
+
+/// Identifies one pass of one strip over a place: passes of the same strip more than
+/// 64 anchors (32 m) apart along the trajectory count as different views.
+#[inline]
+fn pass_tag(strip: u32, anchor: u32) -> u32 {
+    (strip << 16) | ((anchor >> 6) & 0xFFFF)
+}
+
+/// The map task of one iteration on one tile. `corrections[t]` are the current corrections of
+/// trajectory `t` (the index chunks carry).
+pub fn estimate_tile(
+    tile: TileKey,
+    chunks: &[TileChunk],
+    corrections: &[TrajectoryCorrections],
+    params: &Parameters,
+    step: &IterationStep,
+) -> Result<TileEstimate, EstimateError> {
+    for c in chunks {
+        if c.tile != tile {
+            return Err(EstimateError::WrongTile { strip: c.strip, expected: tile, found: c.tile });
+        }
+        if c.trajectory as usize >= corrections.len() {
+            return Err(EstimateError::UnknownTrajectory {
+                strip: c.strip,
+                trajectory: c.trajectory,
+                known: corrections.len(),
+            });
+        }
+    }
+    let tile_size = params.tile_size_m;
+    let (ox, oy) = tile.origin(tile_size);
+    let inv_cell = 1.0 / step.cell_size(params);
+    let cos_group = params.normal_group_angle_deg.to_radians().cos();
+    let grid = step.grid_m;
+    let total: usize = chunks.iter().map(TileChunk::len).sum();
+
+    // 1. Correct every point and sort it into a cell's surface model.
+    let mut position = Vec::with_capacity(total);
+    let mut measurement = Vec::with_capacity(total);
+    let mut model_of = Vec::with_capacity(total);
+    let mut cells: FxHashMap<u64, CellModels> = FxHashMap::default();
+    let mut models: Vec<SurfaceModel> = Vec::new();
+    for chunk in chunks {
+        let corr = &corrections[chunk.trajectory as usize];
+        let shift = [chunk.origin[0] - ox, chunk.origin[1] - oy, chunk.origin[2]];
+        let mut last_cell = (u64::MAX, CellModels::default());
+        for k in 0..chunk.len() {
+            let c = corr.at(chunk.anchor[k], chunk.lambda[k]);
+            let theta = [c[3], c[4], c[5]];
+            let r = chunk.r[k].map(f64::from);
+            let rr = rotate_small(theta, r);
+            let t0 = chunk.t0[k];
+            let p = [
+                t0[0] as f64 + shift[0] + c[0] + rr[0],
+                t0[1] as f64 + shift[1] + c[1] + rr[1],
+                t0[2] as f64 + shift[2] + c[2] + rr[2],
+            ];
+            let n = rotate_small(theta, chunk.normal[k].map(f64::from));
+            position.push(p);
+            measurement.push(rr);
+            let key = cell_key(&p, inv_cell, step.column_cells);
+            if key != last_cell.0 {
+                if last_cell.0 != u64::MAX {
+                    cells.insert(last_cell.0, last_cell.1);
+                }
+                last_cell = (key, cells.get(&key).copied().unwrap_or_default());
+            }
+            let slots = &mut last_cell.1;
+            let mut best = NONE;
+            let mut best_cos = cos_group;
+            for &id in &slots.ids[..slots.len as usize] {
+                let m = &models[id as usize];
+                let len = dot(m.sum_normal, m.sum_normal).sqrt();
+                let cos = dot(n, m.sum_normal) / len;
+                if cos > best_cos {
+                    best_cos = cos;
+                    best = id;
+                }
+            }
+            if best == NONE && (slots.len as usize) < MAX_MODELS_PER_CELL {
+                best = models.len() as u32;
+                models.push(SurfaceModel::new());
+                slots.ids[slots.len as usize] = best;
+                slots.len += 1;
+            }
+            if best != NONE {
+                let m = &mut models[best as usize];
+                for a in 0..3 {
+                    m.sum_normal[a] += n[a];
+                    m.sum_position[a] += p[a];
+                }
+                m.count += 1;
+            }
+            model_of.push(best);
+        }
+        if last_cell.0 != u64::MAX {
+            cells.insert(last_cell.0, last_cell.1);
+        }
+    }
+    drop(cells);
+    for m in &mut models {
+        m.finish_frame();
+    }
+    // Raster extents from the member points.
+    for (p, &id) in position.iter().zip(&model_of) {
+        if id == NONE {
+            continue;
+        }
+        let m = &mut models[id as usize];
+        let (u, v, _) = m.project(p);
+        m.u_min = m.u_min.min(u);
+        m.u_max = m.u_max.max(u);
+        m.v_min = m.v_min.min(v);
+        m.v_max = m.v_max.max(v);
+    }
+    let mut pixel_count = 0usize;
+    for m in &mut models {
+        // One pixel of margin on each side keeps bilinear interpolation inside the raster.
+        m.u0 = m.u_min - grid;
+        m.v0 = m.v_min - grid;
+        m.nu = ((m.u_max - m.u_min) / grid).ceil() as u32 + 2;
+        m.nv = ((m.v_max - m.v_min) / grid).ceil() as u32 + 2;
+        m.pixel_offset = pixel_count;
+        pixel_count += (m.nu * m.nv) as usize;
+    }
+    let mut pixels = vec![Pixel::default(); pixel_count];
+
+    // 2. Rasterise every strip's scan-image triangles into the surface models they lie on.
+    let mut base = 0usize;
+    for chunk in chunks {
+        for k in 0..chunk.len() {
+            let (right, down) = (chunk.right[k], chunk.down[k]);
+            if right == NO_NEIGHBOUR || down == NO_NEIGHBOUR {
+                continue;
+            }
+            let tag = pass_tag(chunk.strip, chunk.anchor[k]);
+            let (a, b, c) = (base + k, base + right as usize, base + down as usize);
+            let limit = chunk.edge_limit[k].max(chunk.edge_limit[right as usize]).max(chunk.edge_limit[down as usize]);
+            let raster = Rasteriser { models: &models, position: &position, model_of: &model_of, cos_group, grid };
+            raster.triangle(&mut pixels, [a, b, c], limit as f64, tag);
+            let diagonal = chunk.down[right as usize];
+            if diagonal != NO_NEIGHBOUR {
+                let d = base + diagonal as usize;
+                let limit = limit.max(chunk.edge_limit[diagonal as usize]);
+                raster.triangle(&mut pixels, [b, d, c], limit as f64, tag);
+            }
+        }
+        base += chunk.len();
+    }
+
+    // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
+    let weight = 1.0 / (params.sigma_distance_m * params.sigma_distance_m);
+    let threshold = step.threshold_m;
+    let mut stats = TileStats::new(tile);
+    stats.surface_models = models.len() as u64;
+    stats.pixels = pixel_count as u64;
+    for p in &pixels {
+        if p.shared() {
+            stats.pixels_shared += 1;
+            let mean = p.sum as f64 / p.count as f64;
+            let var = (p.sum2 as f64 / p.count as f64 - mean * mean).max(0.0);
+            stats.pixel_std_sum_m += var.sqrt();
+        }
+    }
+    let mut histogram = ResidualHistogram::default();
+    let mut per_trajectory: BTreeMap<u32, BTreeMap<u32, AnchorBlock>> = BTreeMap::new();
+    let mut base = 0usize;
+    for chunk in chunks {
+        let Some((first, last)) = chunk.anchor_range() else { continue };
+        let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
+        for k in 0..chunk.len() {
+            let a = base + k;
+            let p = &position[a];
+            if !(p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size) {
+                continue;
+            }
+            stats.points += 1;
+            let id = model_of[a];
+            if id == NONE {
+                continue;
+            }
+            let m = &models[id as usize];
+            let (u, v, h) = m.project(p);
+            let Some(latent) = latent_height(m, &pixels, u, v, grid) else { continue };
+            stats.points_modelled += 1;
+            let e = h - latent;
+            histogram.add(e);
+            if e.abs() > threshold {
+                continue;
+            }
+            stats.points_used += 1;
+            stats.residual_sum_m += e;
+            stats.residual_sum2_m2 += e * e;
+            let w = m.w;
+            let rw = cross(measurement[a], w);
+            let g = [w[0], w[1], w[2], rw[0], rw[1], rw[2]];
+            intervals[(chunk.anchor[k] - first) as usize].add(&g, e, weight, chunk.lambda[k] as f64);
+        }
+        let blocks = per_trajectory.entry(chunk.trajectory).or_default();
+        for (offset, moments) in intervals.iter().enumerate() {
+            if moments.is_empty() {
+                continue;
+            }
+            let i = first + offset as u32;
+            let mut at = blocks.remove(&i).unwrap_or_else(|| AnchorBlock::new(i));
+            let after = blocks.entry(i + 1).or_insert_with(|| AnchorBlock::new(i + 1));
+            moments.scatter(&mut at, after);
+            blocks.insert(i, at);
+        }
+        base += chunk.len();
+    }
+    stats.histogram = histogram;
+    let blocks = per_trajectory
+        .into_iter()
+        .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
+        .collect();
+    Ok(TileEstimate { tile, blocks, stats })
+}
+
+/// Latent height at (u, v), bilinear between the four surrounding pixel centres, all of which
+/// must be shared by two or more strip passes. `None` also where the latent surface is steeper
+/// than [`MAX_SLOPE`] against the model plane: there (curbs, recesses, occlusion edges) the
+/// distance along the model normal does not measure the distance to the surface, and a lateral
+/// offset between strips would be read as a height difference.
+#[inline]
+fn latent_height(m: &SurfaceModel, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> Option<f64> {
+    let fu = (u - m.u0) / grid - 0.5;
+    let fv = (v - m.v0) / grid - 0.5;
+    let (i0, j0) = (fu.floor(), fv.floor());
+    let (tu, tv) = (fu - i0, fv - j0);
+    let (i0, j0) = (i0 as i64, j0 as i64);
+    if i0 < 0 || j0 < 0 || i0 + 1 >= m.nu as i64 || j0 + 1 >= m.nv as i64 {
+        return None;
+    }
+    let at = |i: i64, j: i64| -> Option<f64> {
+        let p = &pixels[m.pixel_offset + (j * m.nu as i64 + i) as usize];
+        p.shared().then(|| p.mean())
+    };
+    let (a, b, c, d) = (at(i0, j0)?, at(i0 + 1, j0)?, at(i0, j0 + 1)?, at(i0 + 1, j0 + 1)?);
+    let slope_u = ((b - a) * (1.0 - tv) + (d - c) * tv) / grid;
+    let slope_v = ((c - a) * (1.0 - tu) + (d - b) * tu) / grid;
+    if slope_u * slope_u + slope_v * slope_v > MAX_SLOPE * MAX_SLOPE {
+        return None;
+    }
+    let bottom = a * (1.0 - tu) + b * tu;
+    let top = c * (1.0 - tu) + d * tu;
+    Some(bottom * (1.0 - tv) + top * tv)
+}
+
+struct Rasteriser<'a> {
+    models: &'a [SurfaceModel],
+    position: &'a [[f64; 3]],
+    model_of: &'a [u32],
+    cos_group: f64,
+    grid: f64,
+}
+
+impl Rasteriser<'_> {
+    /// Rasterises triangle `v` into every surface model one of its corners belongs to, provided
+    /// the triangle is continuous surface (short edges) lying on that model (normals agree).
+    #[inline]
+    fn triangle(&self, pixels: &mut [Pixel], v: [usize; 3], limit: f64, tag: u32) {
+        let ids = [self.model_of[v[0]], self.model_of[v[1]], self.model_of[v[2]]];
+        if ids.contains(&NONE) {
+            return;
+        }
+        let [pa, pb, pc] = [self.position[v[0]], self.position[v[1]], self.position[v[2]]];
+        let ab = [pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]];
+        let ac = [pc[0] - pa[0], pc[1] - pa[1], pc[2] - pa[2]];
+        let bc = [pc[0] - pb[0], pc[1] - pb[1], pc[2] - pb[2]];
+        let limit2 = limit * limit;
+        if dot(ab, ab) > limit2 || dot(ac, ac) > limit2 || dot(bc, bc) > limit2 {
+            return;
+        }
+        let face = cross(ab, ac);
+        let area2 = dot(face, face).sqrt();
+        if area2 < 1e-12 {
+            return;
+        }
+        let face = [face[0] / area2, face[1] / area2, face[2] / area2];
+        for (slot, &id) in ids.iter().enumerate() {
+            if ids[..slot].contains(&id) {
+                continue;
+            }
+            let m = &self.models[id as usize];
+            if dot(face, m.w).abs() < FACET_COS
+                || ids.iter().any(|&other| other != id && dot(self.models[other as usize].w, m.w) < self.cos_group)
+            {
+                continue;
+            }
+            self.rasterise(pixels, m, [pa, pb, pc], tag);
+        }
+    }
+
+    fn rasterise(&self, pixels: &mut [Pixel], m: &SurfaceModel, p: [[f64; 3]; 3], tag: u32) {
+        let g = self.grid;
+        let mut x = [0.0; 3];
+        let mut y = [0.0; 3];
+        let mut h = [0.0; 3];
+        for k in 0..3 {
+            let (u, v, hh) = m.project(&p[k]);
+            x[k] = (u - m.u0) / g - 0.5;
+            y[k] = (v - m.v0) / g - 0.5;
+            h[k] = hh;
+        }
+        let area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]);
+        if area.abs() < 1e-12 {
+            return;
+        }
+        let inv = 1.0 / area;
+        let i0 = x[0].min(x[1]).min(x[2]).ceil().max(0.0) as i64;
+        let i1 = (x[0].max(x[1]).max(x[2]).floor() as i64).min(m.nu as i64 - 1);
+        let j0 = y[0].min(y[1]).min(y[2]).ceil().max(0.0) as i64;
+        let j1 = (y[0].max(y[1]).max(y[2]).floor() as i64).min(m.nv as i64 - 1);
+        if i0 > i1 || j0 > j1 {
+            return;
+        }
+        const EPS: f64 = -1e-9;
+        for j in j0..=j1 {
+            let py = j as f64;
+            let row = m.pixel_offset + (j as usize) * m.nu as usize;
+            for i in i0..=i1 {
+                let px = i as f64;
+                let wa = ((x[1] - px) * (y[2] - py) - (x[2] - px) * (y[1] - py)) * inv;
+                let wb = ((x[2] - px) * (y[0] - py) - (x[0] - px) * (y[2] - py)) * inv;
+                let wc = 1.0 - wa - wb;
+                if wa >= EPS && wb >= EPS && wc >= EPS {
+                    pixels[row + i as usize].add((wa * h[0] + wb * h[1] + wc * h[2]) as f32, tag);
+                }
+            }
+        }
+    }
+}
