@@ -1,1 +1,142 @@
-fn main() {}
+//! `precimap`: simulate campaigns, adjust them, evaluate against truth, benchmark.
+
+mod bench;
+mod progress;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser, Debug)]
+#[command(name = "precimap", version, about = "Strip adjustment of mobile-mapping LiDAR to millimetre-consistent maps")]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true, env = "PRECIMAP_THREADS")]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Write a simulated campaign (manifest, LAS strips, trajectories) and its truth.
+    Simulate {
+        #[arg(long, default_value = "small")]
+        scale: precimap_sim::Scale,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+        /// Write LAZ instead of LAS.
+        #[arg(long)]
+        laz: bool,
+    },
+    /// Adjust a campaign: corrected strips, trajectories and report.json in OUT.
+    Run {
+        manifest: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// Keep the tile chunks in OUT/work.
+        #[arg(long)]
+        keep_work: bool,
+    },
+    /// Compare a result with the simulator's truth, before and after.
+    Evaluate {
+        /// The campaign's truth folder (CAMPAIGN/truth).
+        #[arg(long)]
+        truth: PathBuf,
+        /// The folder `precimap run` wrote.
+        #[arg(long)]
+        result: PathBuf,
+        /// Print one JSON object.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Simulate, run and evaluate in one go (the README's first command).
+    Demo {
+        #[arg(long, default_value = "small")]
+        scale: precimap_sim::Scale,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value = "demo")]
+        out: PathBuf,
+    },
+    /// Benchmarks printing per-core throughput.
+    Bench {
+        #[command(subcommand)]
+        what: bench::BenchCommand,
+    },
+}
+
+fn main() {
+    if let Err(e) = real_main() {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn real_main() -> Result<()> {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("PRECIMAP_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    if let Some(n) = cli.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting up the thread pool")?;
+    }
+    match cli.command {
+        Command::Simulate { scale, seed, out, laz } => simulate(scale, seed, &out, laz).map(|_| ()),
+        Command::Run { manifest, out, keep_work } => run(&manifest, &out, keep_work).map(|_| ()),
+        Command::Evaluate { truth, result, json } => evaluate(&truth, &result, json),
+        Command::Demo { scale, seed, out } => {
+            let campaign = out.join("campaign");
+            let result = out.join("result");
+            simulate(scale, seed, &campaign, false)?;
+            run(&campaign.join("manifest.json"), &result, false)?;
+            evaluate(&campaign.join("truth"), &result, false)?;
+            eprintln!(
+                "\ncorrected strips and trajectories: {}\nreport: {}",
+                result.display(),
+                result.join("report.json").display()
+            );
+            Ok(())
+        }
+        Command::Bench { what } => bench::run(what),
+    }
+}
+
+fn simulate(scale: precimap_sim::Scale, seed: u64, out: &std::path::Path, laz: bool) -> Result<()> {
+    let config = precimap_sim::SimConfig::for_scale(scale, seed);
+    let started = std::time::Instant::now();
+    eprintln!("simulating a {scale:?} campaign (seed {seed}) into {}", out.display());
+    let summary =
+        precimap_sim::simulate(&config, out, laz).with_context(|| format!("simulating into {}", out.display()))?;
+    eprintln!(
+        "  {} points in {} strips of {} trajectories ({:.1} s)",
+        summary.points,
+        summary.strips,
+        summary.trajectories,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn run(manifest: &std::path::Path, out: &std::path::Path, keep_work: bool) -> Result<precimap_pipeline::Report> {
+    let options = precimap_pipeline::RunOptions { out_dir: out.to_path_buf(), keep_work };
+    let display = progress::Display::new();
+    let report = precimap_pipeline::run_campaign(manifest, &options, &|p| display.show(p))
+        .with_context(|| format!("running {}", manifest.display()))?;
+    display.finish(&report);
+    Ok(report)
+}
+
+fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Result<()> {
+    let evaluation = precimap_eval::evaluate(truth, result)
+        .with_context(|| format!("evaluating {} against {}", result.display(), truth.display()))?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&evaluation)?);
+    } else {
+        println!("{}", evaluation.summary());
+    }
+    Ok(())
+}

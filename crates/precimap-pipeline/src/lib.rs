@@ -1,1 +1,15 @@
-//! In-process orchestration of a campaign: ingest, tiles, iterations, export, report.
+//! In-process orchestration of a campaign (DESIGN §3 on one machine): load and validate the
+//! manifest, prepare every strip into tile chunks, iterate map (tiles) and reduce (trajectories)
+//! on the paper's schedule, export corrected strips and trajectories and `report.json`.
+//! The task functions in [`tasks`] are the units a job framework invokes one at a time.
+
+pub mod campaign;
+pub mod error;
+pub mod report;
+pub mod run;
+pub mod tasks;
+
+pub use campaign::Campaign;
+pub use error::PipelineError;
+pub use report::Report;
+pub use run::{run_campaign, Progress, RunOptions};

@@ -1,0 +1,78 @@
+//! Progress on the terminal: one updating line when stderr is a terminal, plain lines otherwise.
+
+use precimap_pipeline::{Progress, Report};
+use std::io::{IsTerminal, Write};
+use std::sync::Mutex;
+
+pub struct Display {
+    tty: bool,
+    lock: Mutex<()>,
+}
+
+impl Display {
+    pub fn new() -> Self {
+        Self { tty: std::io::stderr().is_terminal(), lock: Mutex::new(()) }
+    }
+
+    fn transient(&self, line: &str) {
+        let _guard = self.lock.lock();
+        let mut err = std::io::stderr().lock();
+        if self.tty {
+            let _ = write!(err, "\r\x1b[2K{line}");
+        }
+        let _ = err.flush();
+    }
+
+    fn permanent(&self, line: &str) {
+        let _guard = self.lock.lock();
+        let mut err = std::io::stderr().lock();
+        if self.tty {
+            let _ = write!(err, "\r\x1b[2K");
+        }
+        let _ = writeln!(err, "{line}");
+    }
+
+    pub fn show(&self, p: Progress) {
+        match p {
+            Progress::Loaded { strips, trajectories } => {
+                self.permanent(&format!("campaign: {strips} strips, {trajectories} trajectories"))
+            }
+            Progress::Prepared { done, total } => {
+                self.transient(&format!("preparing strips {done}/{total}"));
+                if done == total {
+                    self.permanent(&format!("prepared {total} strips"));
+                }
+            }
+            Progress::Iteration(it, total) => self.permanent(&format!(
+                "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  max change {:>8.3} mm  ({:.1} s)",
+                it.iteration,
+                it.grid_m * 100.0,
+                it.threshold_m * 1000.0,
+                it.points_used,
+                it.residual_std_m * 1000.0,
+                it.max_correction_change_m * 1000.0,
+                it.seconds
+            )),
+            Progress::Exported { done, total } => {
+                self.transient(&format!("exporting strips {done}/{total}"));
+                if done == total {
+                    self.permanent(&format!("exported {total} strips"));
+                }
+            }
+        }
+    }
+
+    pub fn finish(&self, report: &Report) {
+        self.permanent(&format!(
+            "done: {} points, {} tiles, {} iterations{}, {:.1} s (prepare {:.1} s, estimate {:.1} s, export {:.1} s)",
+            report.points_total,
+            report.tiles,
+            report.iterations.len(),
+            if report.converged { " (converged)" } else { "" },
+            report.timings.total_s,
+            report.timings.prepare_s,
+            report.timings.estimate_s,
+            report.timings.export_s
+        ));
+    }
+}

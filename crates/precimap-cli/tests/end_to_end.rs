@@ -1,0 +1,138 @@
+//! A tiny simulated campaign through simulate → run → evaluate, and the bad inputs a user meets.
+
+use precimap_pipeline::{run_campaign, PipelineError, RunOptions};
+use std::path::{Path, PathBuf};
+
+fn simulate_tiny(dir: &Path, seed: u64) -> PathBuf {
+    let campaign = dir.join("campaign");
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, seed);
+    precimap_sim::simulate(&config, &campaign, false).expect("simulate tiny");
+    campaign
+}
+
+fn run(manifest: &Path, out: &Path) -> Result<precimap_pipeline::Report, PipelineError> {
+    run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false }, &|_| {})
+}
+
+#[test]
+fn tiny_campaign_is_adjusted_towards_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 3);
+    let out = dir.path().join("out");
+    let report = run(&campaign.join("manifest.json"), &out).unwrap();
+    assert!(report.iterations.len() <= 18);
+    assert_eq!(report.strips.len(), 4);
+    let e = precimap_eval::evaluate(&campaign.join("truth"), &out).unwrap();
+    eprintln!("{}", e.summary());
+    // Every input point comes back, in order (evaluate checks counts and GPS times per strip).
+    assert_eq!(e.points, report.points_total);
+    // The strips agree far better after the adjustment than before…
+    assert!(
+        e.strip_offset_spread_m.after < 0.25 * e.strip_offset_spread_m.before,
+        "spread {:?}",
+        e.strip_offset_spread_m.before
+    );
+    // …and the points moved towards the true surfaces, the trajectories towards the true ones.
+    assert!(e.surface_error_rms_m.after < 0.6 * e.surface_error_rms_m.before);
+    assert!(e.trajectory_error_rms_m.after < e.trajectory_error_rms_m.before);
+    let last = report.iterations.last().unwrap();
+    assert!(last.residual_std_m < 0.006, "final residual σ {}", last.residual_std_m);
+}
+
+/// Copies a campaign so a test can damage it.
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target).unwrap();
+        }
+    }
+}
+
+#[test]
+fn bad_inputs_name_what_is_wrong_and_where() {
+    let dir = tempfile::tempdir().unwrap();
+    let pristine = simulate_tiny(dir.path(), 5);
+    let fresh = |name: &str| {
+        let c = dir.path().join(name);
+        copy_dir(&pristine, &c);
+        c
+    };
+
+    // A trajectory that stops before its strips end.
+    let c = fresh("short-trajectory");
+    let csv = c.join("trajectories/v01.csv");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    std::fs::write(&csv, lines[..lines.len() / 2].join("\n")).unwrap();
+    let msg = run(&c.join("manifest.json"), &c.join("out")).unwrap_err().to_string();
+    assert!(msg.contains("strip v01-") && msg.contains("trajectory v01") && msg.contains("covers only"), "{msg}");
+
+    // A truncated strip.
+    let c = fresh("truncated-strip");
+    let las = c.join("strips/v02-right.las");
+    let bytes = std::fs::read(&las).unwrap();
+    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+    let msg = run(&c.join("manifest.json"), &c.join("out")).unwrap_err().to_string();
+    assert!(msg.contains("v02-right.las"), "{msg}");
+
+    // A NaN in a trajectory.
+    let c = fresh("nan");
+    let csv = c.join("trajectories/v02.csv");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let mut fields: Vec<String> = lines[10].split(',').map(String::from).collect();
+    fields[3] = "NaN".into();
+    lines[10] = fields.join(",");
+    std::fs::write(&csv, lines.join("\n")).unwrap();
+    let msg = run(&c.join("manifest.json"), &c.join("out")).unwrap_err().to_string();
+    assert!(msg.contains("v02.csv") && msg.contains(":11"), "{msg}");
+
+    // A manifest with an unknown field and a strip naming a missing trajectory: both reported.
+    let c = fresh("manifest");
+    let path = c.join("manifest.json");
+    let mut m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    m["colour"] = "blue".into();
+    m["strips"][1]["trajectory"] = "v99".into();
+    std::fs::write(&path, m.to_string()).unwrap();
+    let msg = run(&path, &c.join("out")).unwrap_err().to_string();
+    assert!(msg.contains("$.colour") && msg.contains("$.strips[1].trajectory") && msg.contains("v99"), "{msg}");
+
+    // A manifest that points outside its folder.
+    let c = fresh("escape");
+    let path = c.join("manifest.json");
+    let mut m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    m["strips"][0]["uri"] = "../../etc/passwd".into();
+    std::fs::write(&path, m.to_string()).unwrap();
+    let msg = run(&path, &c.join("out")).unwrap_err().to_string();
+    assert!(msg.contains("$.strips[0].uri"), "{msg}");
+}
+
+#[test]
+fn the_binary_runs_the_documented_commands() {
+    let dir = tempfile::tempdir().unwrap();
+    let exe = env!("CARGO_BIN_EXE_precimap");
+    let campaign = dir.path().join("c");
+    let status = std::process::Command::new(exe)
+        .args(["simulate", "--scale", "tiny", "--seed", "2", "--out"])
+        .arg(&campaign)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    // A bad argument is a clear error, not a panic.
+    let out = std::process::Command::new(exe).args(["simulate", "--scale", "huge", "--out", "x"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("huge"));
+    let out = std::process::Command::new(exe)
+        .args(["run", "/nonexistent/manifest.json", "--out"])
+        .arg(dir.path().join("o"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("/nonexistent/manifest.json") && !stderr.contains("panicked"), "{stderr}");
+}

@@ -1,0 +1,73 @@
+//! `report.json`: what a run did, per iteration and per trajectory.
+
+use precimap_estimate::ResidualHistogram;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Report {
+    pub campaign: String,
+    pub manifest: String,
+    /// Points in all input strips.
+    pub points_total: u64,
+    pub tiles: usize,
+    pub strips: Vec<StripReport>,
+    pub iterations: Vec<IterationReport>,
+    pub converged: bool,
+    pub trajectories: Vec<TrajectoryReport>,
+    /// Signed distances of all modelled points to the latent map in the last iteration.
+    pub residual_histogram: ResidualHistogram,
+    pub timings: Timings,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct StripReport {
+    pub id: String,
+    pub points: u64,
+    pub points_with_normal: u64,
+    pub points_emitted: u64,
+    pub revolutions: u64,
+    pub rows_per_revolution: u32,
+    pub tiles: usize,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IterationReport {
+    pub iteration: usize,
+    pub grid_m: f64,
+    pub threshold_m: f64,
+    /// Points in tile cores (each point once).
+    pub points_in_tiles: u64,
+    /// Points on latent-map pixels shared by two or more strip passes.
+    pub points_modelled: u64,
+    /// Observations: modelled points within the threshold.
+    pub points_used: u64,
+    pub residual_mean_m: f64,
+    pub residual_std_m: f64,
+    /// Mean over shared pixels of the standard deviation of the strips' heights.
+    pub pixel_std_mean_m: f64,
+    pub max_correction_change_m: f64,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrajectoryReport {
+    pub id: String,
+    pub anchors: usize,
+    pub anchors_observed: u32,
+    pub observations: u64,
+    pub position_correction_rms_m: f64,
+    pub position_correction_max_m: f64,
+    pub rotation_correction_rms_deg: f64,
+    pub rotation_correction_max_deg: f64,
+    /// Mean posterior standard deviation of the position corrections over observed anchors.
+    pub position_sigma_mean_m: f64,
+    pub rotation_sigma_mean_deg: f64,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Timings {
+    pub prepare_s: f64,
+    pub estimate_s: f64,
+    pub export_s: f64,
+    pub total_s: f64,
+}

@@ -1,0 +1,263 @@
+//! The in-process driver: prepare every strip, iterate map (tiles) and reduce (trajectories)
+//! on the schedule, export. Parallel with rayon; deterministic (results are combined in a fixed
+//! order, independent of the thread count).
+
+use crate::campaign::Campaign;
+use crate::error::PipelineError;
+use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
+use crate::tasks::{
+    estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task, solve_trajectory_task,
+};
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::TileKey;
+use precimap_estimate::{ResidualHistogram, TileStats};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub out_dir: PathBuf,
+    /// Keep the tile chunks in `OUT/work` after the run.
+    pub keep_work: bool,
+}
+
+/// What the driver reports while it works.
+#[derive(Clone, Debug)]
+pub enum Progress {
+    Loaded { strips: usize, trajectories: usize },
+    Prepared { done: usize, total: usize },
+    Iteration(IterationReport, usize),
+    Exported { done: usize, total: usize },
+}
+
+/// The campaign's state after preparation: which strips each tile holds and every trajectory's
+/// anchor range.
+#[derive(Debug)]
+pub struct Prepared {
+    pub tiles: BTreeMap<TileKey, Vec<usize>>,
+    pub anchor_ranges: Vec<(u32, u32)>,
+    pub strips: Vec<StripReport>,
+    pub points_total: u64,
+}
+
+pub fn prepare_all(
+    campaign: &Campaign,
+    work: &Path,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<Prepared, PipelineError> {
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = campaign.strips.len();
+    let outcomes: Vec<_> = (0..total)
+        .into_par_iter()
+        .map(|s| {
+            let r = prepare_strip_task(campaign, s, work);
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress(Progress::Prepared { done: d, total });
+            r
+        })
+        .collect::<Result<_, _>>()?;
+    let mut tiles: BTreeMap<TileKey, Vec<usize>> = BTreeMap::new();
+    let mut anchor_ranges = vec![(u32::MAX, 0u32); campaign.trajectories.len()];
+    let mut strips = Vec::with_capacity(total);
+    let mut points_total = 0;
+    for (s, outcome) in outcomes.into_iter().enumerate() {
+        let entry = &campaign.strips[s];
+        let range = &mut anchor_ranges[entry.trajectory as usize];
+        range.0 = range.0.min(outcome.stats.first_anchor);
+        range.1 = range.1.max(outcome.stats.last_anchor);
+        for t in &outcome.tiles {
+            tiles.entry(*t).or_default().push(s);
+        }
+        points_total += outcome.stats.points;
+        strips.push(StripReport {
+            id: entry.id.clone(),
+            points: outcome.stats.points,
+            points_with_normal: outcome.stats.points_with_normal,
+            points_emitted: outcome.stats.points_emitted,
+            revolutions: outcome.stats.revolutions,
+            rows_per_revolution: outcome.stats.rows_per_revolution,
+            tiles: outcome.tiles.len(),
+        });
+    }
+    // A trajectory without strips keeps one zero anchor (it is exported unchanged).
+    for r in &mut anchor_ranges {
+        if r.0 == u32::MAX {
+            *r = (0, 0);
+        }
+    }
+    Ok(Prepared { tiles, anchor_ranges, strips, points_total })
+}
+
+/// One iteration: every tile's map task, then every trajectory's reduce task.
+pub fn iterate(
+    campaign: &Campaign,
+    work: &Path,
+    prepared: &Prepared,
+    corrections: &[TrajectoryCorrections],
+    step: &precimap_core::IterationStep,
+    with_sigma: bool,
+) -> Result<(Vec<precimap_estimate::TrajectorySolution>, TileStats), PipelineError> {
+    let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
+    let estimates = tiles
+        .par_iter()
+        .map(|(tile, strips)| {
+            let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
+            estimate_tile_task(work, **tile, &ids, corrections, campaign, step)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
+    let mut per_trajectory: Vec<Vec<&precimap_estimate::AnchorBlock>> = vec![Vec::new(); corrections.len()];
+    for e in &estimates {
+        stats.merge(&e.stats);
+        for tb in &e.blocks {
+            per_trajectory[tb.trajectory as usize].extend(tb.blocks.iter());
+        }
+    }
+    let solutions = per_trajectory
+        .par_iter()
+        .enumerate()
+        .map(|(t, blocks)| {
+            solve_trajectory_task(campaign, t, blocks.iter().copied(), &corrections[t], step, with_sigma)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((solutions, stats))
+}
+
+/// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
+pub fn run_campaign(
+    manifest: &Path,
+    options: &RunOptions,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<Report, PipelineError> {
+    let started = Instant::now();
+    let campaign = Campaign::load(manifest)?;
+    progress(Progress::Loaded { strips: campaign.strips.len(), trajectories: campaign.trajectories.len() });
+    let out = &options.out_dir;
+    let work = out.join("work");
+    std::fs::create_dir_all(&work).map_err(|e| PipelineError::io(&work, e))?;
+
+    let t = Instant::now();
+    let prepared = prepare_all(&campaign, &work, progress)?;
+    let prepare_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let mut corrections: Vec<TrajectoryCorrections> =
+        prepared.anchor_ranges.iter().map(|&(a, b)| TrajectoryCorrections::zeros(a, b)).collect();
+    let schedule = &campaign.params.schedule;
+    let mut iterations = Vec::new();
+    let mut histogram = ResidualHistogram::default();
+    let mut converged = false;
+    let mut solutions = Vec::new();
+    let mut step_index = 0;
+    while step_index < schedule.len() {
+        let iteration_started = Instant::now();
+        let step = &schedule[step_index];
+        let last = step_index + 1 == schedule.len();
+        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, step, true)?;
+        let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
+        corrections = sol.iter().map(|s| s.corrections.clone()).collect();
+        solutions = sol;
+        histogram = stats.histogram.clone();
+        let report = IterationReport {
+            iteration: iterations.len() + 1,
+            grid_m: step.grid_m,
+            threshold_m: step.threshold_m,
+            points_in_tiles: stats.points,
+            points_modelled: stats.points_modelled,
+            points_used: stats.points_used,
+            residual_mean_m: stats.residual_mean_m(),
+            residual_std_m: stats.residual_std_m(),
+            pixel_std_mean_m: if stats.pixels_shared > 0 {
+                stats.pixel_std_sum_m / stats.pixels_shared as f64
+            } else {
+                0.0
+            },
+            max_correction_change_m: max_change,
+            seconds: iteration_started.elapsed().as_secs_f64(),
+        };
+        progress(Progress::Iteration(report.clone(), schedule.len()));
+        iterations.push(report);
+        if max_change < campaign.params.convergence_tolerance_m {
+            if last {
+                converged = true;
+                break;
+            }
+            // Converged on this step's settings: go straight to the final grid and threshold.
+            step_index = schedule.len() - 1;
+        } else {
+            step_index += 1;
+        }
+    }
+    let estimate_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = campaign.strips.len();
+    (0..total).into_par_iter().try_for_each(|s| -> Result<(), PipelineError> {
+        export_strip_task(&campaign, s, &corrections[campaign.strips[s].trajectory as usize], out)?;
+        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        progress(Progress::Exported { done: d, total });
+        Ok(())
+    })?;
+    for (t, c) in corrections.iter().enumerate() {
+        export_trajectory_task(&campaign, t, c, out)?;
+    }
+    let export_s = t.elapsed().as_secs_f64();
+    if !options.keep_work {
+        std::fs::remove_dir_all(&work).map_err(|e| PipelineError::io(&work, e))?;
+    }
+
+    let trajectories =
+        campaign.trajectories.iter().zip(&solutions).map(|(entry, sol)| trajectory_report(&entry.id, sol)).collect();
+    let report = Report {
+        campaign: campaign.name.clone(),
+        manifest: manifest.display().to_string(),
+        points_total: prepared.points_total,
+        tiles: prepared.tiles.len(),
+        strips: prepared.strips,
+        iterations,
+        converged,
+        trajectories,
+        residual_histogram: histogram,
+        timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64() },
+    };
+    let path = out.join("report.json");
+    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
+    Ok(report)
+}
+
+fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) -> TrajectoryReport {
+    let values = &sol.corrections.values;
+    let n = values.len().max(1) as f64;
+    let pos = |v: &[f64; 6]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let rot = |v: &[f64; 6]| (v[3] * v[3] + v[4] * v[4] + v[5] * v[5]).sqrt().to_degrees();
+    let (mut ps, mut rs) = (0.0, 0.0);
+    for v in values {
+        ps += pos(v).powi(2);
+        rs += rot(v).powi(2);
+    }
+    let (mut sig_p, mut sig_r) = (0.0, 0.0);
+    if let Some(sigma) = &sol.sigma {
+        for s in sigma {
+            sig_p += (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
+            sig_r += (s[3] * s[3] + s[4] * s[4] + s[5] * s[5]).sqrt().to_degrees();
+        }
+        sig_p /= sigma.len().max(1) as f64;
+        sig_r /= sigma.len().max(1) as f64;
+    }
+    TrajectoryReport {
+        id: id.to_string(),
+        anchors: values.len(),
+        anchors_observed: sol.anchors_observed,
+        observations: sol.observations,
+        position_correction_rms_m: (ps / n).sqrt(),
+        position_correction_max_m: values.iter().map(pos).fold(0.0, f64::max),
+        rotation_correction_rms_deg: (rs / n).sqrt(),
+        rotation_correction_max_deg: values.iter().map(rot).fold(0.0, f64::max),
+        position_sigma_mean_m: sig_p,
+        rotation_sigma_mean_deg: sig_r,
+    }
+}

@@ -1,0 +1,187 @@
+//! The four tasks of DESIGN §3 as functions over files: each reads its inputs, calls the pure
+//! numeric function of `precimap-estimate`, and writes its outputs. The in-process driver calls
+//! them directly; a job framework can call the same functions one task per invocation.
+
+use crate::campaign::Campaign;
+use crate::error::PipelineError;
+use precimap_core::corrections::{apply, TrajectoryCorrections};
+use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
+use precimap_core::{IterationStep, TileKey, Vec3};
+use precimap_estimate::{
+    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, StripContext, StripSamples,
+    TileChunk, TileEstimate, TrajectorySolution,
+};
+use std::fs;
+use std::path::{Path, PathBuf};
+
+/// Where a tile chunk of one strip lives in the work folder.
+pub fn chunk_path(work: &Path, tile: TileKey, strip_id: &str) -> PathBuf {
+    work.join("tiles").join(tile.to_string()).join(format!("{strip_id}.chunk"))
+}
+
+/// Writes a file atomically (temporary name, then rename), so a reader never sees half a file.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), PipelineError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    fs::create_dir_all(dir).map_err(|e| PipelineError::io(dir, e))?;
+    let tmp = path.with_extension("partial");
+    fs::write(&tmp, bytes).map_err(|e| PipelineError::io(&tmp, e))?;
+    fs::rename(&tmp, path).map_err(|e| PipelineError::io(path, e))
+}
+
+#[derive(Debug)]
+pub struct PrepareOutcome {
+    pub stats: PrepareStats,
+    pub tiles: Vec<TileKey>,
+}
+
+/// `segment_strip`: reads one strip, checks it against its trajectory, and writes its tile chunks.
+pub fn prepare_strip_task(campaign: &Campaign, strip: usize, work: &Path) -> Result<PrepareOutcome, PipelineError> {
+    let entry = &campaign.strips[strip];
+    let traj = &campaign.trajectories[entry.trajectory as usize];
+    let points = precimap_formats::read_strip(&entry.path)?;
+    let (t_first, t_last) = time_range(&points.gps_time);
+    let (start, end) = traj.data.time_span();
+    if t_first < start || t_last > end {
+        return Err(PipelineError::Input {
+            what: format!("strip {} ({})", entry.id, entry.path.display()),
+            message: format!(
+                "its GPS times span {t_first:.3}–{t_last:.3} s but trajectory {} ({}) covers only {start:.3}–{end:.3} s; \
+                 supply a trajectory that covers the whole strip, or cut the strip to the trajectory's span",
+                traj.id,
+                traj.path.display()
+            ),
+        });
+    }
+    let samples = StripSamples {
+        x: &points.x,
+        y: &points.y,
+        z: &points.z,
+        gps_time: &points.gps_time,
+        scan_angle_deg: &points.scan_angle_deg,
+    };
+    let ctx = StripContext {
+        strip: strip as u32,
+        trajectory: entry.trajectory,
+        trajectory_data: &traj.data,
+        lever_arm: entry.lever_arm,
+        params: &campaign.params,
+    };
+    let prepared = prepare_strip(&samples, &ctx).map_err(|source| PipelineError::Prepare {
+        strip: entry.id.clone(),
+        path: entry.path.clone(),
+        source,
+    })?;
+    drop(points);
+    let mut tiles = Vec::with_capacity(prepared.chunks.len());
+    for chunk in &prepared.chunks {
+        write_atomic(&chunk_path(work, chunk.tile, &entry.id), &chunk.encode())?;
+        tiles.push(chunk.tile);
+    }
+    Ok(PrepareOutcome { stats: prepared.stats, tiles })
+}
+
+fn time_range(times: &[f64]) -> (f64, f64) {
+    times.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| (a.min(t), b.max(t)))
+}
+
+/// Reads the chunks of one tile (strips in the given order).
+pub fn load_tile(work: &Path, tile: TileKey, strip_ids: &[&str]) -> Result<Vec<TileChunk>, PipelineError> {
+    strip_ids
+        .iter()
+        .map(|id| {
+            let path = chunk_path(work, tile, id);
+            let bytes = fs::read(&path).map_err(|e| PipelineError::io(&path, e))?;
+            TileChunk::decode(&bytes).map_err(|source| PipelineError::Chunk { path, source })
+        })
+        .collect()
+}
+
+/// `estimate_tile` over chunk files.
+pub fn estimate_tile_task(
+    work: &Path,
+    tile: TileKey,
+    strip_ids: &[&str],
+    corrections: &[TrajectoryCorrections],
+    campaign: &Campaign,
+    step: &IterationStep,
+) -> Result<TileEstimate, PipelineError> {
+    let chunks = load_tile(work, tile, strip_ids)?;
+    estimate_tile(tile, &chunks, corrections, &campaign.params, step)
+        .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
+}
+
+/// `solve_trajectory` over the blocks every tile emitted for one trajectory.
+pub fn solve_trajectory_task<'a>(
+    campaign: &Campaign,
+    trajectory: usize,
+    blocks: impl IntoIterator<Item = &'a AnchorBlock>,
+    current: &TrajectoryCorrections,
+    step: &IterationStep,
+    with_sigma: bool,
+) -> Result<TrajectorySolution, PipelineError> {
+    precimap_estimate::solve_trajectory(blocks, current, &campaign.params, step.rotation, with_sigma)
+        .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
+}
+
+/// `export_strip`: every input point, same order, all attributes, coordinates corrected.
+pub fn export_strip_task(
+    campaign: &Campaign,
+    strip: usize,
+    corrections: &TrajectoryCorrections,
+    out_dir: &Path,
+) -> Result<(PathBuf, u64), PipelineError> {
+    let entry = &campaign.strips[strip];
+    let traj = &campaign.trajectories[entry.trajectory as usize];
+    let extension = entry.path.extension().and_then(|e| e.to_str()).unwrap_or("las").to_ascii_lowercase();
+    let dst = out_dir.join("strips").join(format!("{}.{extension}", entry.id));
+    fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
+    let points = precimap_formats::read_strip(&entry.path)?;
+    let spacing = campaign.params.anchor_spacing_m;
+    let mut uncovered = None;
+    let written = precimap_formats::rewrite_strip(&entry.path, &dst, |i, xyz| {
+        match measurement_geometry(&traj.data, &entry.lever_arm, spacing, points.gps_time[i], xyz) {
+            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+            None => {
+                uncovered.get_or_insert(i);
+                xyz
+            }
+        }
+    })?;
+    if let Some(i) = uncovered {
+        return Err(PipelineError::Input {
+            what: format!("strip {} ({})", entry.id, entry.path.display()),
+            message: format!("point {i} lies outside trajectory {}'s time span", traj.id),
+        });
+    }
+    Ok((dst, written))
+}
+
+/// Corrected trajectory: same time stamps, body poses moved so that the scan heads (at the mean
+/// lever arm) move by the corrections: `R' = Exp(δθ)·R`, `c' = c + δt + (I − Exp(δθ))·R·ℓ`.
+pub fn export_trajectory_task(
+    campaign: &Campaign,
+    trajectory: usize,
+    corrections: &TrajectoryCorrections,
+    out_dir: &Path,
+) -> Result<PathBuf, PipelineError> {
+    let entry = &campaign.trajectories[trajectory];
+    let t = &entry.data;
+    let spacing = campaign.params.anchor_spacing_m;
+    let mut positions = Vec::with_capacity(t.len());
+    let mut rpy = Vec::with_capacity(t.len());
+    for ((c, r), s) in t.positions().iter().zip(t.rotations()).zip(t.arc_lengths()) {
+        let u = s / spacing;
+        let anchor = u.floor();
+        let x = corrections.at(anchor as u32, (u - anchor) as f32);
+        let delta = so3_exp(&Vec3::new(x[3], x[4], x[5]));
+        let rotated: Mat3 = delta * r;
+        let lever = r * entry.mean_lever_arm;
+        positions.push(c + Vec3::new(x[0], x[1], x[2]) + (lever - delta * lever));
+        let (roll, pitch, yaw) = rpy_from_rot(&rotated);
+        rpy.push([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()]);
+    }
+    let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
+    fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
+    precimap_formats::write_trajectory_csv(&dst, t.times(), &positions, &rpy)?;
+    Ok(dst)
+}
