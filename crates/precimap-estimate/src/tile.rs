@@ -39,8 +39,6 @@ pub enum EstimateError {
     WrongTile { strip: u32, expected: TileKey, found: TileKey },
     #[error("chunk of strip {strip} names trajectory {trajectory}, but only {known} trajectories have corrections")]
     UnknownTrajectory { strip: u32, trajectory: u32, known: usize },
-    #[error("solving trajectory {trajectory}: {message}")]
-    Solve { trajectory: String, message: String },
 }
 
 /// What one tile emits: normal-equation blocks per trajectory and statistics.
