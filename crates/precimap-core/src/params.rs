@@ -75,6 +75,12 @@ pub struct Parameters {
     pub sigma_smooth_position_m: f64,
     /// σ of the change in attitude correction between neighbouring anchors.
     pub sigma_smooth_rotation_deg: f64,
+    /// σ of the second difference of the position correction over three neighbouring anchors
+    /// (curvature). GNSS/IMU errors bend over hundreds of metres; a kink within metres is an
+    /// artefact. 0 disables the term.
+    pub sigma_curvature_position_m: f64,
+    /// σ of the second difference of the attitude correction; 0 disables the term.
+    pub sigma_curvature_rotation_deg: f64,
     /// An anchor's own observations are trusted only in directions carrying at least this share
     /// of its strongest direction's information (rotations compared as displacements at 10 m).
     pub weak_information_ratio: f64,
@@ -99,6 +105,8 @@ impl Default for Parameters {
             sigma_prior_rotation_deg: 0.02,
             sigma_smooth_position_m: 0.005,
             sigma_smooth_rotation_deg: 0.001,
+            sigma_curvature_position_m: 0.0001,
+            sigma_curvature_rotation_deg: 0.0001,
             weak_information_ratio: 0.01,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
@@ -167,6 +175,20 @@ impl Parameters {
         positive!("sigma_smooth_position_m", self.sigma_smooth_position_m);
         positive!("sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
         positive!("convergence_tolerance_m", self.convergence_tolerance_m);
+        for (field, v) in [
+            ("sigma_curvature_position_m", self.sigma_curvature_position_m),
+            ("sigma_curvature_rotation_deg", self.sigma_curvature_rotation_deg),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                out.push(ParameterProblem { field: field.into(), problem: "must be zero (off) or positive".into() });
+            }
+        }
+        if (self.sigma_curvature_position_m > 0.0) != (self.sigma_curvature_rotation_deg > 0.0) {
+            out.push(ParameterProblem {
+                field: "sigma_curvature_rotation_deg".into(),
+                problem: "the curvature terms are on or off together: set both positive or both 0".into(),
+            });
+        }
         if !(0.0..1.0).contains(&self.weak_information_ratio) {
             out.push(ParameterProblem { field: "weak_information_ratio".into(), problem: "must be in [0, 1)".into() });
         }

@@ -19,6 +19,7 @@
 
 mod bench;
 mod chol6;
+pub mod generic;
 mod rng;
 
 pub use bench::{bench_solve, synthetic_system};
