@@ -486,29 +486,107 @@ impl Rasteriser<'_> {
             y[k] = (v - m.v0) / g - 0.5;
             h[k] = hh;
         }
-        let area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]);
-        if area.abs() < 1e-12 {
-            return;
+        scan_triangle(x, y, h, m.nu as i64, m.nv as i64, |i, j, height| {
+            pixels[m.pixel_offset + j * m.nu as usize + i].add(height as f32, tag);
+        });
+    }
+}
+
+/// Calls `visit(i, j, height)` for every pixel centre (i, j) (integer coordinates, inside
+/// `0..nu × 0..nv`) that lies in the triangle `(x, y)`, with the height interpolated linearly.
+/// Scanline form: per row, the three edge half-planes give the exact span of inside pixels, and
+/// the height advances by one addition per pixel.
+#[inline]
+fn scan_triangle(x: [f64; 3], y: [f64; 3], h: [f64; 3], nu: i64, nv: i64, mut visit: impl FnMut(usize, usize, f64)) {
+    let area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]);
+    if area.abs() < 1e-12 {
+        return;
+    }
+    let sign = area.signum();
+    // Height plane h = h0 + hx·(x − x0) + hy·(y − y0).
+    let (dx1, dy1, dh1) = (x[1] - x[0], y[1] - y[0], h[1] - h[0]);
+    let (dx2, dy2, dh2) = (x[2] - x[0], y[2] - y[0], h[2] - h[0]);
+    let hx = (dh1 * dy2 - dh2 * dy1) / area;
+    let hy = (dh2 * dx1 - dh1 * dx2) / area;
+    let j0 = y[0].min(y[1]).min(y[2]).ceil().max(0.0) as i64;
+    let j1 = (y[0].max(y[1]).max(y[2]).floor() as i64).min(nv - 1);
+    // Edge k from P to Q: sign·((qx−px)(Y−py) − (qy−py)(X−px)) ≥ 0, i.e. a·X + b(Y) ≥ 0.
+    let edges = [(0usize, 1usize), (1, 2), (2, 0)];
+    const SLACK: f64 = 1e-9;
+    for j in j0..=j1 {
+        let py = j as f64;
+        let (mut lo, mut hi) = (0.0f64, (nu - 1) as f64);
+        let mut empty = false;
+        for &(a, b) in &edges {
+            let coef = -sign * (y[b] - y[a]);
+            let rest = sign * ((x[b] - x[a]) * (py - y[a]) + (y[b] - y[a]) * x[a]);
+            if coef > 0.0 {
+                lo = lo.max((-rest - SLACK) / coef);
+            } else if coef < 0.0 {
+                hi = hi.min((-rest - SLACK) / coef);
+            } else if rest < -SLACK {
+                empty = true;
+            }
         }
-        let inv = 1.0 / area;
-        let i0 = x[0].min(x[1]).min(x[2]).ceil().max(0.0) as i64;
-        let i1 = (x[0].max(x[1]).max(x[2]).floor() as i64).min(m.nu as i64 - 1);
-        let j0 = y[0].min(y[1]).min(y[2]).ceil().max(0.0) as i64;
-        let j1 = (y[0].max(y[1]).max(y[2]).floor() as i64).min(m.nv as i64 - 1);
-        if i0 > i1 || j0 > j1 {
-            return;
+        if empty {
+            continue;
         }
-        const EPS: f64 = -1e-9;
-        for j in j0..=j1 {
-            let py = j as f64;
-            let row = m.pixel_offset + (j as usize) * m.nu as usize;
-            for i in i0..=i1 {
-                let px = i as f64;
-                let wa = ((x[1] - px) * (y[2] - py) - (x[2] - px) * (y[1] - py)) * inv;
-                let wb = ((x[2] - px) * (y[0] - py) - (x[0] - px) * (y[2] - py)) * inv;
-                let wc = 1.0 - wa - wb;
-                if wa >= EPS && wb >= EPS && wc >= EPS {
-                    pixels[row + i as usize].add((wa * h[0] + wb * h[1] + wc * h[2]) as f32, tag);
+        let (i0, i1) = (lo.ceil() as i64, hi.floor() as i64);
+        if i0 > i1 {
+            continue;
+        }
+        let mut height = h[0] + hx * (i0 as f64 - x[0]) + hy * (py - y[0]);
+        for i in i0..=i1 {
+            visit(i as usize, j as usize, height);
+            height += hx;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The scanline rasteriser visits exactly the pixel centres a per-pixel barycentric test
+    /// accepts, with the barycentric heights.
+    #[test]
+    fn scanline_matches_barycentric_reference() {
+        let mut seed = 11u64;
+        let mut rand = |scale: f64| {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) * scale
+        };
+        for _ in 0..2000 {
+            let x = [rand(20.0) - 2.0, rand(20.0) - 2.0, rand(20.0) - 2.0];
+            let y = [rand(20.0) - 2.0, rand(20.0) - 2.0, rand(20.0) - 2.0];
+            let h = [rand(1.0), rand(1.0), rand(1.0)];
+            let (nu, nv) = (16i64, 14i64);
+            let mut got = std::collections::BTreeMap::new();
+            scan_triangle(x, y, h, nu, nv, |i, j, v| {
+                assert!(got.insert((i, j), v).is_none(), "pixel visited twice");
+            });
+            let area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]);
+            if area.abs() < 1e-12 {
+                assert!(got.is_empty());
+                continue;
+            }
+            for j in 0..nv {
+                for i in 0..nu {
+                    let (px, py) = (i as f64, j as f64);
+                    let wa = ((x[1] - px) * (y[2] - py) - (x[2] - px) * (y[1] - py)) / area;
+                    let wb = ((x[2] - px) * (y[0] - py) - (x[0] - px) * (y[2] - py)) / area;
+                    let wc = 1.0 - wa - wb;
+                    let margin = wa.min(wb).min(wc);
+                    // Pixels right on an edge may go either way.
+                    if margin.abs() < 1e-6 {
+                        continue;
+                    }
+                    let inside = margin > 0.0;
+                    assert_eq!(got.contains_key(&(i as usize, j as usize)), inside, "pixel {i},{j}");
+                    if inside {
+                        let expect = wa * h[0] + wb * h[1] + wc * h[2];
+                        assert!((got[&(i as usize, j as usize)] - expect).abs() < 1e-9);
+                    }
                 }
             }
         }
