@@ -104,6 +104,17 @@ pub struct Evaluation {
     pub per_class: BTreeMap<String, ClassEvaluation>,
     pub per_strip: Vec<StripEvaluation>,
     pub per_trajectory: Vec<TrajectoryEvaluation>,
+    /// After the adjustment, the tiles whose strips disagree most (see
+    /// [`TileStripMeans::worst_tiles`]): where the remaining spread comes from.
+    pub worst_tiles_after: Vec<TileDisagreement>,
+}
+
+/// One tile's strips and their offsets from the tile's mean (metres, strip ids).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TileDisagreement {
+    pub tile: String,
+    pub rms_m: f64,
+    pub offsets_m: BTreeMap<String, f64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -353,6 +364,18 @@ fn assemble(
     }
     let (spread_before, pairs) = tiles_before.spread(SPREAD_MIN_POINTS);
     let (spread_after, _) = tiles_after.spread(SPREAD_MIN_POINTS);
+    let worst_tiles_after = tiles_after
+        .worst_tiles(SPREAD_MIN_POINTS, 8)
+        .into_iter()
+        .map(|(tile, rms_m, offsets)| TileDisagreement {
+            tile: tile.to_string(),
+            rms_m,
+            offsets_m: offsets
+                .into_iter()
+                .map(|(k, o)| (per_strip.get(k as usize).map_or_else(|| format!("strip-{k}"), |s| s.id.clone()), o))
+                .collect(),
+        })
+        .collect();
 
     let per_class = classes
         .into_iter()
@@ -397,6 +420,7 @@ fn assemble(
         surface_points_used_share: points_used.filter(|_| surface_points > 0).map(|u| u as f64 / surface_points as f64),
         points_used_last_iteration: points_used,
         tile_strip_pairs: pairs,
+        worst_tiles_after,
         surface_points,
         points,
         strips: strip_jobs.len(),
@@ -433,6 +457,13 @@ impl Evaluation {
         );
         if let Some(share) = self.surface_points_used_share {
             let _ = writeln!(out, "points used in the last iteration: {:.1} % of surface points", 100.0 * share);
+        }
+        if !self.worst_tiles_after.is_empty() {
+            let _ = writeln!(out, "tiles whose strips disagree most after adjustment (offset from the tile mean, mm):");
+            for t in self.worst_tiles_after.iter().take(5) {
+                let offsets: Vec<String> = t.offsets_m.iter().map(|(id, o)| format!("{id} {:+.1}", o * 1e3)).collect();
+                let _ = writeln!(out, "  tile {} (RMS {:.1}): {}", t.tile, t.rms_m * 1e3, offsets.join(", "));
+            }
         }
         out
     }

@@ -182,6 +182,38 @@ impl TileStripMeans {
     }
 }
 
+/// A tile, the RMS of its strips' offsets, and each strip's offset from the tile's mean.
+pub type TileOffsets = (TileKey, f64, Vec<(u32, f64)>);
+
+impl TileStripMeans {
+    /// The `count` tiles whose strips disagree most (RMS of the strips' mean errors minus the
+    /// tile's mean), each with every qualifying strip's offset: `(tile, rms, [(strip, offset)])`,
+    /// worst first. Where all strips of one scan head agree and the heads disagree, the error is a
+    /// deformation shared by all passes rather than a misalignment between them.
+    pub fn worst_tiles(&self, min_points: usize, count: usize) -> Vec<TileOffsets> {
+        let mut tiles: BTreeMap<TileKey, Vec<(u32, f64)>> = BTreeMap::new();
+        for (&(tile, strip), &(n, sum)) in &self.cells {
+            if n >= min_points as u64 && n > 0 {
+                tiles.entry(tile).or_default().push((strip, sum / n as f64));
+            }
+        }
+        let mut out: Vec<_> = tiles
+            .into_iter()
+            .filter(|(_, strips)| strips.len() >= 2)
+            .map(|(tile, mut strips)| {
+                strips.sort_by_key(|s| s.0);
+                let mean = strips.iter().map(|s| s.1).sum::<f64>() / strips.len() as f64;
+                let offsets: Vec<(u32, f64)> = strips.iter().map(|&(k, m)| (k, m - mean)).collect();
+                let rms = (offsets.iter().map(|o| o.1 * o.1).sum::<f64>() / offsets.len() as f64).sqrt();
+                (tile, rms, offsets)
+            })
+            .collect();
+        out.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        out.truncate(count);
+        out
+    }
+}
+
 /// [`TileStripMeans::spread`] of `(tile of the true position, strip, signed normal error)` samples.
 pub fn strip_offset_spread(samples: impl Iterator<Item = (TileKey, u32, f64)>, min_points: usize) -> (f64, usize) {
     let mut acc = TileStripMeans::new();
@@ -283,6 +315,21 @@ mod tests {
 
     #[test]
     fn merging_accumulators_equals_one_pass() {
+        let mut worst = TileStripMeans::new();
+        for (tile, strip, e) in repeat(T0, 0, 0.01, 250)
+            .chain(repeat(T0, 1, -0.01, 250))
+            .chain(repeat(T1, 0, 0.002, 250))
+            .chain(repeat(T1, 1, 0.0, 250))
+        {
+            worst.add(tile, strip, e);
+        }
+        let w = worst.worst_tiles(200, 5);
+        assert_eq!(w.len(), 2);
+        assert_eq!(w[0].0, T0);
+        assert!(
+            (w[0].1 - 0.01).abs() < 1e-12 && (w[0].2[0].1 - 0.01).abs() < 1e-12 && (w[0].2[1].1 + 0.01).abs() < 1e-12
+        );
+        assert!((w[1].1 - 0.001).abs() < 1e-12);
         let mut a = TileStripMeans::new();
         let mut b = TileStripMeans::new();
         for i in 0..300 {
