@@ -15,5 +15,7 @@ pub use manifest::{
     load_manifest, parse_manifest, resolve_uri, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
     TrajectoryRef,
 };
-pub use strip::{read_strip, rewrite_strip, strip_info, NewPoint, StripInfo, StripPoints, StripWriter};
+pub use strip::{
+    read_strip, rewrite_strip, rewrite_strip_timed, strip_info, NewPoint, StripInfo, StripPoints, StripWriter,
+};
 pub use trajectory_csv::{read_trajectory_csv, write_trajectory_csv};

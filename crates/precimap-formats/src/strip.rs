@@ -689,7 +689,33 @@ pub fn rewrite_strip(
     dst: &Path,
     mut new_xyz: impl FnMut(usize, [f64; 3]) -> [f64; 3],
 ) -> Result<u64, FormatError> {
+    rewrite(src, dst, false, |i, xyz, _| new_xyz(i, xyz))
+}
+
+/// [`rewrite_strip`] that also hands `new_xyz` each point's GPS time, so a caller that places
+/// points on a trajectory needs only this one pass over the strip. A strip without GPS time is
+/// an error.
+pub fn rewrite_strip_timed(
+    src: &Path,
+    dst: &Path,
+    new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
+) -> Result<u64, FormatError> {
+    rewrite(src, dst, true, new_xyz)
+}
+
+fn rewrite(
+    src: &Path,
+    dst: &Path,
+    need_time: bool,
+    mut new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
+) -> Result<u64, FormatError> {
     let mut source = Source::open(src)?;
+    let format = *source.reader.header().point_format();
+    if need_time && !format.has_gps_time {
+        return Err(FormatError::file(src, "point format has no GPS time; re-export with point format 1, 3 or 6–10"));
+    }
+    // Records without GPS time pass NaN; only the timed variant reads it, and it refuses them.
+    let gps_at = format.has_gps_time.then_some(if format.is_extended { layout::EXT_GPS } else { layout::LEGACY_GPS });
     let mut b = Builder::from(source.reader.header().clone());
     // The compressor adds its own laszip VLR; the source's would be stale or duplicated.
     b.vlrs.retain(|v| !las::laz::is_laszip_vlr(v));
@@ -705,7 +731,8 @@ pub fn rewrite_strip(
         let bytes = pd.resize_for(n);
         for (j, rec) in bytes.chunks_exact_mut(record_len).enumerate() {
             let index = first + j as u64;
-            let new = new_xyz(index as usize, decode_xyz(rec, &t));
+            let time = gps_at.map_or(f64::NAN, |at| f64::from_le_bytes(bytes8(rec, at)));
+            let new = new_xyz(index as usize, decode_xyz(rec, &t), time);
             let q = quantize(new, &t).map_err(|m| {
                 point_error(src, index, format!("new coordinates cannot be stored in {}: {m}", dst.display()))
             })?;

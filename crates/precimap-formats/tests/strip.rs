@@ -2,7 +2,9 @@
 
 use las::point::{Classification, Format, ScanDirection};
 use las::{Builder, Color, Point, Transform, Vector, Version, Vlr};
-use precimap_formats::{read_strip, rewrite_strip, strip_info, FormatError, NewPoint, StripWriter};
+use precimap_formats::{
+    read_strip, rewrite_strip, rewrite_strip_timed, strip_info, FormatError, NewPoint, StripWriter,
+};
 use std::path::{Path, PathBuf};
 
 const OFFSET: [f64; 3] = [549_800.0, 5_803_400.0, 50.0];
@@ -474,4 +476,32 @@ fn throughput_2m_points() {
             n as f64 / rw / 1e6
         );
     }
+}
+
+/// The timed rewrite hands every point its own GPS time, in one pass; a source without GPS time
+/// is refused.
+#[test]
+fn timed_rewrite_passes_gps_time() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["s.las", "s.laz"] {
+        let src = dir.path().join(name);
+        let points = sample_points(300);
+        write_strip(&src, &points);
+        let mut seen = Vec::new();
+        let dst = dir.path().join(format!("out-{name}"));
+        let n = rewrite_strip_timed(&src, &dst, |i, xyz, t| {
+            seen.push((i, t));
+            xyz
+        })
+        .unwrap();
+        assert_eq!(n, 300);
+        for (k, (i, t)) in seen.iter().enumerate() {
+            assert_eq!(*i, k);
+            assert_eq!(*t, points[k].gps_time, "point {k}");
+        }
+    }
+    let no_time = dir.path().join("format0.las");
+    write_rich_source(&no_time, 0, (1, 2), 10);
+    let err = rewrite_strip_timed(&no_time, &dir.path().join("x.las"), |_, xyz, _| xyz).unwrap_err();
+    assert!(err.to_string().contains("GPS time"), "{err}");
 }

@@ -135,18 +135,18 @@ pub fn export_strip_task(
     let extension = entry.path.extension().and_then(|e| e.to_str()).unwrap_or("las").to_ascii_lowercase();
     let dst = out_dir.join("strips").join(format!("{}.{extension}", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
-    let points = precimap_formats::read_strip(&entry.path)?;
     let spacing = campaign.params.anchor_spacing_m;
     let mut uncovered = None;
-    let written = precimap_formats::rewrite_strip(&entry.path, &dst, |i, xyz| {
-        match measurement_geometry(&traj.data, &entry.lever_arm, spacing, points.gps_time[i], xyz) {
-            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
-            None => {
-                uncovered.get_or_insert(i);
-                xyz
+    let written =
+        precimap_formats::rewrite_strip_timed(&entry.path, &dst, |i, xyz, gps_time| {
+            match measurement_geometry(&traj.data, &entry.lever_arm, spacing, gps_time, xyz) {
+                Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+                None => {
+                    uncovered.get_or_insert(i);
+                    xyz
+                }
             }
-        }
-    })?;
+        })?;
     if let Some(i) = uncovered {
         return Err(PipelineError::Input {
             what: format!("strip {} ({})", entry.id, entry.path.display()),
