@@ -309,6 +309,7 @@ pub fn estimate_tile(
     let mut pixels = vec![Pixel::default(); pixel_count];
 
     // 2. Rasterise every strip's scan-image triangles into the surface models they lie on.
+    let raster = Rasteriser { models: &models, position: &position, model_of: &model_of, cos_group, grid };
     let mut base = 0usize;
     for chunk in chunks {
         for k in 0..chunk.len() {
@@ -319,7 +320,6 @@ pub fn estimate_tile(
             let tag = pass_tag(chunk.strip, chunk.anchor[k]);
             let (a, b, c) = (base + k, base + right as usize, base + down as usize);
             let limit = chunk.edge_limit[k].max(chunk.edge_limit[right as usize]).max(chunk.edge_limit[down as usize]);
-            let raster = Rasteriser { models: &models, position: &position, model_of: &model_of, cos_group, grid };
             raster.triangle(&mut pixels, [a, b, c], limit as f64, tag);
             let diagonal = chunk.down[right as usize];
             if diagonal != NO_NEIGHBOUR {

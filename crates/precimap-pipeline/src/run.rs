@@ -155,7 +155,9 @@ pub fn run_campaign(
         let iteration_started = Instant::now();
         let step = &schedule[step_index];
         let last = step_index + 1 == schedule.len();
-        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, step, true)?;
+        // Posterior σ is only reported for the final corrections, and the loop always ends on the
+        // schedule's last step (early convergence jumps to it).
+        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, step, last)?;
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
         corrections = sol.iter().map(|s| s.corrections.clone()).collect();
         solutions = sol;
