@@ -1,0 +1,15 @@
+//! Job store and queue table of precimap's serverless job framework (issue 4, DESIGN §3).
+//!
+//! The database is the commit point: a task writes its objects under keys of its own attempt,
+//! then [`JobStore::complete`] records the keys and marks it done in one transaction guarded by
+//! its lease token; the completion that closes a stage also plans and enqueues the next one.
+//! Works on SQLite (one machine) and PostgreSQL (many executors).
+
+pub mod bench;
+mod error;
+mod store;
+mod types;
+
+pub use error::JobError;
+pub use store::JobStore;
+pub use types::*;

@@ -1,0 +1,957 @@
+//! The job store: campaigns, tasks and their leases in SQLite or PostgreSQL.
+//!
+//! Every operation is written once and expanded for both backends by `with_pool!`/`with_tx!`;
+//! the SQL differs only where the dialects do (clock, row locks, data-modifying CTEs).
+//!
+//! Locking discipline (PostgreSQL): every transaction that changes more than one row of a
+//! campaign first locks the campaign row (`FOR NO KEY UPDATE`, which does not block the foreign-key
+//! checks of concurrent inserts), then touches tasks. `claim` and `heartbeat` touch one task row
+//! only and never wait for a campaign lock, so no cycle of waits can form. SQLite serialises all
+//! writers with `BEGIN IMMEDIATE`.
+
+use std::collections::HashMap;
+use std::str::FromStr;
+use std::time::Duration;
+
+use serde_json::Value;
+use sqlx::postgres::{PgConnectOptions, PgPool, PgPoolOptions};
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::types::Json;
+use sqlx::{QueryBuilder, Row};
+use tracing::{debug, info, warn};
+use uuid::Uuid;
+
+use crate::error::JobError;
+use crate::types::*;
+
+/// Rows per multi-row INSERT (well below both backends' bind-parameter limits).
+const INSERT_CHUNK: usize = 500;
+/// Planned stages without tasks in a row before the planner is considered stuck.
+const MAX_EMPTY_STAGES: usize = 64;
+
+const SQLITE_NOW: &str = "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)";
+const PG_NOW: &str = "(extract(epoch from clock_timestamp()) * 1000)::bigint";
+
+const CAMPAIGN_COLS: &str = "id, name, state, stage, iteration, iterations_planned, spec, plan_state, \
+     object_prefix, error, max_attempts, backoff_base_ms, backoff_max_ms, created_at_ms, updated_at_ms, finished_at_ms";
+
+#[derive(Debug, Clone)]
+enum Pool {
+    Sqlite(SqlitePool),
+    Postgres(PgPool),
+}
+
+/// Handle to the job store (cheap to clone: it shares one connection pool).
+#[derive(Debug, Clone)]
+pub struct JobStore {
+    pool: Pool,
+}
+
+/// Runs `$body` with `$p` bound to the backend's pool.
+macro_rules! with_pool {
+    ($self:ident, $p:ident => $body:expr) => {
+        match &$self.pool {
+            Pool::Sqlite($p) => $body,
+            Pool::Postgres($p) => $body,
+        }
+    };
+}
+
+/// Runs `$body` inside a write transaction `$tx` and commits it; an early return (`?`,
+/// `return Err(..)`) drops the transaction, which rolls it back.
+macro_rules! with_tx {
+    ($self:ident, $tx:ident => $body:expr) => {
+        match &$self.pool {
+            Pool::Sqlite(p) => {
+                // IMMEDIATE takes the write lock up front, so two writers never both read and then
+                // fail to upgrade (SQLite's deadlock-free serialisation of writers).
+                let mut $tx = p.begin_with("BEGIN IMMEDIATE").await?;
+                let out = $body;
+                $tx.commit().await?;
+                out
+            }
+            Pool::Postgres(p) => {
+                let mut $tx = p.begin().await?;
+                let out = $body;
+                $tx.commit().await?;
+                out
+            }
+        }
+    };
+}
+
+macro_rules! campaign_from_row {
+    ($row:expr) => {{
+        let r = &$row;
+        let state: String = r.try_get("state")?;
+        CampaignRecord {
+            id: r.try_get("id")?,
+            name: r.try_get("name")?,
+            state: CampaignState::parse(&state)
+                .ok_or_else(|| JobError::Corrupt(format!("campaign state `{state}`")))?,
+            stage: r.try_get("stage")?,
+            iteration: r.try_get("iteration")?,
+            iterations_planned: r.try_get("iterations_planned")?,
+            spec: r.try_get::<Json<Value>, _>("spec")?.0,
+            plan_state: r.try_get::<Json<Value>, _>("plan_state")?.0,
+            object_prefix: r.try_get("object_prefix")?,
+            error: r.try_get("error")?,
+            queue: QueueConfig {
+                max_attempts: r.try_get("max_attempts")?,
+                backoff_base: ms_duration(r.try_get("backoff_base_ms")?),
+                backoff_max: ms_duration(r.try_get("backoff_max_ms")?),
+            },
+            created_at_ms: r.try_get("created_at_ms")?,
+            updated_at_ms: r.try_get("updated_at_ms")?,
+            finished_at_ms: r.try_get("finished_at_ms")?,
+        }
+    }};
+}
+
+/// Inserts an event row.
+macro_rules! event {
+    ($self:ident, $tx:ident, $campaign:expr, $kind:expr, $task:expr, $msg:expr) => {{
+        let q =
+            $self.sql("INSERT INTO events (campaign, at_ms, kind, task_id, message) VALUES ($1, NOW_MS, $2, $3, $4)");
+        sqlx::query(&q).bind($campaign).bind($kind).bind($task).bind($msg).execute(&mut *$tx).await?;
+    }};
+}
+
+/// Marks a (running) campaign failed with `$msg` and cancels its open tasks.
+macro_rules! fail_campaign {
+    ($self:ident, $tx:ident, $campaign:expr, $msg:expr) => {{
+        let msg: &str = $msg;
+        let q = $self.sql(
+            "UPDATE tasks SET state = 'cancelled', error = 'campaign failed', updated_at_ms = NOW_MS, \
+             finished_at_ms = NOW_MS WHERE campaign = $1 AND state IN ('queued', 'leased')",
+        );
+        sqlx::query(&q).bind($campaign).execute(&mut *$tx).await?;
+        let q = $self.sql(
+            "UPDATE campaigns SET state = 'failed', error = $2, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+             WHERE id = $1",
+        );
+        sqlx::query(&q).bind($campaign).bind(msg).execute(&mut *$tx).await?;
+        event!($self, $tx, $campaign, "failed", None::<i64>, msg);
+        warn!(campaign = %$campaign, error = msg, "campaign failed");
+    }};
+}
+
+/// Enqueues the tasks of a stage.
+macro_rules! insert_tasks {
+    ($self:ident, $tx:ident, $campaign:expr, $spec:expr) => {{
+        let spec: &StageSpec = $spec;
+        let now = $self.now_sql();
+        for chunk in spec.tasks.chunks(INSERT_CHUNK) {
+            let mut qb = QueryBuilder::new(
+                "INSERT INTO tasks (campaign, stage, iteration, kind, key, input, state, attempt, not_before_ms, \
+                 created_at_ms, updated_at_ms) ",
+            );
+            qb.push_values(chunk, |mut b, t| {
+                b.push_bind($campaign)
+                    .push_bind(spec.stage.as_str())
+                    .push_bind(spec.iteration)
+                    .push_bind(t.kind.as_str())
+                    .push_bind(t.key.as_str())
+                    .push_bind(Json(&t.input))
+                    .push("'queued'")
+                    .push("0")
+                    .push(now)
+                    .push(now)
+                    .push(now);
+            });
+            qb.build().execute(&mut *$tx).await?;
+        }
+    }};
+}
+
+impl JobStore {
+    /// Opens the store and applies the migrations.
+    ///
+    /// `sqlite://PATH` (file created if missing; WAL; busy timeout), `sqlite::memory:` (tests),
+    /// `postgres://…` / `postgresql://…`.
+    pub async fn connect(url: &str) -> Result<JobStore, JobError> {
+        let bad = |reason: String| JobError::BadUrl { url: url.to_string(), reason };
+        let pool = if url.starts_with("sqlite:") {
+            let opts = SqliteConnectOptions::from_str(url)
+                .map_err(|e| bad(e.to_string()))?
+                .create_if_missing(true)
+                .journal_mode(SqliteJournalMode::Wal)
+                // WAL makes NORMAL durable against application crashes; only an OS crash can
+                // lose the last commits.
+                .synchronous(SqliteSynchronous::Normal)
+                .busy_timeout(Duration::from_secs(30))
+                .foreign_keys(true);
+            // One connection: in-process writers queue in the pool instead of spinning in SQLite's
+            // busy handler (sleeps of up to 100 ms); other processes still wait via busy_timeout.
+            // Never closed while idle, so `sqlite::memory:` keeps its data.
+            let pool = SqlitePoolOptions::new()
+                .max_connections(1)
+                .min_connections(1)
+                .idle_timeout(None)
+                .max_lifetime(None)
+                .acquire_timeout(Duration::from_secs(60))
+                .connect_with(opts)
+                .await?;
+            sqlx::migrate!("../../migrations/sqlite").run(&pool).await?;
+            Pool::Sqlite(pool)
+        } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            let opts = PgConnectOptions::from_str(url).map_err(|e| bad(e.to_string()))?;
+            let pool = PgPoolOptions::new()
+                .max_connections(16)
+                .acquire_timeout(Duration::from_secs(30))
+                .connect_with(opts)
+                .await?;
+            // sqlx takes an advisory lock, so executors starting together migrate once.
+            sqlx::migrate!("../../migrations/postgres").run(&pool).await?;
+            Pool::Postgres(pool)
+        } else {
+            return Err(bad("expected `sqlite://PATH`, `sqlite::memory:` or `postgres://…`".into()));
+        };
+        Ok(JobStore { pool })
+    }
+
+    pub fn backend(&self) -> Backend {
+        match self.pool {
+            Pool::Sqlite(_) => Backend::Sqlite,
+            Pool::Postgres(_) => Backend::Postgres,
+        }
+    }
+
+    /// Closes the pool (waits for connections in use to be returned).
+    pub async fn close(&self) {
+        with_pool!(self, p => p.close().await)
+    }
+
+    fn now_sql(&self) -> &'static str {
+        match self.pool {
+            Pool::Sqlite(_) => SQLITE_NOW,
+            Pool::Postgres(_) => PG_NOW,
+        }
+    }
+
+    fn is_pg(&self) -> bool {
+        matches!(self.pool, Pool::Postgres(_))
+    }
+
+    /// Fills in the dialect: `NOW_MS` (database clock, ms) and `FOR_LOCK` (campaign row lock).
+    fn sql(&self, s: &str) -> String {
+        let lock = if self.is_pg() { "FOR NO KEY UPDATE" } else { "" };
+        s.replace("NOW_MS", self.now_sql()).replace("FOR_LOCK", lock)
+    }
+
+    /// The database clock in milliseconds since the epoch.
+    pub async fn now_ms(&self) -> Result<i64, JobError> {
+        let q = self.sql("SELECT NOW_MS");
+        Ok(with_pool!(self, p => sqlx::query_scalar::<_, i64>(&q).fetch_one(p).await?))
+    }
+
+    pub async fn create_campaign(&self, c: NewCampaign, first: StageSpec) -> Result<Uuid, JobError> {
+        if c.queue.max_attempts < 1 {
+            return Err(JobError::Invalid(format!("max_attempts must be ≥ 1, got {}", c.queue.max_attempts)));
+        }
+        if first.tasks.is_empty() {
+            return Err(JobError::Invalid(format!("first stage `{}` has no tasks", first.stage)));
+        }
+        check_unique_tasks(&first).map_err(JobError::Invalid)?;
+        let id = Uuid::new_v4();
+        let q = self.sql(&format!(
+            "INSERT INTO campaigns ({CAMPAIGN_COLS}) VALUES ($1, $2, 'running', $3, $4, $5, $6, $7, $8, NULL, $9, $10, \
+             $11, NOW_MS, NOW_MS, NULL)"
+        ));
+        with_tx!(self, tx => {
+            sqlx::query(&q)
+                .bind(id)
+                .bind(&c.name)
+                .bind(&first.stage)
+                .bind(first.iteration)
+                .bind(c.iterations_planned)
+                .bind(Json(&c.spec))
+                .bind(Json(&c.plan_state))
+                .bind(&c.object_prefix)
+                .bind(c.queue.max_attempts)
+                .bind(duration_ms(c.queue.backoff_base))
+                .bind(duration_ms(c.queue.backoff_max))
+                .execute(&mut *tx)
+                .await?;
+            for chunk in c.strips.chunks(INSERT_CHUNK) {
+                let mut qb = QueryBuilder::new("INSERT INTO strips (campaign, idx, id, trajectory, uri, points) ");
+                qb.push_values(chunk, |mut b, s| {
+                    b.push_bind(id).push_bind(s.index).push_bind(s.id.as_str()).push_bind(s.trajectory.as_str())
+                        .push_bind(s.uri.as_str()).push_bind(s.points);
+                });
+                qb.build().execute(&mut *tx).await?;
+            }
+            for chunk in c.trajectories.chunks(INSERT_CHUNK) {
+                let mut qb = QueryBuilder::new("INSERT INTO trajectories (campaign, idx, id, uri) ");
+                qb.push_values(chunk, |mut b, t| {
+                    b.push_bind(id).push_bind(t.index).push_bind(t.id.as_str()).push_bind(t.uri.as_str());
+                });
+                qb.build().execute(&mut *tx).await?;
+            }
+            insert_tasks!(self, tx, id, &first);
+            let msg = format!("campaign `{}` created; stage {} iteration {}: {} tasks", c.name, first.stage,
+                first.iteration, first.tasks.len());
+            event!(self, tx, id, "campaign_created", None::<i64>, &msg);
+        });
+        info!(campaign = %id, name = %c.name, stage = %first.stage, tasks = first.tasks.len(), "campaign created");
+        Ok(id)
+    }
+
+    pub async fn campaign(&self, id: Uuid) -> Result<Option<CampaignRecord>, JobError> {
+        let q = format!("SELECT {CAMPAIGN_COLS} FROM campaigns WHERE id = $1");
+        with_pool!(self, p => {
+            match sqlx::query(&q).bind(id).fetch_optional(p).await? {
+                Some(row) => Ok(Some(campaign_from_row!(row))),
+                None => Ok(None),
+            }
+        })
+    }
+
+    /// Newest first.
+    pub async fn list_campaigns(&self, limit: i64) -> Result<Vec<CampaignRecord>, JobError> {
+        let q = format!("SELECT {CAMPAIGN_COLS} FROM campaigns ORDER BY created_at_ms DESC, id LIMIT $1");
+        with_pool!(self, p => {
+            let rows = sqlx::query(&q).bind(limit.max(0)).fetch_all(p).await?;
+            let mut out = Vec::with_capacity(rows.len());
+            for row in rows {
+                out.push(campaign_from_row!(row));
+            }
+            Ok(out)
+        })
+    }
+
+    /// Task counts by state, for the whole campaign and its current stage/iteration.
+    pub async fn task_counts(&self, id: Uuid) -> Result<TaskCounts, JobError> {
+        let q = "SELECT t.state, CAST(CASE WHEN t.stage = c.stage AND t.iteration = c.iteration THEN 1 ELSE 0 END \
+                 AS BIGINT) AS cur, count(*) AS n FROM tasks t JOIN campaigns c ON c.id = t.campaign \
+                 WHERE t.campaign = $1 GROUP BY 1, 2";
+        let rows: Vec<(String, i64, i64)> = with_pool!(self, p => {
+            if sqlx::query("SELECT 1 FROM campaigns WHERE id = $1").bind(id).fetch_optional(p).await?.is_none() {
+                return Err(JobError::NotFound(format!("campaign {id}")));
+            }
+            sqlx::query_as(q).bind(id).fetch_all(p).await?
+        });
+        let mut counts = TaskCounts::default();
+        for (state, cur, n) in rows {
+            let mut whole = StateCounts {
+                queued: counts.queued,
+                leased: counts.leased,
+                done: counts.done,
+                dead: counts.dead,
+                cancelled: counts.cancelled,
+            };
+            add_count(&mut whole, &state, n)?;
+            if cur == 1 {
+                add_count(&mut counts.stage, &state, n)?;
+            }
+            counts.queued = whole.queued;
+            counts.leased = whole.leased;
+            counts.done = whole.done;
+            counts.dead = whole.dead;
+            counts.cancelled = whole.cancelled;
+        }
+        Ok(counts)
+    }
+
+    pub async fn iterations(&self, id: Uuid) -> Result<Vec<IterationRecord>, JobError> {
+        let q = "SELECT iteration, stats FROM iterations WHERE campaign = $1 ORDER BY iteration";
+        let rows: Vec<(i32, Json<Value>)> = with_pool!(self, p => sqlx::query_as(q).bind(id).fetch_all(p).await?);
+        Ok(rows.into_iter().map(|(iteration, stats)| IterationRecord { iteration, stats: stats.0 }).collect())
+    }
+
+    pub async fn strips(&self, id: Uuid) -> Result<Vec<StripRecord>, JobError> {
+        let q = "SELECT idx, id, trajectory, uri, points FROM strips WHERE campaign = $1 ORDER BY idx";
+        let rows: Vec<(i32, String, String, String, Option<i64>)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).fetch_all(p).await?);
+        Ok(rows
+            .into_iter()
+            .map(|(index, id, trajectory, uri, points)| StripRecord { index, id, trajectory, uri, points })
+            .collect())
+    }
+
+    pub async fn trajectories(&self, id: Uuid) -> Result<Vec<TrajectoryRecord>, JobError> {
+        let q = "SELECT idx, id, uri FROM trajectories WHERE campaign = $1 ORDER BY idx";
+        let rows: Vec<(i32, String, String)> = with_pool!(self, p => sqlx::query_as(q).bind(id).fetch_all(p).await?);
+        Ok(rows.into_iter().map(|(index, id, uri)| TrajectoryRecord { index, id, uri }).collect())
+    }
+
+    /// Tiles sorted by key.
+    pub async fn tiles(&self, id: Uuid) -> Result<Vec<TileRecord>, JobError> {
+        let q = "SELECT key, strips, points FROM tiles WHERE campaign = $1";
+        let rows: Vec<(String, Json<Vec<String>>, i64)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).fetch_all(p).await?);
+        let mut tiles: Vec<TileRecord> =
+            rows.into_iter().map(|(key, strips, points)| TileRecord { key, strips: strips.0, points }).collect();
+        // Sorted here, not in SQL: PostgreSQL's collation need not be bytewise.
+        tiles.sort_by(|a, b| a.key.cmp(&b.key));
+        Ok(tiles)
+    }
+
+    /// Events with id > `after_id`, oldest first.
+    pub async fn events(&self, id: Uuid, after_id: i64, limit: i64) -> Result<Vec<EventRecord>, JobError> {
+        let q = "SELECT id, campaign, at_ms, kind, task_id, message FROM events WHERE campaign = $1 AND id > $2 \
+                 ORDER BY id LIMIT $3";
+        let rows: Vec<(i64, Uuid, i64, String, Option<i64>, String)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).bind(after_id).bind(limit.max(0)).fetch_all(p).await?);
+        Ok(rows
+            .into_iter()
+            .map(|(id, campaign, at_ms, kind, task_id, message)| EventRecord {
+                id,
+                campaign,
+                at_ms,
+                kind,
+                task_id,
+                message,
+            })
+            .collect())
+    }
+
+    /// Queued/leased tasks become `cancelled`, the campaign `cancelled`; a worker still running one
+    /// gets `LeaseLost` on its next heartbeat/complete/fail. Returns false if already finished.
+    pub async fn cancel_campaign(&self, id: Uuid) -> Result<bool, JobError> {
+        let lock = self.sql("SELECT state FROM campaigns WHERE id = $1 FOR_LOCK");
+        let tasks = self.sql(
+            "UPDATE tasks SET state = 'cancelled', error = 'campaign cancelled', updated_at_ms = NOW_MS, \
+             finished_at_ms = NOW_MS WHERE campaign = $1 AND state IN ('queued', 'leased')",
+        );
+        let camp = self.sql(
+            "UPDATE campaigns SET state = 'cancelled', updated_at_ms = NOW_MS, finished_at_ms = NOW_MS WHERE id = $1",
+        );
+        let cancelled = with_tx!(self, tx => {
+            let state: Option<String> = sqlx::query_scalar(&lock).bind(id).fetch_optional(&mut *tx).await?;
+            match state.as_deref() {
+                None => return Err(JobError::NotFound(format!("campaign {id}"))),
+                Some("running") => {
+                    let n = sqlx::query(&tasks).bind(id).execute(&mut *tx).await?.rows_affected();
+                    sqlx::query(&camp).bind(id).execute(&mut *tx).await?;
+                    event!(self, tx, id, "cancelled", None::<i64>, &format!("campaign cancelled; {n} open tasks cancelled"));
+                    true
+                }
+                Some(_) => false,
+            }
+        });
+        if cancelled {
+            info!(campaign = %id, "campaign cancelled");
+        }
+        Ok(cancelled)
+    }
+
+    /// Removes the campaign and all its rows; returns its `object_prefix` so the caller deletes
+    /// its objects. `None` if there is no such campaign.
+    pub async fn delete_campaign(&self, id: Uuid) -> Result<Option<String>, JobError> {
+        let lock = self.sql("SELECT object_prefix FROM campaigns WHERE id = $1 FOR_LOCK");
+        let prefix = with_tx!(self, tx => {
+            let prefix: Option<String> = sqlx::query_scalar(&lock).bind(id).fetch_optional(&mut *tx).await?;
+            if prefix.is_some() {
+                // Children first (explicit rather than relying on SQLite's foreign-key pragma).
+                for table in ["task_outputs", "events", "tasks", "tiles", "iterations", "strips", "trajectories"] {
+                    sqlx::query(&format!("DELETE FROM {table} WHERE campaign = $1")).bind(id).execute(&mut *tx).await?;
+                }
+                sqlx::query("DELETE FROM campaigns WHERE id = $1").bind(id).execute(&mut *tx).await?;
+            }
+            prefix
+        });
+        if prefix.is_some() {
+            info!(campaign = %id, "campaign deleted");
+        }
+        Ok(prefix)
+    }
+
+    /// Claims the oldest runnable task (queued, `not_before` passed, campaign running) of any
+    /// campaign, with a new lease token and `attempt + 1`.
+    pub async fn claim(&self, worker: &str, lease: Duration) -> Result<Option<ClaimedTask>, JobError> {
+        let token = Uuid::new_v4();
+        let lease_ms = duration_ms(lease);
+        type ClaimRow = (i64, Uuid, String, i32, String, String, Json<Value>, i32, Uuid, i64);
+        let row: Option<ClaimRow> = match &self.pool {
+            Pool::Postgres(p) => {
+                // One statement, one round trip: SKIP LOCKED lets concurrent claimers pass each other.
+                let q = self.sql(
+                    "WITH next AS ( \
+                       SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
+                       WHERE t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
+                       ORDER BY t.id LIMIT 1 FOR UPDATE OF t SKIP LOCKED), \
+                     claimed AS ( \
+                       UPDATE tasks t SET state = 'leased', attempt = t.attempt + 1, lease_token = $1, \
+                         lease_expires_at_ms = NOW_MS + $2, worker = $3, updated_at_ms = NOW_MS \
+                       FROM next WHERE t.id = next.id \
+                       RETURNING t.id, t.campaign, t.stage, t.iteration, t.kind, t.key, t.input, t.attempt, \
+                         t.lease_token, t.lease_expires_at_ms), \
+                     ev AS ( \
+                       INSERT INTO events (campaign, at_ms, kind, task_id, message) \
+                       SELECT campaign, NOW_MS, 'claimed', id, kind || ' ' || key || ' attempt ' || attempt || \
+                         ' by ' || $3 FROM claimed) \
+                     SELECT * FROM claimed",
+                );
+                sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(p).await?
+            }
+            Pool::Sqlite(p) => {
+                let q = self.sql(
+                    "UPDATE tasks SET state = 'leased', attempt = attempt + 1, lease_token = $1, \
+                       lease_expires_at_ms = NOW_MS + $2, worker = $3, updated_at_ms = NOW_MS \
+                     WHERE id = (SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
+                       WHERE t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
+                       ORDER BY t.id LIMIT 1) \
+                     RETURNING id, campaign, stage, iteration, kind, key, input, attempt, lease_token, \
+                       lease_expires_at_ms",
+                );
+                let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
+                let row: Option<ClaimRow> =
+                    sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(&mut *tx).await?;
+                if let Some(r) = &row {
+                    let msg = format!("{} {} attempt {} by {worker}", r.4, r.5, r.7);
+                    event!(self, tx, r.1, "claimed", Some(r.0), &msg);
+                }
+                tx.commit().await?;
+                row
+            }
+        };
+        Ok(row.map(|(id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms)| {
+            debug!(task = id, %kind, %key, attempt, worker, "claimed");
+            ClaimedTask {
+                id,
+                campaign,
+                stage,
+                iteration,
+                kind,
+                key,
+                input: input.0,
+                attempt,
+                lease_token,
+                lease_expires_at_ms,
+            }
+        }))
+    }
+
+    /// Extends the lease to now + `lease`; `Err(LeaseLost)` if the token no longer holds the task.
+    pub async fn heartbeat(&self, task: &ClaimedTask, lease: Duration) -> Result<(), JobError> {
+        self.heartbeat_until(task, lease).await.map(|_| ())
+    }
+
+    /// Like [`JobStore::heartbeat`], returning the new expiry (database clock, ms).
+    pub async fn heartbeat_until(&self, task: &ClaimedTask, lease: Duration) -> Result<i64, JobError> {
+        let q = self.sql(
+            "UPDATE tasks SET lease_expires_at_ms = NOW_MS + $1, updated_at_ms = NOW_MS \
+             WHERE id = $2 AND lease_token = $3 AND state = 'leased' RETURNING lease_expires_at_ms",
+        );
+        let expiry: Option<i64> = with_pool!(self, p => sqlx::query_scalar(&q)
+            .bind(duration_ms(lease))
+            .bind(task.id)
+            .bind(task.lease_token)
+            .fetch_optional(p)
+            .await?);
+        expiry.ok_or(JobError::LeaseLost)
+    }
+
+    /// Records the outputs and result and marks the task done, in one transaction guarded by the
+    /// lease token; the completion that closes a stage runs the planner and applies its transition.
+    pub async fn complete(
+        &self,
+        task: &ClaimedTask,
+        outcome: TaskOutcome,
+        planner: &dyn StagePlanner,
+    ) -> Result<Completion, JobError> {
+        let mut names: Vec<&str> = outcome.outputs.iter().map(|o| o.name.as_str()).collect();
+        names.sort_unstable();
+        if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
+            return Err(JobError::Invalid(format!("output name `{}` given twice", w[0])));
+        }
+        let lock = self.sql(&format!("SELECT {CAMPAIGN_COLS} FROM campaigns WHERE id = $1 FOR_LOCK"));
+        // PostgreSQL: update, event and the count of the stage's other open tasks in one round trip
+        // (the count's snapshot predates the update, hence `id <> $1`; the campaign lock keeps it
+        // exact). SQLite runs the same three steps one by one.
+        let pg_done = self.sql(
+            "WITH d AS ( \
+               UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+               WHERE id = $1 AND lease_token = $2 AND state = 'leased' RETURNING id, campaign, kind, key, attempt), \
+             ev AS ( \
+               INSERT INTO events (campaign, at_ms, kind, task_id, message) \
+               SELECT campaign, NOW_MS, 'done', id, kind || ' ' || key || ' done (attempt ' || attempt || ')' FROM d) \
+             SELECT (SELECT count(*) FROM d) AS updated, \
+               (SELECT count(*) FROM tasks WHERE campaign = $4 AND stage = $5 AND iteration = $6 \
+                  AND state IN ('queued', 'leased') AND id <> $1) AS open",
+        );
+        let lite_done = self.sql(
+            "UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+             WHERE id = $1 AND lease_token = $2 AND state = 'leased'",
+        );
+        let open_q = "SELECT count(*) FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
+                      AND state IN ('queued', 'leased') AND id <> $4";
+        let is_pg = self.is_pg();
+        let completion = with_tx!(self, tx => {
+            let Some(row) = sqlx::query(&lock).bind(task.campaign).fetch_optional(&mut *tx).await? else {
+                return Err(JobError::LeaseLost);
+            };
+            let mut campaign = campaign_from_row!(row);
+            let open: i64 = if is_pg {
+                let (updated, open): (i64, i64) = sqlx::query_as(&pg_done)
+                    .bind(task.id)
+                    .bind(task.lease_token)
+                    .bind(Json(&outcome.result))
+                    .bind(task.campaign)
+                    .bind(&task.stage)
+                    .bind(task.iteration)
+                    .fetch_one(&mut *tx)
+                    .await?;
+                if updated == 0 {
+                    return Err(JobError::LeaseLost);
+                }
+                open
+            } else {
+                let n = sqlx::query(&lite_done)
+                    .bind(task.id)
+                    .bind(task.lease_token)
+                    .bind(Json(&outcome.result))
+                    .execute(&mut *tx)
+                    .await?
+                    .rows_affected();
+                if n == 0 {
+                    return Err(JobError::LeaseLost);
+                }
+                let msg = format!("{} {} done (attempt {})", task.kind, task.key, task.attempt);
+                event!(self, tx, task.campaign, "done", Some(task.id), &msg);
+                sqlx::query_scalar(open_q)
+                    .bind(task.campaign)
+                    .bind(&task.stage)
+                    .bind(task.iteration)
+                    .bind(task.id)
+                    .fetch_one(&mut *tx)
+                    .await?
+            };
+            if !outcome.outputs.is_empty() {
+                let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
+                qb.push_values(&outcome.outputs, |mut b, o| {
+                    b.push_bind(task.id).push_bind(task.campaign).push_bind(o.name.as_str())
+                        .push_bind(o.object_key.as_str());
+                });
+                qb.build().execute(&mut *tx).await?;
+            }
+            // A task can only be done while its campaign runs (finishing cancels open tasks, which
+            // makes the guard above fail), so the barrier below sees a running campaign.
+            if open > 0 || campaign.state != CampaignState::Running {
+                Completion { stage_finished: false, campaign_state: campaign.state }
+            } else {
+                // The barrier: this was the stage's last open task. Gather the stage's results.
+                let rows: Vec<(i64, String, String, Option<Json<Value>>)> = sqlx::query_as(
+                    "SELECT id, kind, key, result FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
+                     AND state = 'done'",
+                )
+                .bind(task.campaign)
+                .bind(&task.stage)
+                .bind(task.iteration)
+                .fetch_all(&mut *tx)
+                .await?;
+                let outs: Vec<(i64, String, String)> = sqlx::query_as(
+                    "SELECT o.task_id, o.name, o.object_key FROM task_outputs o JOIN tasks t ON t.id = o.task_id \
+                     WHERE t.campaign = $1 AND t.stage = $2 AND t.iteration = $3 AND t.state = 'done'",
+                )
+                .bind(task.campaign)
+                .bind(&task.stage)
+                .bind(task.iteration)
+                .fetch_all(&mut *tx)
+                .await?;
+                let mut finished = FinishedStage {
+                    stage: task.stage.clone(),
+                    iteration: task.iteration,
+                    tasks: finished_tasks(rows, outs),
+                };
+                let mut planned = planner.plan(&campaign, &finished);
+                let mut empty_stages = 0;
+                let state = loop {
+                    let tr = match planned {
+                        Err(msg) => {
+                            fail_campaign!(self, tx, task.campaign, &msg);
+                            break CampaignState::Failed;
+                        }
+                        Ok(tr) => tr,
+                    };
+                    let set_plan = self.sql("UPDATE campaigns SET plan_state = $2, updated_at_ms = NOW_MS WHERE id = $1");
+                    sqlx::query(&set_plan).bind(task.campaign).bind(Json(&tr.plan_state)).execute(&mut *tx).await?;
+                    for t in &tr.tiles {
+                        sqlx::query(
+                            "INSERT INTO tiles (campaign, key, strips, points) VALUES ($1, $2, $3, $4) \
+                             ON CONFLICT (campaign, key) DO UPDATE SET strips = excluded.strips, points = excluded.points",
+                        )
+                        .bind(task.campaign)
+                        .bind(&t.key)
+                        .bind(Json(&t.strips))
+                        .bind(t.points)
+                        .execute(&mut *tx)
+                        .await?;
+                    }
+                    if let Some(it) = &tr.iteration {
+                        let q = self.sql(
+                            "INSERT INTO iterations (campaign, iteration, stats, recorded_at_ms) VALUES ($1, $2, $3, NOW_MS) \
+                             ON CONFLICT (campaign, iteration) DO UPDATE SET stats = excluded.stats, \
+                             recorded_at_ms = excluded.recorded_at_ms",
+                        );
+                        sqlx::query(&q).bind(task.campaign).bind(it.iteration).bind(Json(&it.stats)).execute(&mut *tx).await?;
+                    }
+                    campaign.plan_state = tr.plan_state;
+                    match tr.next {
+                        Next::Succeed => {
+                            let q = self.sql(
+                                "UPDATE campaigns SET state = 'succeeded', updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+                                 WHERE id = $1",
+                            );
+                            sqlx::query(&q).bind(task.campaign).execute(&mut *tx).await?;
+                            event!(self, tx, task.campaign, "succeeded", None::<i64>, "campaign succeeded");
+                            info!(campaign = %task.campaign, "campaign succeeded");
+                            break CampaignState::Succeeded;
+                        }
+                        Next::Fail(msg) => {
+                            fail_campaign!(self, tx, task.campaign, &msg);
+                            break CampaignState::Failed;
+                        }
+                        Next::Stage(spec) => {
+                            if let Err(msg) = check_unique_tasks(&spec) {
+                                fail_campaign!(self, tx, task.campaign, &format!("planner: {msg}"));
+                                break CampaignState::Failed;
+                            }
+                            let existing: i64 = sqlx::query_scalar(
+                                "SELECT count(*) FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3",
+                            )
+                            .bind(task.campaign)
+                            .bind(&spec.stage)
+                            .bind(spec.iteration)
+                            .fetch_one(&mut *tx)
+                            .await?;
+                            if existing > 0 {
+                                let msg = format!("planner: stage {} iteration {} was already run", spec.stage, spec.iteration);
+                                fail_campaign!(self, tx, task.campaign, &msg);
+                                break CampaignState::Failed;
+                            }
+                            let q = self.sql(
+                                "UPDATE campaigns SET stage = $2, iteration = $3, updated_at_ms = NOW_MS WHERE id = $1",
+                            );
+                            sqlx::query(&q).bind(task.campaign).bind(&spec.stage).bind(spec.iteration).execute(&mut *tx).await?;
+                            let msg = format!("stage {} iteration {}: {} tasks", spec.stage, spec.iteration, spec.tasks.len());
+                            event!(self, tx, task.campaign, "stage", None::<i64>, &msg);
+                            info!(campaign = %task.campaign, stage = %spec.stage, iteration = spec.iteration,
+                                tasks = spec.tasks.len(), "stage enqueued");
+                            if !spec.tasks.is_empty() {
+                                insert_tasks!(self, tx, task.campaign, &spec);
+                                break CampaignState::Running;
+                            }
+                            // A stage without tasks is finished at once: plan again from it.
+                            empty_stages += 1;
+                            if empty_stages > MAX_EMPTY_STAGES {
+                                let msg = format!("planner produced {MAX_EMPTY_STAGES} stages without tasks in a row");
+                                fail_campaign!(self, tx, task.campaign, &msg);
+                                break CampaignState::Failed;
+                            }
+                            campaign.stage = spec.stage.clone();
+                            campaign.iteration = spec.iteration;
+                            finished = FinishedStage { stage: spec.stage, iteration: spec.iteration, tasks: Vec::new() };
+                            planned = planner.plan(&campaign, &finished);
+                        }
+                    }
+                };
+                Completion { stage_finished: true, campaign_state: state }
+            }
+        });
+        Ok(completion)
+    }
+
+    /// Records a failed attempt, guarded by the lease token. A `permanent` error or the last
+    /// attempt makes the task dead and fails its campaign; otherwise it is queued again after a
+    /// back-off.
+    pub async fn fail(&self, task: &ClaimedTask, error: &str, permanent: bool) -> Result<FailOutcome, JobError> {
+        let lock =
+            self.sql("SELECT max_attempts, backoff_base_ms, backoff_max_ms FROM campaigns WHERE id = $1 FOR_LOCK");
+        let held = "SELECT attempt FROM tasks WHERE id = $1 AND lease_token = $2 AND state = 'leased'";
+        let dead = self.sql(
+            "UPDATE tasks SET state = 'dead', error = $2, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS WHERE id = $1",
+        );
+        let retry = self.sql(
+            "UPDATE tasks SET state = 'queued', error = $2, lease_token = NULL, lease_expires_at_ms = NULL, \
+             not_before_ms = NOW_MS + $3, updated_at_ms = NOW_MS WHERE id = $1 RETURNING not_before_ms",
+        );
+        let outcome = with_tx!(self, tx => {
+            let Some((max_attempts, base_ms, max_ms)) = sqlx::query_as::<_, (i32, i64, i64)>(&lock)
+                .bind(task.campaign)
+                .fetch_optional(&mut *tx)
+                .await?
+            else {
+                return Err(JobError::LeaseLost);
+            };
+            let Some(attempt) = sqlx::query_scalar::<_, i32>(held)
+                .bind(task.id)
+                .bind(task.lease_token)
+                .fetch_optional(&mut *tx)
+                .await?
+            else {
+                return Err(JobError::LeaseLost);
+            };
+            if permanent || attempt >= max_attempts {
+                sqlx::query(&dead).bind(task.id).bind(error).execute(&mut *tx).await?;
+                let why = if permanent { "permanent error".to_string() } else { format!("attempt {attempt} of {max_attempts}") };
+                let msg = format!("{} {} dead ({why}): {error}", task.kind, task.key);
+                event!(self, tx, task.campaign, "dead", Some(task.id), &msg);
+                fail_campaign!(self, tx, task.campaign, &format!("`{} {}`: {error}", task.kind, task.key));
+                FailOutcome::Dead
+            } else {
+                let not_before_ms: i64 = sqlx::query_scalar(&retry)
+                    .bind(task.id)
+                    .bind(error)
+                    .bind(backoff_ms(base_ms, max_ms, attempt))
+                    .fetch_one(&mut *tx)
+                    .await?;
+                let msg = format!("{} {} attempt {attempt} failed, retry at {not_before_ms}: {error}", task.kind, task.key);
+                event!(self, tx, task.campaign, "retry", Some(task.id), &msg);
+                FailOutcome::Retry { not_before_ms }
+            }
+        });
+        debug!(task = task.id, ?outcome, error, "task failed");
+        Ok(outcome)
+    }
+
+    /// Rescues expired leases: queued again after a back-off, or dead (campaign failed) when the
+    /// attempts are used up. Safe to run from every executor concurrently.
+    pub async fn reconcile(&self) -> Result<ReconcileReport, JobError> {
+        let q = self.sql("SELECT DISTINCT campaign FROM tasks WHERE state = 'leased' AND lease_expires_at_ms < NOW_MS");
+        let campaigns: Vec<Uuid> = with_pool!(self, p => sqlx::query_scalar(&q).fetch_all(p).await?);
+        let mut report = ReconcileReport::default();
+        for campaign in campaigns {
+            let r = self.reconcile_campaign(campaign).await?;
+            report.requeued += r.requeued;
+            report.dead += r.dead;
+        }
+        if report.requeued + report.dead > 0 {
+            info!(requeued = report.requeued, dead = report.dead, "expired leases rescued");
+        }
+        Ok(report)
+    }
+
+    async fn reconcile_campaign(&self, campaign: Uuid) -> Result<ReconcileReport, JobError> {
+        let lock = self
+            .sql("SELECT state, max_attempts, backoff_base_ms, backoff_max_ms FROM campaigns WHERE id = $1 FOR_LOCK");
+        let expired = self.sql(
+            "SELECT id, kind, key, attempt, worker FROM tasks WHERE campaign = $1 AND state = 'leased' \
+             AND lease_expires_at_ms < NOW_MS ORDER BY id",
+        );
+        // Re-checks the expiry: a heartbeat that committed meanwhile keeps its lease.
+        let dead = self.sql(
+            "UPDATE tasks SET state = 'dead', error = $2, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+             WHERE id = $1 AND state = 'leased' AND lease_expires_at_ms < NOW_MS",
+        );
+        let requeue = self.sql(
+            "UPDATE tasks SET state = 'queued', error = $2, lease_token = NULL, lease_expires_at_ms = NULL, \
+             not_before_ms = NOW_MS + $3, updated_at_ms = NOW_MS \
+             WHERE id = $1 AND state = 'leased' AND lease_expires_at_ms < NOW_MS",
+        );
+        let report = with_tx!(self, tx => {
+            let mut report = ReconcileReport::default();
+            let row: Option<(String, i32, i64, i64)> = sqlx::query_as(&lock).bind(campaign).fetch_optional(&mut *tx).await?;
+            if let Some((state, max_attempts, base_ms, max_ms)) = row.filter(|r| r.0 == "running") {
+                debug_assert_eq!(state, "running");
+                let tasks: Vec<(i64, String, String, i32, Option<String>)> =
+                    sqlx::query_as(&expired).bind(campaign).fetch_all(&mut *tx).await?;
+                for (id, kind, key, attempt, worker) in tasks {
+                    let worker = worker.unwrap_or_default();
+                    let error = format!("lease expired (attempt {attempt}, worker {worker})");
+                    if attempt >= max_attempts {
+                        if sqlx::query(&dead).bind(id).bind(&error).execute(&mut *tx).await?.rows_affected() == 0 {
+                            continue;
+                        }
+                        report.dead += 1;
+                        event!(self, tx, campaign, "dead", Some(id), &format!("{kind} {key} dead: {error}"));
+                        fail_campaign!(self, tx, campaign, &format!("`{kind} {key}`: {error}"));
+                        // The campaign is over; its other tasks were cancelled with it.
+                        break;
+                    }
+                    let n = sqlx::query(&requeue)
+                        .bind(id)
+                        .bind(&error)
+                        .bind(backoff_ms(base_ms, max_ms, attempt))
+                        .execute(&mut *tx)
+                        .await?
+                        .rows_affected();
+                    if n > 0 {
+                        report.requeued += 1;
+                        event!(self, tx, campaign, "lease_expired", Some(id), &format!("{kind} {key} requeued: {error}"));
+                    }
+                }
+            }
+            report
+        });
+        Ok(report)
+    }
+
+    /// Recorded outputs of one stage, sorted by (kind, task key, name). Only committed completions
+    /// are ever visible.
+    pub async fn outputs(&self, campaign: Uuid, stage: &str, iteration: i32) -> Result<Vec<RecordedOutput>, JobError> {
+        let q = "SELECT t.key, t.kind, o.name, o.object_key FROM task_outputs o JOIN tasks t ON t.id = o.task_id \
+                 WHERE t.campaign = $1 AND t.stage = $2 AND t.iteration = $3 AND t.state = 'done'";
+        let rows: Vec<(String, String, String, String)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(campaign).bind(stage).bind(iteration).fetch_all(p).await?);
+        let mut out: Vec<RecordedOutput> = rows
+            .into_iter()
+            .map(|(task_key, kind, name, object_key)| RecordedOutput { task_key, kind, name, object_key })
+            .collect();
+        out.sort_by(|a, b| (&a.kind, &a.task_key, &a.name).cmp(&(&b.kind, &b.task_key, &b.name)));
+        Ok(out)
+    }
+
+    /// Every object key recorded for the campaign, sorted (for orphan clean-up by the caller).
+    pub async fn recorded_keys(&self, campaign: Uuid) -> Result<Vec<String>, JobError> {
+        let q = "SELECT object_key FROM task_outputs WHERE campaign = $1";
+        let mut keys: Vec<String> = with_pool!(self, p => sqlx::query_scalar(q).bind(campaign).fetch_all(p).await?);
+        keys.sort();
+        Ok(keys)
+    }
+
+    /// Lease tokens of the campaign's running attempts (their objects must not be cleaned up).
+    pub async fn live_lease_tokens(&self, campaign: Uuid) -> Result<Vec<Uuid>, JobError> {
+        let q = "SELECT lease_token FROM tasks WHERE campaign = $1 AND state = 'leased' AND lease_token IS NOT NULL";
+        Ok(with_pool!(self, p => sqlx::query_scalar(q).bind(campaign).fetch_all(p).await?))
+    }
+}
+
+fn ms_duration(ms: i64) -> Duration {
+    Duration::from_millis(u64::try_from(ms).unwrap_or(0))
+}
+
+fn add_count(c: &mut StateCounts, state: &str, n: i64) -> Result<(), JobError> {
+    match state {
+        "queued" => c.queued += n,
+        "leased" => c.leased += n,
+        "done" => c.done += n,
+        "dead" => c.dead += n,
+        "cancelled" => c.cancelled += n,
+        other => return Err(JobError::Corrupt(format!("task state `{other}`"))),
+    }
+    Ok(())
+}
+
+/// `(kind, key)` must be unique within a stage: it names the task's objects.
+fn check_unique_tasks(spec: &StageSpec) -> Result<(), String> {
+    let mut seen: Vec<(&str, &str)> = spec.tasks.iter().map(|t| (t.kind.as_str(), t.key.as_str())).collect();
+    seen.sort_unstable();
+    match seen.windows(2).find(|w| w[0] == w[1]) {
+        Some(w) => Err(format!("stage {} has task `{} {}` twice", spec.stage, w[0].0, w[0].1)),
+        None => Ok(()),
+    }
+}
+
+/// Joins the stage's done tasks with their outputs; tasks sorted by (kind, key) bytewise,
+/// outputs by name, so the planner sees the same input whatever the database's collation.
+fn finished_tasks(
+    rows: Vec<(i64, String, String, Option<Json<Value>>)>,
+    outs: Vec<(i64, String, String)>,
+) -> Vec<FinishedTask> {
+    let mut by_task: HashMap<i64, Vec<OutputKey>> = HashMap::new();
+    for (task_id, name, object_key) in outs {
+        by_task.entry(task_id).or_default().push(OutputKey { name, object_key });
+    }
+    let mut tasks: Vec<FinishedTask> = rows
+        .into_iter()
+        .map(|(id, kind, key, result)| {
+            let mut outputs = by_task.remove(&id).unwrap_or_default();
+            outputs.sort_by(|a, b| a.name.cmp(&b.name));
+            FinishedTask { kind, key, result: result.map(|j| j.0).unwrap_or(Value::Null), outputs }
+        })
+        .collect();
+    tasks.sort_by(|a, b| (&a.kind, &a.key).cmp(&(&b.kind, &b.key)));
+    tasks
+}

@@ -1,0 +1,103 @@
+-- Job store of the serverless framework (issue 4), PostgreSQL flavour.
+-- Times are integer milliseconds since the epoch taken from the database's clock, so executors
+-- with skewed clocks agree on leases and back-off.
+
+CREATE TABLE campaigns (
+    id                 UUID PRIMARY KEY,
+    name               TEXT NOT NULL,
+    state              TEXT NOT NULL CHECK (state IN ('running', 'succeeded', 'failed', 'cancelled')),
+    stage              TEXT NOT NULL,
+    iteration          INTEGER NOT NULL,
+    iterations_planned INTEGER NOT NULL,
+    spec               JSONB NOT NULL,
+    plan_state         JSONB NOT NULL,
+    object_prefix      TEXT NOT NULL,
+    error              TEXT,
+    max_attempts       INTEGER NOT NULL CHECK (max_attempts >= 1),
+    backoff_base_ms    BIGINT NOT NULL CHECK (backoff_base_ms >= 0),
+    backoff_max_ms     BIGINT NOT NULL CHECK (backoff_max_ms >= 0),
+    created_at_ms      BIGINT NOT NULL,
+    updated_at_ms      BIGINT NOT NULL,
+    finished_at_ms     BIGINT
+);
+CREATE INDEX campaigns_newest ON campaigns (created_at_ms DESC);
+
+CREATE TABLE strips (
+    campaign   UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    idx        INTEGER NOT NULL,
+    id         TEXT NOT NULL,
+    trajectory TEXT NOT NULL,
+    uri        TEXT NOT NULL,
+    points     BIGINT,
+    PRIMARY KEY (campaign, idx)
+);
+
+CREATE TABLE trajectories (
+    campaign UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    idx      INTEGER NOT NULL,
+    id       TEXT NOT NULL,
+    uri      TEXT NOT NULL,
+    PRIMARY KEY (campaign, idx)
+);
+
+CREATE TABLE tiles (
+    campaign UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    key      TEXT NOT NULL,
+    strips   JSONB NOT NULL, -- array of strip ids
+    points   BIGINT NOT NULL,
+    PRIMARY KEY (campaign, key)
+);
+
+CREATE TABLE iterations (
+    campaign       UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    iteration      INTEGER NOT NULL,
+    stats          JSONB NOT NULL,
+    recorded_at_ms BIGINT NOT NULL,
+    PRIMARY KEY (campaign, iteration)
+);
+
+CREATE TABLE tasks (
+    id                  BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+    campaign            UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    stage               TEXT NOT NULL,
+    iteration           INTEGER NOT NULL,
+    kind                TEXT NOT NULL,
+    key                 TEXT NOT NULL,
+    input               JSONB NOT NULL,
+    state               TEXT NOT NULL CHECK (state IN ('queued', 'leased', 'done', 'dead', 'cancelled')),
+    attempt             INTEGER NOT NULL DEFAULT 0,
+    not_before_ms       BIGINT NOT NULL,
+    lease_token         UUID,
+    lease_expires_at_ms BIGINT,
+    worker              TEXT,
+    result              JSONB,
+    error               TEXT,
+    created_at_ms       BIGINT NOT NULL,
+    updated_at_ms       BIGINT NOT NULL,
+    finished_at_ms      BIGINT,
+    UNIQUE (campaign, stage, iteration, kind, key)
+);
+-- Claim scans queued tasks oldest first; reconcile scans leased tasks by expiry.
+CREATE INDEX tasks_queued ON tasks (id) WHERE state = 'queued';
+CREATE INDEX tasks_leased ON tasks (lease_expires_at_ms) WHERE state = 'leased';
+CREATE INDEX tasks_stage ON tasks (campaign, stage, iteration, state);
+CREATE INDEX tasks_campaign_state ON tasks (campaign, state);
+
+CREATE TABLE task_outputs (
+    task_id    BIGINT NOT NULL REFERENCES tasks (id) ON DELETE CASCADE,
+    campaign   UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    name       TEXT NOT NULL,
+    object_key TEXT NOT NULL,
+    PRIMARY KEY (task_id, name)
+);
+CREATE INDEX task_outputs_campaign ON task_outputs (campaign);
+
+CREATE TABLE events (
+    id       BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+    campaign UUID NOT NULL REFERENCES campaigns (id) ON DELETE CASCADE,
+    at_ms    BIGINT NOT NULL,
+    kind     TEXT NOT NULL,
+    task_id  BIGINT,
+    message  TEXT NOT NULL
+);
+CREATE INDEX events_campaign ON events (campaign, id);
