@@ -2,6 +2,7 @@
 
 mod bench;
 mod progress;
+mod service;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -31,14 +32,60 @@ enum Command {
         #[arg(long)]
         laz: bool,
     },
-    /// Adjust a campaign: corrected strips, trajectories and report.json in OUT.
+    /// Adjust a campaign: corrected strips, trajectories and report.json in OUT. Runs through the
+    /// job framework on the embedded default (SQLite + local store + in-process executors).
     Run {
         manifest: PathBuf,
         #[arg(long)]
         out: PathBuf,
-        /// Keep the tile chunks in OUT/work.
+        /// Keep the job database and object store (OUT/.precimap), or with --in-process the tile
+        /// chunks (OUT/work).
         #[arg(long)]
         keep_work: bool,
+        /// Bypass the job framework: the in-process driver (rayon over tiles and trajectories).
+        #[arg(long)]
+        in_process: bool,
+    },
+    /// Serve the REST API (and optionally in-process executors).
+    Serve(service::ServeArgs),
+    /// Run executors: claim tasks from the job store, run them, commit their outputs.
+    Work(service::WorkArgs),
+    /// Upload the files a local manifest names to a server and submit the campaign; prints its id.
+    Submit {
+        manifest: PathBuf,
+        #[command(flatten)]
+        client: service::ClientArgs,
+    },
+    /// Show a campaign's state, stage, iteration and task counts.
+    Status {
+        id: uuid::Uuid,
+        /// Keep showing until the campaign has finished.
+        #[arg(long)]
+        watch: bool,
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        client: service::ClientArgs,
+    },
+    /// Download a finished campaign's corrected strips, trajectories and report.
+    Results {
+        id: uuid::Uuid,
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        client: service::ClientArgs,
+    },
+    /// Stop a running campaign.
+    Cancel {
+        id: uuid::Uuid,
+        #[command(flatten)]
+        client: service::ClientArgs,
+    },
+    /// Remove a finished campaign and its objects.
+    Delete {
+        id: uuid::Uuid,
+        #[command(flatten)]
+        client: service::ClientArgs,
     },
     /// Compare a result with the simulator's truth, before and after.
     Evaluate {
@@ -86,13 +133,38 @@ fn real_main() -> Result<()> {
     }
     match cli.command {
         Command::Simulate { scale, seed, out, laz } => simulate(scale, seed, &out, laz).map(|_| ()),
-        Command::Run { manifest, out, keep_work } => run(&manifest, &out, keep_work).map(|_| ()),
+        Command::Run { manifest, out, keep_work, in_process } => {
+            if in_process {
+                run(&manifest, &out, keep_work).map(|_| ())
+            } else {
+                service::run_framework(&manifest, &out, keep_work).map(|_| ())
+            }
+        }
+        Command::Serve(args) => service::serve(args),
+        Command::Work(args) => {
+            let code = service::work(args)?;
+            if code != 0 {
+                std::process::exit(code);
+            }
+            Ok(())
+        }
+        Command::Submit { manifest, client } => service::submit(&manifest, &client),
+        Command::Status { id, watch, json, client } => {
+            let code = service::status(id, watch, json, &client)?;
+            if code != 0 {
+                std::process::exit(code);
+            }
+            Ok(())
+        }
+        Command::Results { id, out, client } => service::results(id, &out, &client),
+        Command::Cancel { id, client } => service::cancel(id, &client),
+        Command::Delete { id, client } => service::delete(id, &client),
         Command::Evaluate { truth, result, json } => evaluate(&truth, &result, json),
         Command::Demo { scale, seed, out } => {
             let campaign = out.join("campaign");
             let result = out.join("result");
             simulate(scale, seed, &campaign, false)?;
-            run(&campaign.join("manifest.json"), &result, false)?;
+            service::run_framework(&campaign.join("manifest.json"), &result, false)?;
             evaluate(&campaign.join("truth"), &result, false)?;
             eprintln!(
                 "\ncorrected strips and trajectories: {}\nreport: {}",

@@ -1,5 +1,6 @@
 //! Progress on the terminal: one updating line when stderr is a terminal, plain lines otherwise.
 
+use precimap_pipeline::report::IterationReport;
 use precimap_pipeline::{Progress, Report};
 use std::io::{IsTerminal, Write};
 use std::sync::Mutex;
@@ -14,7 +15,7 @@ impl Display {
         Self { tty: std::io::stderr().is_terminal(), lock: Mutex::new(()) }
     }
 
-    fn transient(&self, line: &str) {
+    pub fn transient(&self, line: &str) {
         let _guard = self.lock.lock();
         let mut err = std::io::stderr().lock();
         if self.tty {
@@ -23,7 +24,7 @@ impl Display {
         let _ = err.flush();
     }
 
-    fn permanent(&self, line: &str) {
+    pub fn permanent(&self, line: &str) {
         let _guard = self.lock.lock();
         let mut err = std::io::stderr().lock();
         if self.tty {
@@ -43,16 +44,7 @@ impl Display {
                     self.permanent(&format!("prepared {total} strips"));
                 }
             }
-            Progress::Iteration(it, total) => self.permanent(&format!(
-                "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  max change {:>8.3} mm  ({:.1} s)",
-                it.iteration,
-                it.grid_m * 100.0,
-                it.threshold_m * 1000.0,
-                it.points_used,
-                it.residual_std_m * 1000.0,
-                it.max_correction_change_m * 1000.0,
-                it.seconds
-            )),
+            Progress::Iteration(it, total) => self.iteration(&it, total),
             Progress::Exported { done, total } => {
                 self.transient(&format!("exporting strips {done}/{total}"));
                 if done == total {
@@ -60,6 +52,19 @@ impl Display {
                 }
             }
         }
+    }
+
+    pub fn iteration(&self, it: &IterationReport, total: usize) {
+        self.permanent(&format!(
+            "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  max change {:>8.3} mm  ({:.1} s)",
+            it.iteration,
+            it.grid_m * 100.0,
+            it.threshold_m * 1000.0,
+            it.points_used,
+            it.residual_std_m * 1000.0,
+            it.max_correction_change_m * 1000.0,
+            it.seconds
+        ))
     }
 
     pub fn finish(&self, report: &Report) {

@@ -10,7 +10,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::{ResidualHistogram, TileStats};
+use precimap_estimate::TileStats;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -147,11 +147,11 @@ pub fn run_campaign(
         prepared.anchor_ranges.iter().map(|&(a, b)| TrajectoryCorrections::zeros(a, b)).collect();
     let schedule = &campaign.params.schedule;
     let mut iterations = Vec::new();
-    let mut histogram = ResidualHistogram::default();
-    let mut converged = false;
-    let mut solutions = Vec::new();
+    let mut histogram;
+    let converged;
+    let mut solutions;
     let mut step_index = 0;
-    while step_index < schedule.len() {
+    loop {
         let iteration_started = Instant::now();
         let step = &schedule[step_index];
         let last = step_index + 1 == schedule.len();
@@ -162,34 +162,16 @@ pub fn run_campaign(
         corrections = sol.iter().map(|s| s.corrections.clone()).collect();
         solutions = sol;
         histogram = stats.histogram.clone();
-        let report = IterationReport {
-            iteration: iterations.len() + 1,
-            grid_m: step.grid_m,
-            threshold_m: step.threshold_m,
-            points_in_tiles: stats.points,
-            points_modelled: stats.points_modelled,
-            points_used: stats.points_used,
-            residual_mean_m: stats.residual_mean_m(),
-            residual_std_m: stats.residual_std_m(),
-            pixel_std_mean_m: if stats.pixels_shared > 0 {
-                stats.pixel_std_sum_m / stats.pixels_shared as f64
-            } else {
-                0.0
-            },
-            max_correction_change_m: max_change,
-            seconds: iteration_started.elapsed().as_secs_f64(),
-        };
+        let report =
+            iteration_report(iterations.len() + 1, step, &stats, max_change, iteration_started.elapsed().as_secs_f64());
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
-        if max_change < campaign.params.convergence_tolerance_m {
-            if last {
-                converged = true;
+        match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
+            AfterIteration::Step(next) => step_index = next,
+            AfterIteration::Done { converged: c } => {
+                converged = c;
                 break;
             }
-            // Converged on this step's settings: go straight to the final grid and threshold.
-            step_index = schedule.len() - 1;
-        } else {
-            step_index += 1;
         }
     }
     let estimate_s = t.elapsed().as_secs_f64();
@@ -231,7 +213,8 @@ pub fn run_campaign(
     Ok(report)
 }
 
-fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) -> TrajectoryReport {
+/// Per-trajectory statistics of a solution for `report.json`.
+pub fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) -> TrajectoryReport {
     let values = &sol.corrections.values;
     let n = values.len().max(1) as f64;
     let pos = |v: &[f64; 6]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
@@ -261,5 +244,50 @@ fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) -> T
         rotation_correction_max_deg: values.iter().map(rot).fold(0.0, f64::max),
         position_sigma_mean_m: sig_p,
         rotation_sigma_mean_deg: sig_r,
+    }
+}
+
+/// One iteration's line of `report.json`.
+pub fn iteration_report(
+    iteration: usize,
+    step: &precimap_core::IterationStep,
+    stats: &TileStats,
+    max_change_m: f64,
+    seconds: f64,
+) -> IterationReport {
+    IterationReport {
+        iteration,
+        grid_m: step.grid_m,
+        threshold_m: step.threshold_m,
+        points_in_tiles: stats.points,
+        points_modelled: stats.points_modelled,
+        points_used: stats.points_used,
+        residual_mean_m: stats.residual_mean_m(),
+        residual_std_m: stats.residual_std_m(),
+        pixel_std_mean_m: if stats.pixels_shared > 0 { stats.pixel_std_sum_m / stats.pixels_shared as f64 } else { 0.0 },
+        max_correction_change_m: max_change_m,
+        seconds,
+    }
+}
+
+/// What follows an iteration on schedule step `step_index`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AfterIteration {
+    /// Run this schedule step next.
+    Step(usize),
+    /// The schedule is finished.
+    Done { converged: bool },
+}
+
+/// The schedule rule shared by the in-process driver and the job framework's planner: a step
+/// whose largest correction change falls below the tolerance jumps straight to the final step
+/// (its grid and threshold); the campaign has converged when the final step itself does.
+pub fn after_iteration(step_index: usize, schedule_len: usize, max_change_m: f64, tolerance_m: f64) -> AfterIteration {
+    let last = step_index + 1 >= schedule_len;
+    let settled = max_change_m < tolerance_m;
+    match (last, settled) {
+        (true, converged) => AfterIteration::Done { converged },
+        (false, true) => AfterIteration::Step(schedule_len - 1),
+        (false, false) => AfterIteration::Step(step_index + 1),
     }
 }

@@ -2,13 +2,13 @@
 //! numeric function of `precimap-estimate`, and writes its outputs. The in-process driver calls
 //! them directly; a job framework can call the same functions one task per invocation.
 
-use crate::campaign::Campaign;
+use crate::campaign::{Campaign, StripEntry, TrajectoryEntry};
 use crate::error::PipelineError;
 use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
-use precimap_core::{IterationStep, TileKey, Vec3};
+use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, StripContext, StripSamples,
+    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, PreparedStrip, StripContext, StripSamples,
     TileChunk, TileEstimate, TrajectorySolution,
 };
 use std::fs;
@@ -38,6 +38,24 @@ pub struct PrepareOutcome {
 pub fn prepare_strip_task(campaign: &Campaign, strip: usize, work: &Path) -> Result<PrepareOutcome, PipelineError> {
     let entry = &campaign.strips[strip];
     let traj = &campaign.trajectories[entry.trajectory as usize];
+    let prepared = prepare_strip_chunks(entry, strip as u32, traj, &campaign.params)?;
+    let mut tiles = Vec::with_capacity(prepared.chunks.len());
+    for chunk in &prepared.chunks {
+        write_atomic(&chunk_path(work, chunk.tile, &entry.id), &chunk.encode())?;
+        tiles.push(chunk.tile);
+    }
+    Ok(PrepareOutcome { stats: prepared.stats, tiles })
+}
+
+/// The storage-free part of `segment_strip`: reads the strip file, checks it against its
+/// trajectory and returns its tile chunks in memory. `strip_index` and `entry.trajectory` are the
+/// campaign-wide indices the chunks carry.
+pub fn prepare_strip_chunks(
+    entry: &StripEntry,
+    strip_index: u32,
+    traj: &TrajectoryEntry,
+    params: &Parameters,
+) -> Result<PreparedStrip, PipelineError> {
     let points = precimap_formats::read_strip(&entry.path)?;
     let (t_first, t_last) = time_range(&points.gps_time);
     let (start, end) = traj.data.time_span();
@@ -60,24 +78,17 @@ pub fn prepare_strip_task(campaign: &Campaign, strip: usize, work: &Path) -> Res
         scan_angle_deg: &points.scan_angle_deg,
     };
     let ctx = StripContext {
-        strip: strip as u32,
+        strip: strip_index,
         trajectory: entry.trajectory,
         trajectory_data: &traj.data,
         lever_arm: entry.lever_arm,
-        params: &campaign.params,
+        params,
     };
-    let prepared = prepare_strip(&samples, &ctx).map_err(|source| PipelineError::Prepare {
+    prepare_strip(&samples, &ctx).map_err(|source| PipelineError::Prepare {
         strip: entry.id.clone(),
         path: entry.path.clone(),
         source,
-    })?;
-    drop(points);
-    let mut tiles = Vec::with_capacity(prepared.chunks.len());
-    for chunk in &prepared.chunks {
-        write_atomic(&chunk_path(work, chunk.tile, &entry.id), &chunk.encode())?;
-        tiles.push(chunk.tile);
-    }
-    Ok(PrepareOutcome { stats: prepared.stats, tiles })
+    })
 }
 
 fn time_range(times: &[f64]) -> (f64, f64) {
@@ -132,28 +143,43 @@ pub fn export_strip_task(
 ) -> Result<(PathBuf, u64), PipelineError> {
     let entry = &campaign.strips[strip];
     let traj = &campaign.trajectories[entry.trajectory as usize];
-    let extension = entry.path.extension().and_then(|e| e.to_str()).unwrap_or("las").to_ascii_lowercase();
-    let dst = out_dir.join("strips").join(format!("{}.{extension}", entry.id));
+    let dst = out_dir.join("strips").join(export_strip_name(entry));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
-    let spacing = campaign.params.anchor_spacing_m;
+    let written = export_strip_file(entry, traj, campaign.params.anchor_spacing_m, corrections, &dst)?;
+    Ok((dst, written))
+}
+
+/// `{strip id}.{las|laz}`: an exported strip keeps its input's compression.
+pub fn export_strip_name(entry: &StripEntry) -> String {
+    let extension = entry.path.extension().and_then(|e| e.to_str()).unwrap_or("las").to_ascii_lowercase();
+    format!("{}.{extension}", entry.id)
+}
+
+/// Writes the corrected copy of `entry`'s strip file to `dst`; returns the number of points.
+pub fn export_strip_file(
+    entry: &StripEntry,
+    traj: &TrajectoryEntry,
+    anchor_spacing_m: f64,
+    corrections: &TrajectoryCorrections,
+    dst: &Path,
+) -> Result<u64, PipelineError> {
     let mut uncovered = None;
-    let written =
-        precimap_formats::rewrite_strip_timed(&entry.path, &dst, |i, xyz, gps_time| {
-            match measurement_geometry(&traj.data, &entry.lever_arm, spacing, gps_time, xyz) {
-                Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
-                None => {
-                    uncovered.get_or_insert(i);
-                    xyz
-                }
+    let written = precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| {
+        match measurement_geometry(&traj.data, &entry.lever_arm, anchor_spacing_m, gps_time, xyz) {
+            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+            None => {
+                uncovered.get_or_insert(i);
+                xyz
             }
-        })?;
+        }
+    })?;
     if let Some(i) = uncovered {
         return Err(PipelineError::Input {
             what: format!("strip {} ({})", entry.id, entry.path.display()),
             message: format!("point {i} lies outside trajectory {}'s time span", traj.id),
         });
     }
-    Ok((dst, written))
+    Ok(written)
 }
 
 /// Corrected trajectory: same time stamps, body poses moved so that the scan heads (at the mean
@@ -165,12 +191,24 @@ pub fn export_trajectory_task(
     out_dir: &Path,
 ) -> Result<PathBuf, PipelineError> {
     let entry = &campaign.trajectories[trajectory];
+    let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
+    fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
+    export_trajectory_file(entry, campaign.params.anchor_spacing_m, corrections, &dst)?;
+    Ok(dst)
+}
+
+/// Writes `entry`'s corrected trajectory CSV to `dst`.
+pub fn export_trajectory_file(
+    entry: &TrajectoryEntry,
+    anchor_spacing_m: f64,
+    corrections: &TrajectoryCorrections,
+    dst: &Path,
+) -> Result<(), PipelineError> {
     let t = &entry.data;
-    let spacing = campaign.params.anchor_spacing_m;
     let mut positions = Vec::with_capacity(t.len());
     let mut rpy = Vec::with_capacity(t.len());
     for ((c, r), s) in t.positions().iter().zip(t.rotations()).zip(t.arc_lengths()) {
-        let u = s / spacing;
+        let u = s / anchor_spacing_m;
         let anchor = u.floor();
         let x = corrections.at(anchor as u32, (u - anchor) as f32);
         let delta = so3_exp(&Vec3::new(x[3], x[4], x[5]));
@@ -180,8 +218,6 @@ pub fn export_trajectory_task(
         let (roll, pitch, yaw) = rpy_from_rot(&rotated);
         rpy.push([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()]);
     }
-    let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
-    fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
-    precimap_formats::write_trajectory_csv(&dst, t.times(), &positions, &rpy)?;
-    Ok(dst)
+    precimap_formats::write_trajectory_csv(dst, t.times(), &positions, &rpy)?;
+    Ok(())
 }

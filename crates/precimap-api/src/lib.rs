@@ -1,0 +1,10 @@
+//! precimap's REST API (the contract is `api/openapi.yaml`) and the HTTP client the `submit`,
+//! `status` and `results` commands use.
+
+pub mod client;
+pub mod server;
+pub mod types;
+
+pub use client::{Client, ClientError};
+pub use server::{app, ApiState, Auth};
+pub use types::{CampaignStatus, ErrorBody, Problem, ResultEntry, Submitted};

@@ -1,0 +1,139 @@
+//! The REST API in-process (`app().oneshot`): authentication, bounded and validated requests,
+//! every manifest problem with its JSON path, and the object-key rules.
+
+use axum::body::Body;
+use axum::http::{header, Method, Request, StatusCode};
+use precimap_api::{app, ApiState, Auth, ErrorBody};
+use precimap_framework::{default_queue, Framework, Objects};
+use precimap_jobs::JobStore;
+use tower::ServiceExt;
+
+const TOKEN: &str = "s3cret-token";
+
+async fn state(dir: &std::path::Path) -> ApiState {
+    let jobs = JobStore::connect(&format!("sqlite://{}", dir.join("jobs.db").display())).await.unwrap();
+    let objects = Objects::from_url(&format!("file://{}", dir.join("store").display())).unwrap();
+    let mut s = ApiState::new(Framework { jobs, objects, queue: default_queue() }, Auth::Token(TOKEN.into()));
+    s.max_upload_bytes = 1000;
+    s.max_manifest_bytes = 10_000;
+    s
+}
+
+fn request(method: Method, uri: &str, token: Option<&str>, body: impl Into<Body>) -> Request<Body> {
+    let mut b = Request::builder().method(method).uri(uri);
+    if let Some(t) = token {
+        b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
+    }
+    b.header(header::CONTENT_TYPE, "application/json").body(body.into()).unwrap()
+}
+
+async fn call(s: &ApiState, req: Request<Body>) -> (StatusCode, serde_json::Value) {
+    let response = app(s.clone()).oneshot(req).await.unwrap();
+    let status = response.status();
+    let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
+    let json = serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null);
+    (status, json)
+}
+
+fn manifest(strip_uri: &str, traj_uri: &str) -> String {
+    serde_json::json!({
+        "name": "t",
+        "scanners": {"left": {"lever_arm_m": [0.0, 0.5, 0.3]}},
+        "trajectories": [{"id": "v01", "uri": traj_uri}],
+        "strips": [{"id": "v01-left", "trajectory": "v01", "scanner": "left", "uri": strip_uri}]
+    })
+    .to_string()
+}
+
+#[tokio::test]
+async fn health_and_reads_need_no_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    let (status, body) = call(&s, request(Method::GET, "/healthz", None, Body::empty())).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["status"], "ok");
+    let (status, body) = call(&s, request(Method::GET, "/v1/campaigns", None, Body::empty())).await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(body, serde_json::json!([]));
+    let id = uuid::Uuid::new_v4();
+    let (status, body) = call(&s, request(Method::GET, &format!("/v1/campaigns/{id}"), None, Body::empty())).await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    assert!(body["error"].as_str().unwrap().contains(&id.to_string()));
+    let (status, _) = call(&s, request(Method::GET, "/v1/campaigns/not-a-uuid", None, Body::empty())).await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
+#[tokio::test]
+async fn writes_need_the_bearer_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    let m = manifest("inputs/a/s.las", "inputs/a/t.csv");
+    for token in [None, Some("wrong")] {
+        let response = app(s.clone()).oneshot(request(Method::POST, "/v1/campaigns", token, m.clone())).await.unwrap();
+        assert_eq!(response.status(), StatusCode::UNAUTHORIZED);
+        assert_eq!(response.headers()[header::WWW_AUTHENTICATE], "Bearer");
+        let (status, _) = call(&s, request(Method::PUT, "/v1/objects/inputs/a/s.las", token, "x")).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED);
+        let id = uuid::Uuid::new_v4();
+        let (status, _) = call(&s, request(Method::POST, &format!("/v1/campaigns/{id}/cancel"), token, "")).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED);
+        let (status, _) = call(&s, request(Method::DELETE, &format!("/v1/campaigns/{id}"), token, "")).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED);
+    }
+}
+
+#[tokio::test]
+async fn a_bad_manifest_gets_422_with_every_problem_and_its_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    // Two schema problems at once.
+    let bad = serde_json::json!({
+        "name": "t",
+        "scanners": {"left": {"lever_arm_m": [0.0, 0.5]}},
+        "trajectories": [{"id": "v01", "uri": "../../etc/passwd"}],
+        "strips": [{"id": "s", "trajectory": "nope", "scanner": "left", "uri": "file:///etc/passwd", "extra": 1}]
+    })
+    .to_string();
+    let (status, body) = call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), bad)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    let body: ErrorBody = serde_json::from_value(body).unwrap();
+    let paths: Vec<&str> = body.problems.iter().map(|p| p.path.as_str()).collect();
+    for expected in ["$.scanners.left.lever_arm_m", "$.trajectories[0].uri", "$.strips[0].uri", "$.strips[0].trajectory"] {
+        assert!(paths.contains(&expected), "{expected} missing in {paths:?}");
+    }
+    // Syntactically fine, but the objects are not in the store.
+    let (status, body) =
+        call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), manifest("inputs/a/s.las", "inputs/a/t.csv"))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    let body: ErrorBody = serde_json::from_value(body).unwrap();
+    let paths: Vec<&str> = body.problems.iter().map(|p| p.path.as_str()).collect();
+    assert_eq!(paths, ["$.trajectories[0].uri", "$.strips[0].uri"]);
+    assert!(body.problems[0].message.contains("upload"), "{}", body.problems[0].message);
+    // Malformed JSON.
+    let (status, body) = call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), "{\"name\": ")).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(body["problems"][0]["message"].as_str().unwrap().contains("malformed JSON"), "{body}");
+    // Oversized body.
+    let huge = format!("{{\"name\": \"{}\"}}", "x".repeat(20_000));
+    let (status, _) = call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), huge)).await;
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
+}
+
+#[tokio::test]
+async fn uploads_stay_inside_inputs_and_within_the_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    let (status, body) = call(&s, request(Method::PUT, "/v1/objects/inputs/u1/t.csv", Some(TOKEN), "a,b\n")).await;
+    assert_eq!(status, StatusCode::CREATED, "{body}");
+    assert_eq!(body["bytes"], 4);
+    assert_eq!(std::fs::read_to_string(dir.path().join("store/inputs/u1/t.csv")).unwrap(), "a,b\n");
+    let (status, _) = call(&s, request(Method::PUT, "/v1/objects/c/x/report.json", Some(TOKEN), "{}")).await;
+    assert_eq!(status, StatusCode::FORBIDDEN);
+    let (status, _) = call(&s, request(Method::PUT, "/v1/objects/inputs/../../etc/x", Some(TOKEN), "x")).await;
+    assert!(status == StatusCode::BAD_REQUEST || status == StatusCode::NOT_FOUND, "{status}");
+    let (status, _) = call(&s, request(Method::PUT, "/v1/objects/inputs/u1/%2e%2e/x", Some(TOKEN), "x")).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST);
+    let (status, _) = call(&s, request(Method::PUT, "/v1/objects/inputs/u1/big", Some(TOKEN), vec![0u8; 2000])).await;
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
+    assert!(!dir.path().join("store/inputs/u1/big").exists());
+}

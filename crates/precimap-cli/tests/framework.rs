@@ -1,0 +1,314 @@
+//! The job framework end to end: the embedded default, the REST API over a real port with
+//! in-process executors, separate `precimap work` processes on PostgreSQL + an S3 store (Garage)
+//! with executors killed at random and the database restarted — each must give exactly the
+//! in-process driver's result — and a corrupt strip failing only its own campaign.
+
+use precimap_api::{app, ApiState, Auth, Client};
+use precimap_framework::{
+    default_queue, run_embedded, upload_local_inputs, EmbeddedOptions, Executor, ExecutorConfig, Framework, Objects,
+    TaskContext,
+};
+use precimap_jobs::{CampaignState, JobStore};
+use precimap_pipeline::{run_campaign, RunOptions};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+fn simulate_tiny(dir: &Path, seed: u64) -> PathBuf {
+    let campaign = dir.join(format!("campaign-{seed}"));
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, seed);
+    precimap_sim::simulate(&config, &campaign, false).expect("simulate tiny");
+    campaign
+}
+
+fn in_process(manifest: &Path, out: &Path) {
+    run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false }, &|_| {}).unwrap();
+}
+
+/// Every corrected strip and trajectory byte-identical (LAS stores coordinates as integers of
+/// 0.1 mm or finer and the CSV writes round-trip floats, so this is equality of the corrections
+/// far below 1e-9 m), and the same iteration statistics.
+fn assert_same_results(a: &Path, b: &Path) {
+    for folder in ["strips", "trajectories"] {
+        let mut names: Vec<_> = std::fs::read_dir(a.join(folder)).unwrap().map(|e| e.unwrap().file_name()).collect();
+        names.sort();
+        assert!(!names.is_empty());
+        for name in names {
+            let x = std::fs::read(a.join(folder).join(&name)).unwrap();
+            let y = std::fs::read(b.join(folder).join(&name))
+                .unwrap_or_else(|e| panic!("{}: {e}", b.join(folder).join(&name).display()));
+            assert!(x == y, "{folder}/{} differs", name.to_string_lossy());
+        }
+    }
+    let ra: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("report.json")).unwrap()).unwrap();
+    let rb: serde_json::Value = serde_json::from_slice(&std::fs::read(b.join("report.json")).unwrap()).unwrap();
+    assert_eq!(ra["iterations"].as_array().unwrap().len(), rb["iterations"].as_array().unwrap().len());
+    for (x, y) in ra["iterations"].as_array().unwrap().iter().zip(rb["iterations"].as_array().unwrap()) {
+        for field in ["points_used", "points_modelled", "residual_std_m", "max_correction_change_m"] {
+            assert_eq!(x[field], y[field], "{field}");
+        }
+    }
+    assert_eq!(ra["converged"], rb["converged"]);
+    assert_eq!(ra["points_total"], rb["points_total"]);
+    assert_eq!(ra["trajectories"], rb["trajectories"]);
+}
+
+async fn wait_finished(jobs: &JobStore, id: uuid::Uuid, limit: Duration) -> precimap_jobs::CampaignRecord {
+    let started = Instant::now();
+    loop {
+        let c = jobs.campaign(id).await.unwrap().unwrap();
+        if c.state != CampaignState::Running {
+            return c;
+        }
+        assert!(started.elapsed() < limit, "campaign {id} still {} after {limit:?} (stage {})", c.state.as_str(), c.stage);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[test]
+fn embedded_run_and_the_http_api_give_the_in_process_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 3);
+    let manifest = campaign.join("manifest.json");
+    let reference = dir.path().join("in-process");
+    in_process(&manifest, &reference);
+
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    // 1. The embedded default (what `precimap run` does).
+    let embedded = dir.path().join("embedded");
+    let options = EmbeddedOptions { out_dir: embedded.clone(), concurrency: 3, keep_state: false };
+    let record = rt.block_on(run_embedded(&manifest, &options, |_| {})).unwrap();
+    assert_eq!(record.state, CampaignState::Succeeded);
+    assert!(!embedded.join(".precimap").exists(), "the state folder is removed after the run");
+    assert_same_results(&reference, &embedded);
+
+    // 2. Over a real port: `submit`, `status`, `results` through the HTTP client.
+    let via_http = dir.path().join("via-http");
+    rt.block_on(async {
+        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
+        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap();
+        let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
+        tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
+        let executor = Executor::new(
+            jobs.clone(),
+            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            ExecutorConfig::default(),
+        );
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let workers = tokio::spawn(async move { executor.work_loop(2, stop_rx).await });
+
+        let server = format!("http://{address}");
+        let unauthorised = Client::new(&server, None);
+        let err = unauthorised.submit_local(&manifest, |_, _| {}).await.unwrap_err().to_string();
+        assert!(err.contains("401"), "{err}");
+        let client = Client::new(&server, Some("t0ken".into()));
+        let submitted = client.submit_local(&manifest, |_, _| {}).await.unwrap();
+        let finished = wait_finished(&jobs, submitted.id, Duration::from_secs(600)).await;
+        assert_eq!(finished.state, CampaignState::Succeeded, "{:?}", finished.error);
+        let status = client.status(submitted.id).await.unwrap();
+        assert_eq!(status.state, "succeeded");
+        assert!(!status.iterations.is_empty());
+        assert_eq!(status.tasks.dead, 0);
+        client.results(submitted.id, &via_http).await.unwrap();
+
+        // Deleting the campaign removes its objects.
+        let prefix = finished.object_prefix.clone();
+        assert!(!objects.list(&prefix).await.unwrap().is_empty());
+        client.delete(submitted.id).await.unwrap();
+        assert!(objects.list(&prefix).await.unwrap().is_empty());
+        assert!(client.status(submitted.id).await.is_err());
+        let _ = stop_tx.send(true);
+        workers.await.unwrap().unwrap();
+    });
+    assert_same_results(&reference, &via_http);
+}
+
+#[test]
+fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = simulate_tiny(dir.path(), 5);
+    let bad = simulate_tiny(dir.path(), 6);
+    let las = bad.join("strips/v02-right.las");
+    let bytes = std::fs::read(&las).unwrap();
+    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
+        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+        let good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
+        let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
+        let bad_id = framework.submit(&bad_manifest).await.unwrap();
+        let good_id = framework.submit(&good_manifest).await.unwrap();
+        let executor = Executor::new(
+            jobs.clone(),
+            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            ExecutorConfig::default(),
+        );
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let workers = tokio::spawn(async move { executor.work_loop(2, stop_rx).await });
+        let failed = wait_finished(&jobs, bad_id, Duration::from_secs(600)).await;
+        let succeeded = wait_finished(&jobs, good_id, Duration::from_secs(600)).await;
+        let _ = stop_tx.send(true);
+        workers.await.unwrap().unwrap();
+        assert_eq!(failed.state, CampaignState::Failed);
+        let error = failed.error.unwrap();
+        assert!(error.contains("v02-right"), "the error names the strip: {error}");
+        assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
+        // The failed campaign stops: nothing of it stays queued or leased.
+        let counts = jobs.task_counts(bad_id).await.unwrap();
+        assert_eq!(counts.queued + counts.leased, 0, "{counts:?}");
+    });
+}
+
+/// PostgreSQL and the S3 server, as `scripts/services.sh` provides them. The test command always
+/// sets `PRECIMAP_REQUIRE_SERVICES=1`, so a missing service fails the run instead of skipping.
+fn services() -> Option<(String, String)> {
+    match (std::env::var("PRECIMAP_TEST_POSTGRES"), std::env::var("PRECIMAP_TEST_S3")) {
+        (Ok(pg), Ok(s3)) => Some((pg, s3)),
+        _ => {
+            assert!(
+                std::env::var("PRECIMAP_REQUIRE_SERVICES").as_deref() != Ok("1"),
+                "PRECIMAP_TEST_POSTGRES and PRECIMAP_TEST_S3 are required (run ./scripts/test.sh)"
+            );
+            eprintln!("SKIPPED: PostgreSQL/S3 not configured; ./scripts/test.sh starts them");
+            None
+        }
+    }
+}
+
+fn psql(url: &str, sql: &str) -> String {
+    let out = std::process::Command::new("psql").args([url, "-tA", "-c", sql]).output().expect("psql");
+    assert!(out.status.success(), "psql {sql}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).trim().to_string()
+}
+
+fn restart_postgres() {
+    let version = std::fs::read_dir("/etc/postgresql").unwrap().next().unwrap().unwrap().file_name();
+    let status = std::process::Command::new("pg_ctlcluster")
+        .args(["--skip-systemctl-redirect", &version.to_string_lossy(), "main", "restart"])
+        .status()
+        .expect("pg_ctlcluster");
+    assert!(status.success());
+}
+
+/// A child process killed when the test ends, even by a panic (a leftover server would hold the
+/// test's output pipe open).
+struct Worker {
+    child: std::process::Child,
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn spawn_worker(db: &str, store: &str) -> Worker {
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["work", "--db", db, "--store", store, "--lease-s", "3", "--concurrency", "1"])
+        .env("PRECIMAP_LOG", "warn")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn precimap work");
+    Worker { child }
+}
+
+#[test]
+fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
+    let Some((pg, s3)) = services() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 4);
+    let manifest = campaign.join("manifest.json");
+    let reference = dir.path().join("in-process");
+    in_process(&manifest, &reference);
+
+    let database = format!("precimap_chaos_{}", uuid::Uuid::new_v4().simple());
+    psql(&pg, &format!("CREATE DATABASE {database}"));
+    let db = format!("{}/{database}", pg.rsplit_once('/').unwrap().0);
+    let store = format!("{s3}/{}", uuid::Uuid::new_v4().simple());
+
+    // `precimap serve` on a free port, without in-process executors.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let server_url = format!("http://127.0.0.1:{port}");
+    let server = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--db", &db, "--store", &store, "--listen", &format!("127.0.0.1:{port}"), "--lease-s", "3"])
+        .env("PRECIMAP_TOKEN", "chaos-token")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn precimap serve");
+    let _server = Worker { child: server };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let client = Client::new(&server_url, Some("chaos-token".into()));
+    let id = rt.block_on(async {
+        for _ in 0..100 {
+            if reqwest_get_ok(&format!("{server_url}/healthz")).await {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        client.submit_local(&manifest, |_, _| {}).await.unwrap().id
+    });
+
+    let mut workers: Vec<Worker> = (0..4).map(|_| spawn_worker(&db, &store)).collect();
+    let started = Instant::now();
+    let mut kills = 0;
+    let mut restarted = false;
+    let mut rng = 0x2545_f491_4f6c_dd1du64;
+    let status = loop {
+        std::thread::sleep(Duration::from_millis(700));
+        let s = rt.block_on(client.status(id));
+        let s = match s {
+            Ok(s) => s,
+            Err(_) => continue, // the database is restarting
+        };
+        if s.state != "running" {
+            break s;
+        }
+        assert!(started.elapsed() < Duration::from_secs(900), "campaign stuck: {s:?}");
+        // SIGKILL a random executor every few polls while tasks run, and restart it.
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        if s.tasks.leased > 0 && rng % 3 == 0 && kills < 12 {
+            let victim = (rng >> 8) as usize % workers.len();
+            workers[victim].child.kill().unwrap();
+            workers[victim].child.wait().unwrap();
+            workers[victim] = spawn_worker(&db, &store);
+            kills += 1;
+        }
+        if !restarted && s.iteration >= 2 {
+            restart_postgres();
+            restarted = true;
+        }
+    };
+    drop(workers);
+    eprintln!("chaos: {kills} executors killed, database restarted: {restarted}, {:.0} s", started.elapsed().as_secs_f64());
+    assert_eq!(status.state, "succeeded", "{:?}", status.error);
+    assert!(restarted && kills > 0);
+    let out = dir.path().join("results");
+    rt.block_on(client.results(id, &out)).unwrap();
+    assert_same_results(&reference, &out);
+    // No task committed outputs twice, nothing stays leased.
+    assert_eq!(psql(&db, "SELECT count(*) FROM tasks WHERE state = 'leased'"), "0");
+    assert_eq!(
+        psql(&db, "SELECT count(*) FROM (SELECT task_id, name FROM task_outputs GROUP BY 1, 2 HAVING count(*) > 1) d"),
+        "0"
+    );
+    let _ = psql(&pg, &format!("DROP DATABASE IF EXISTS {database} WITH (FORCE)"));
+}
+
+async fn reqwest_get_ok(url: &str) -> bool {
+    let Ok(stream) = tokio::net::TcpStream::connect(url.trim_start_matches("http://").split('/').next().unwrap()).await
+    else {
+        return false;
+    };
+    drop(stream);
+    true
+}

@@ -1,0 +1,208 @@
+//! Binary forms of what map and reduce tasks exchange: one tile's normal-equation blocks for one
+//! trajectory, and one trajectory's corrections. Little-endian, every `f64` bit-exact (results of
+//! the framework equal the in-process path's), with a magic and version so a reader rejects
+//! anything else with a clear error.
+
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_estimate::AnchorBlock;
+
+const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
+const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR01";
+
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum CodecError {
+    #[error("not a {what} object (bad magic or version); it was written by another program or version")]
+    BadMagic { what: &'static str },
+    #[error("{what} object is truncated at byte {at} of {len}")]
+    Truncated { what: &'static str, at: usize, len: usize },
+    #[error("{what} object has {extra} trailing bytes")]
+    Trailing { what: &'static str, extra: usize },
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+    what: &'static str,
+}
+
+impl<'a> Reader<'a> {
+    fn new(bytes: &'a [u8], magic: &[u8; 8], what: &'static str) -> Result<Self, CodecError> {
+        if bytes.len() < 8 || &bytes[..8] != magic {
+            return Err(CodecError::BadMagic { what });
+        }
+        Ok(Self { bytes, at: 8, what })
+    }
+
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], CodecError> {
+        let end = self.at + N;
+        let slice = self.bytes.get(self.at..end).ok_or(CodecError::Truncated {
+            what: self.what,
+            at: self.at,
+            len: self.bytes.len(),
+        })?;
+        self.at = end;
+        let mut out = [0u8; N];
+        out.copy_from_slice(slice);
+        Ok(out)
+    }
+
+    fn u32(&mut self) -> Result<u32, CodecError> {
+        Ok(u32::from_le_bytes(self.take()?))
+    }
+
+    fn f64(&mut self) -> Result<f64, CodecError> {
+        Ok(f64::from_le_bytes(self.take()?))
+    }
+
+    fn f64s<const N: usize>(&mut self) -> Result<[f64; N], CodecError> {
+        let mut out = [0.0; N];
+        for v in &mut out {
+            *v = self.f64()?;
+        }
+        Ok(out)
+    }
+
+    /// A count that must fit in the remaining bytes at `unit` bytes per item (guards allocations
+    /// against a corrupt length).
+    fn count(&mut self, unit: usize) -> Result<usize, CodecError> {
+        let n = self.u32()? as usize;
+        if n.saturating_mul(unit) > self.bytes.len() - self.at {
+            return Err(CodecError::Truncated { what: self.what, at: self.at, len: self.bytes.len() });
+        }
+        Ok(n)
+    }
+
+    fn finish(self) -> Result<(), CodecError> {
+        match self.bytes.len() - self.at {
+            0 => Ok(()),
+            extra => Err(CodecError::Trailing { what: self.what, extra }),
+        }
+    }
+}
+
+fn put_f64s(out: &mut Vec<u8>, values: &[f64]) {
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+const BLOCK_BYTES: usize = 4 + 4 + 8 * (21 + 21 + 6);
+
+pub fn encode_blocks(blocks: &[AnchorBlock]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(12 + blocks.len() * BLOCK_BYTES);
+    out.extend_from_slice(BLOCKS_MAGIC);
+    out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
+    for b in blocks {
+        out.extend_from_slice(&b.anchor.to_le_bytes());
+        out.extend_from_slice(&b.observations.to_le_bytes());
+        put_f64s(&mut out, &b.diag);
+        put_f64s(&mut out, &b.next);
+        put_f64s(&mut out, &b.rhs);
+    }
+    out
+}
+
+pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
+    let mut r = Reader::new(bytes, BLOCKS_MAGIC, "normal-equation blocks")?;
+    let n = r.count(BLOCK_BYTES)?;
+    let mut blocks = Vec::with_capacity(n);
+    for _ in 0..n {
+        let anchor = r.u32()?;
+        let observations = r.u32()?;
+        let diag = r.f64s::<21>()?;
+        let next = r.f64s::<21>()?;
+        let rhs = r.f64s::<6>()?;
+        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations });
+    }
+    r.finish()?;
+    Ok(blocks)
+}
+
+/// Corrections with the optional posterior standard deviations of the final iteration.
+pub fn encode_corrections(c: &TrajectoryCorrections, sigma: Option<&[[f64; 6]]>) -> Vec<u8> {
+    let mut out = Vec::with_capacity(20 + c.values.len() * 96);
+    out.extend_from_slice(CORRECTIONS_MAGIC);
+    out.extend_from_slice(&c.first_anchor.to_le_bytes());
+    out.extend_from_slice(&(c.values.len() as u32).to_le_bytes());
+    for v in &c.values {
+        put_f64s(&mut out, v);
+    }
+    let sigma = sigma.unwrap_or(&[]);
+    out.extend_from_slice(&(sigma.len() as u32).to_le_bytes());
+    for s in sigma {
+        put_f64s(&mut out, s);
+    }
+    out
+}
+
+#[allow(clippy::type_complexity)]
+pub fn decode_corrections(bytes: &[u8]) -> Result<(TrajectoryCorrections, Option<Vec<[f64; 6]>>), CodecError> {
+    let mut r = Reader::new(bytes, CORRECTIONS_MAGIC, "trajectory corrections")?;
+    let first_anchor = r.u32()?;
+    let n = r.count(48)?;
+    let mut values = Vec::with_capacity(n);
+    for _ in 0..n {
+        values.push(r.f64s::<6>()?);
+    }
+    let m = r.count(48)?;
+    let mut sigma = Vec::with_capacity(m);
+    for _ in 0..m {
+        sigma.push(r.f64s::<6>()?);
+    }
+    r.finish()?;
+    if values.is_empty() {
+        return Err(CodecError::Truncated { what: "trajectory corrections", at: 12, len: bytes.len() });
+    }
+    Ok((TrajectoryCorrections { first_anchor, values }, (m > 0).then_some(sigma)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn block(anchor: u32, seed: f64) -> AnchorBlock {
+        let mut b = AnchorBlock::new(anchor);
+        for k in 0..21 {
+            b.diag[k] = seed * (k as f64 + 0.1).sqrt();
+            b.next[k] = -seed / (k as f64 + 1.3);
+        }
+        b.rhs = [seed, -1e-300, f64::MIN_POSITIVE, 1e300, 0.0, -0.0];
+        b.observations = 7 + anchor;
+        b
+    }
+
+    #[test]
+    fn blocks_round_trip_bit_exact() {
+        let blocks: Vec<_> = (0..5).map(|i| block(100 + i, 0.1 + i as f64 / 3.0)).collect();
+        let bytes = encode_blocks(&blocks);
+        let back = decode_blocks(&bytes).unwrap();
+        assert_eq!(back.len(), blocks.len());
+        for (a, b) in blocks.iter().zip(&back) {
+            assert_eq!(a.anchor, b.anchor);
+            assert_eq!(a.observations, b.observations);
+            assert!(a.diag.iter().chain(&a.next).chain(&a.rhs).zip(b.diag.iter().chain(&b.next).chain(&b.rhs)).all(|(x, y)| x.to_bits() == y.to_bits()));
+        }
+        assert!(decode_blocks(&bytes[..bytes.len() - 1]).is_err());
+        assert!(matches!(decode_blocks(b"PMCORR01xxxx"), Err(CodecError::BadMagic { .. })));
+        let mut extra = bytes.clone();
+        extra.push(0);
+        assert!(matches!(decode_blocks(&extra), Err(CodecError::Trailing { .. })));
+        // A corrupt count cannot make the reader allocate beyond the object.
+        let mut huge = encode_blocks(&[]);
+        huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(matches!(decode_blocks(&huge), Err(CodecError::Truncated { .. })));
+    }
+
+    #[test]
+    fn corrections_round_trip_with_and_without_sigma() {
+        let c = TrajectoryCorrections { first_anchor: 42, values: vec![[0.1, -0.2, 0.3, 1e-5, -2e-5, 3e-5]; 4] };
+        let (back, sigma) = decode_corrections(&encode_corrections(&c, None)).unwrap();
+        assert_eq!(back, c);
+        assert!(sigma.is_none());
+        let s = vec![[0.001; 6]; 4];
+        let (back, sigma) = decode_corrections(&encode_corrections(&c, Some(&s))).unwrap();
+        assert_eq!(back, c);
+        assert_eq!(sigma.unwrap(), s);
+        assert!(decode_corrections(&encode_corrections(&c, None)[..20]).is_err());
+    }
+}

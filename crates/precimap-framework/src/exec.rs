@@ -1,0 +1,279 @@
+//! Runs one claimed task: reads its inputs from the object store, calls the same functions the
+//! in-process driver calls, writes its outputs under keys that contain the attempt's lease token
+//! (so a lost attempt can never overwrite a committed one), and returns what the job store
+//! records. CPU work runs on the blocking pool; nothing here touches the database.
+
+use crate::codec::{decode_blocks, decode_corrections, encode_blocks, encode_corrections};
+use crate::error::{FrameworkError, TaskError};
+use crate::objects::Objects;
+use crate::plan::{
+    CorrectionsRef, EstimateResult, ExportResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
+    BLOCKS_PREFIX, OUTPUT_CORRECTIONS,
+};
+use bytes::Bytes;
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::Vec3;
+use precimap_estimate::TileChunk;
+use precimap_jobs::{OutputKey, TaskOutcome};
+use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
+use precimap_pipeline::tasks::{export_strip_file, export_trajectory_file, prepare_strip_chunks};
+use precimap_pipeline::PipelineError;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use uuid::Uuid;
+
+/// What one task invocation may use.
+#[derive(Clone, Debug)]
+pub struct TaskContext {
+    pub objects: Objects,
+    /// Scratch folder for downloads from a remote store.
+    pub scratch: PathBuf,
+}
+
+/// A local copy of an object: the object itself in a `file://` store, otherwise a temporary
+/// download removed on drop.
+struct LocalObject {
+    path: PathBuf,
+    _temp: Option<tempfile::TempDir>,
+}
+
+impl TaskContext {
+    async fn local(&self, key: &str) -> Result<LocalObject, TaskError> {
+        if let Some(path) = self.objects.local_path(key) {
+            if !path.is_file() {
+                return Err(TaskError::permanent(format!("object {key} does not exist in the store")));
+            }
+            return Ok(LocalObject { path, _temp: None });
+        }
+        std::fs::create_dir_all(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let dir = tempfile::tempdir_in(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let name = key.rsplit('/').next().unwrap_or("object");
+        let path = dir.path().join(name);
+        self.objects.get_to_file(key, &path).await.map_err(TaskError::from_store)?;
+        Ok(LocalObject { path, _temp: Some(dir) })
+    }
+
+    async fn get(&self, key: &str) -> Result<Bytes, TaskError> {
+        self.objects.get(key).await.map_err(TaskError::from_store)
+    }
+
+    async fn put(&self, key: &str, bytes: Vec<u8>) -> Result<(), TaskError> {
+        self.objects.put(key, Bytes::from(bytes)).await.map_err(TaskError::from_store)
+    }
+
+    /// Writes a file-producing output: in place for a `file://` store (through a temporary name),
+    /// else to scratch and uploaded.
+    async fn put_produced<F>(&self, key: &str, produce: F) -> Result<(), TaskError>
+    where
+        F: FnOnce(&Path) -> Result<(), PipelineError> + Send + 'static,
+    {
+        if let Some(dst) = self.objects.local_path(key) {
+            let dir = dst.parent().map(Path::to_path_buf).unwrap_or_default();
+            std::fs::create_dir_all(&dir).map_err(|e| TaskError::transient(FrameworkError::io(&dir, e)))?;
+            let ext = dst.extension().and_then(|e| e.to_str()).unwrap_or("bin").to_string();
+            // Keep the extension: the LAS writer picks LAZ compression from it.
+            let tmp = dst.with_extension(format!("partial.{ext}"));
+            let tmp2 = tmp.clone();
+            blocking(move || produce(&tmp2)).await?.map_err(TaskError::from_pipeline)?;
+            std::fs::rename(&tmp, &dst).map_err(|e| TaskError::transient(FrameworkError::io(&dst, e)))?;
+            return Ok(());
+        }
+        std::fs::create_dir_all(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let dir = tempfile::tempdir_in(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let path = dir.path().join(key.rsplit('/').next().unwrap_or("object"));
+        let p2 = path.clone();
+        blocking(move || produce(&p2)).await?.map_err(TaskError::from_pipeline)?;
+        self.objects.put_file(key, &path).await.map_err(TaskError::from_store)?;
+        Ok(())
+    }
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, TaskError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| TaskError::transient(FrameworkError::Internal(format!("task thread stopped: {e}"))))
+}
+
+/// Short, unique per attempt: the first 12 hex digits of the lease token.
+fn attempt_tag(token: Uuid) -> String {
+    token.simple().to_string()[..12].to_string()
+}
+
+async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<TrajectoryEntry, TaskError> {
+    let local = ctx.local(&t.uri).await?;
+    let path = local.path.clone();
+    let data = blocking(move || precimap_formats::read_trajectory_csv(&path)).await?.map_err(|e| {
+        TaskError::permanent(format!("trajectory {} ({}): {e}", t.id, t.uri))
+    })?;
+    Ok(TrajectoryEntry { id: t.id.clone(), path: PathBuf::from(&t.uri), data, mean_lever_arm: Vec3::from(t.mean_lever_arm) })
+}
+
+fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
+    TrajectoryInput { index: s.trajectory, id: s.trajectory_id.clone(), uri: s.trajectory_uri.clone(), mean_lever_arm: [0.0; 3] }
+}
+
+async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<TrajectoryCorrections, TaskError> {
+    match &c.key {
+        None => Ok(TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1)),
+        Some(key) => {
+            let bytes = ctx.get(key).await?;
+            decode_corrections(&bytes)
+                .map(|(c, _)| c)
+                .map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))
+        }
+    }
+}
+
+/// Runs a task; `token` is its lease token (part of every output key).
+pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result<TaskOutcome, TaskError> {
+    let started = Instant::now();
+    let tag = attempt_tag(token);
+    match input {
+        TaskInput::SegmentStrip { prefix, strip, params } => {
+            let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
+            let local = ctx.local(&strip.uri).await?;
+            let entry = StripEntry {
+                id: strip.id.clone(),
+                path: local.path.clone(),
+                trajectory: strip.trajectory,
+                lever_arm: Vec3::from(strip.lever_arm),
+            };
+            let index = strip.index;
+            let prepared = blocking(move || {
+                prepare_strip_chunks(&entry, index, &traj, &params).map(|p| {
+                    let encoded: Vec<_> = p.chunks.iter().map(|c| (c.tile, c.encode())).collect();
+                    (p.stats, encoded)
+                })
+            })
+            .await?
+            .map_err(|e| TaskError::from_pipeline(e).naming(&strip.uri))?;
+            drop(local);
+            let (stats, chunks) = prepared;
+            let mut outputs = Vec::with_capacity(chunks.len());
+            let mut tiles = Vec::with_capacity(chunks.len());
+            for (tile, bytes) in chunks {
+                let key = format!("{prefix}/tiles/{tile}/{}.{tag}.chunk", strip.id);
+                ctx.put(&key, bytes).await?;
+                outputs.push(OutputKey { name: tile.to_string(), object_key: key });
+                tiles.push(tile);
+            }
+            let result = SegmentResult { strip: strip.index, stats, tiles, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+        }
+        TaskInput::EstimateTile { prefix, iteration, tile, step, params, trajectories, chunks, corrections } => {
+            let mut decoded = Vec::with_capacity(chunks.len());
+            for c in &chunks {
+                let bytes = ctx.get(&c.key).await?;
+                decoded.push((c.key.clone(), bytes));
+            }
+            let mut all = vec![TrajectoryCorrections::zeros(0, 0); trajectories as usize];
+            for c in &corrections {
+                let slot = all
+                    .get_mut(c.trajectory as usize)
+                    .ok_or_else(|| TaskError::permanent(format!("tile {tile}: unknown trajectory {}", c.trajectory)))?;
+                *slot = read_corrections(ctx, c).await?;
+            }
+            let estimate = blocking(move || {
+                let chunks = decoded
+                    .iter()
+                    .map(|(key, bytes)| {
+                        TileChunk::decode(bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                precimap_estimate::estimate_tile(tile, &chunks, &all, &params, &step)
+                    .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))
+            })
+            .await??;
+            let mut outputs = Vec::with_capacity(estimate.blocks.len());
+            for tb in &estimate.blocks {
+                let key = format!("{prefix}/it/{iteration}/blocks/{}/{tile}.{tag}.blk", tb.trajectory);
+                ctx.put(&key, encode_blocks(&tb.blocks)).await?;
+                outputs.push(OutputKey { name: format!("{BLOCKS_PREFIX}{}", tb.trajectory), object_key: key });
+            }
+            let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+        }
+        TaskInput::SolveTrajectory { prefix, iteration, trajectory, step, params, with_sigma, current, blocks } => {
+            let current = read_corrections(ctx, &current).await?;
+            let mut all = Vec::new();
+            for key in &blocks {
+                let bytes = ctx.get(key).await?;
+                all.extend(decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?);
+            }
+            let id = trajectory.id.clone();
+            let solution = blocking(move || {
+                precimap_estimate::solve_trajectory(all.iter(), &current, &params, step.rotation, with_sigma)
+            })
+            .await?
+            .map_err(|e| {
+                TaskError::permanent(format!(
+                    "trajectory {id}: the normal equations could not be solved ({e}); the campaign parameters (sigma values) are probably inconsistent"
+                ))
+            })?;
+            let key = format!("{prefix}/it/{iteration}/corr/{}.{tag}.bin", trajectory.index);
+            ctx.put(&key, encode_corrections(&solution.corrections, solution.sigma.as_deref())).await?;
+            let result = SolveResult {
+                trajectory: trajectory.index,
+                max_change_m: solution.max_change_m,
+                report: precimap_pipeline::trajectory_report(&trajectory.id, &solution),
+                seconds: started.elapsed().as_secs_f64(),
+            };
+            Ok(TaskOutcome {
+                result: to_json(&result)?,
+                outputs: vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }],
+            })
+        }
+        TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
+            let corrections = read_corrections(ctx, &corrections).await?;
+            let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
+            let local = ctx.local(&strip.uri).await?;
+            let entry = StripEntry {
+                id: strip.id.clone(),
+                path: local.path.clone(),
+                trajectory: strip.trajectory,
+                lever_arm: Vec3::from(strip.lever_arm),
+            };
+            let name = format!("strips/{}", precimap_pipeline::tasks::export_strip_name(&entry));
+            let key = format!("{prefix}/out/{tag}/{name}");
+            let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+            let counter = points.clone();
+            ctx.put_produced(&key, move |dst| {
+                let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, dst)?;
+                counter.store(n, std::sync::atomic::Ordering::Relaxed);
+                Ok(())
+            })
+            .await
+            .map_err(|e| e.naming(&strip.uri))?;
+            drop(local);
+            let result = ExportResult {
+                points: points.load(std::sync::atomic::Ordering::Relaxed),
+                seconds: started.elapsed().as_secs_f64(),
+            };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
+        }
+        TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections } => {
+            let corrections = read_corrections(ctx, &corrections).await?;
+            let entry = read_trajectory(ctx, &trajectory).await?;
+            let name = format!("trajectories/{}.csv", trajectory.id);
+            let key = format!("{prefix}/out/{tag}/{name}");
+            ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
+                .await?;
+            let result = ExportResult { points: 0, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
+        }
+        TaskInput::WriteReport { prefix, report } => {
+            let key = format!("{prefix}/out/{tag}/report.json");
+            let json = serde_json::to_vec_pretty(&report)
+                .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
+            ctx.put(&key, json).await?;
+            Ok(TaskOutcome {
+                result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }),
+                outputs: vec![OutputKey { name: "report.json".into(), object_key: key }],
+            })
+        }
+    }
+}
+
+fn to_json<T: serde::Serialize>(value: &T) -> Result<serde_json::Value, TaskError> {
+    serde_json::to_value(value).map_err(|e| TaskError::permanent(format!("result does not serialise: {e}")))
+}

@@ -1,0 +1,19 @@
+//! precimap's serverless job framework (DESIGN §3): a campaign becomes stages of tasks in the job
+//! store's queue table; stateless executors claim one task at a time, run the same functions as
+//! the in-process driver over objects in the object store, and commit their outputs through the
+//! database, whose completing transaction also plans the next stage.
+
+pub mod campaigns;
+pub mod codec;
+pub mod error;
+pub mod exec;
+pub mod objects;
+pub mod plan;
+pub mod worker;
+
+pub use campaigns::{default_queue, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus, SubmitError};
+pub use error::{FrameworkError, TaskError};
+pub use exec::TaskContext;
+pub use objects::{validate_key, Objects};
+pub use plan::CampaignPlanner;
+pub use worker::{Executor, ExecutorConfig, WorkOutcome};

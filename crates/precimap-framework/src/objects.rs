@@ -1,0 +1,324 @@
+//! The object store every task exchanges data through: `file:///abs/path` (the embedded default)
+//! or `s3://bucket/prefix` (any S3-compatible server, configured by the usual `AWS_*` variables).
+//!
+//! Keys are relative, `/`-separated paths. Nothing outside the configured store can be named: a
+//! key with `..`, a scheme, a leading `/`, a backslash or control characters is rejected before
+//! it reaches the store.
+
+use crate::error::FrameworkError;
+use bytes::Bytes;
+use futures::TryStreamExt;
+use object_store::aws::AmazonS3Builder;
+use object_store::local::LocalFileSystem;
+use object_store::path::Path as StorePath;
+use object_store::prefix::PrefixStore;
+use object_store::{ObjectStore, PutPayload};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tokio::io::AsyncWriteExt;
+
+/// Handle on the configured store. Cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Objects {
+    inner: Arc<dyn ObjectStore>,
+    /// Root folder of a `file://` store: tasks read and write its files in place instead of
+    /// copying them through temporary files.
+    local_root: Option<PathBuf>,
+    url: String,
+}
+
+/// Checks that `key` names an object inside the store.
+pub fn validate_key(key: &str) -> Result<(), String> {
+    if key.is_empty() {
+        return Err("the key is empty".into());
+    }
+    if key.len() > 1024 {
+        return Err(format!("the key is {} bytes long; at most 1024 are allowed", key.len()));
+    }
+    if key.chars().any(char::is_control) {
+        return Err(format!("key {key:?} contains a control character"));
+    }
+    if key.contains('\\') {
+        return Err(format!("key {key:?} contains a backslash; separate folders with '/'"));
+    }
+    if key.contains(':') {
+        return Err(format!("key {key:?} contains ':' (a scheme or drive); name an object inside the store"));
+    }
+    if key.starts_with('/') {
+        return Err(format!("key {key:?} is absolute; name an object relative to the store's root"));
+    }
+    for part in key.split('/') {
+        if part.is_empty() || part == "." || part == ".." {
+            return Err(format!("key {key:?} has an empty, '.' or '..' component; name an object inside the store"));
+        }
+    }
+    Ok(())
+}
+
+fn store_path(key: &str) -> Result<StorePath, FrameworkError> {
+    validate_key(key).map_err(|message| FrameworkError::BadKey { key: key.to_string(), message })?;
+    StorePath::parse(key).map_err(|e| FrameworkError::BadKey { key: key.to_string(), message: e.to_string() })
+}
+
+impl Objects {
+    /// Opens the store named by `url`: `file:///absolute/folder` (created if missing) or
+    /// `s3://bucket[/prefix]`, the latter configured from `AWS_ACCESS_KEY_ID`,
+    /// `AWS_SECRET_ACCESS_KEY`, `AWS_REGION`, `AWS_ENDPOINT` (a local server such as Garage or
+    /// MinIO), `AWS_ALLOW_HTTP=true` for plain HTTP and `AWS_VIRTUAL_HOSTED_STYLE_REQUEST`
+    /// (path style unless set).
+    pub fn from_url(url: &str) -> Result<Self, FrameworkError> {
+        let bad = |message: String| FrameworkError::BadStoreUrl { url: url.to_string(), message };
+        if let Some(path) = url.strip_prefix("file://") {
+            let root = PathBuf::from(path);
+            if !root.is_absolute() {
+                return Err(bad("a file store needs an absolute folder, e.g. file:///var/lib/precimap".into()));
+            }
+            std::fs::create_dir_all(&root).map_err(|e| bad(format!("cannot create {}: {e}", root.display())))?;
+            let root = root.canonicalize().map_err(|e| bad(format!("cannot open {}: {e}", root.display())))?;
+            let fs = LocalFileSystem::new_with_prefix(&root).map_err(|e| bad(e.to_string()))?;
+            return Ok(Self { inner: Arc::new(fs), local_root: Some(root), url: url.to_string() });
+        }
+        if let Some(rest) = url.strip_prefix("s3://") {
+            let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+            if bucket.is_empty() {
+                return Err(bad("name the bucket: s3://bucket[/prefix]".into()));
+            }
+            let s3 = AmazonS3Builder::from_env()
+                .with_bucket_name(bucket)
+                .build()
+                .map_err(|e| bad(format!("{e}; set AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION and, for a local server, AWS_ENDPOINT and AWS_ALLOW_HTTP=true")))?;
+            let prefix = prefix.trim_matches('/');
+            let inner: Arc<dyn ObjectStore> = if prefix.is_empty() {
+                Arc::new(s3)
+            } else {
+                validate_key(prefix).map_err(bad)?;
+                Arc::new(PrefixStore::new(s3, prefix))
+            };
+            return Ok(Self { inner, local_root: None, url: url.to_string() });
+        }
+        Err(bad("use file:///absolute/folder or s3://bucket[/prefix]".into()))
+    }
+
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// Where `key` lives on disk, for a `file://` store.
+    pub fn local_path(&self, key: &str) -> Option<PathBuf> {
+        let root = self.local_root.as_ref()?;
+        validate_key(key).ok()?;
+        Some(root.join(key))
+    }
+
+    pub async fn put(&self, key: &str, bytes: Bytes) -> Result<(), FrameworkError> {
+        let path = store_path(key)?;
+        self.inner.put(&path, PutPayload::from_bytes(bytes)).await.map_err(|e| FrameworkError::store(key, e))?;
+        Ok(())
+    }
+
+    pub async fn get(&self, key: &str) -> Result<Bytes, FrameworkError> {
+        let path = store_path(key)?;
+        let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
+        result.bytes().await.map_err(|e| FrameworkError::store(key, e))
+    }
+
+    pub async fn exists(&self, key: &str) -> Result<bool, FrameworkError> {
+        let path = store_path(key)?;
+        match self.inner.head(&path).await {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::NotFound { .. }) => Ok(false),
+            Err(e) => Err(FrameworkError::store(key, e)),
+        }
+    }
+
+    /// Uploads a local file (in parts, so a strip of many gigabytes never sits in memory).
+    pub async fn put_file(&self, key: &str, file: &Path) -> Result<u64, FrameworkError> {
+        let path = store_path(key)?;
+        if let Some(dst) = self.local_path(key) {
+            // Same machine: a copy through a temporary name, renamed into place.
+            if let Some(dir) = dst.parent() {
+                tokio::fs::create_dir_all(dir).await.map_err(|e| FrameworkError::io(dir, e))?;
+            }
+            let tmp = dst.with_extension("upload-partial");
+            let n = tokio::fs::copy(file, &tmp).await.map_err(|e| FrameworkError::io(file, e))?;
+            tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
+            return Ok(n);
+        }
+        let mut upload = object_store::WriteMultipart::new_with_chunk_size(
+            self.inner.put_multipart(&path).await.map_err(|e| FrameworkError::store(key, e))?,
+            16 << 20,
+        );
+        let mut reader = tokio::fs::File::open(file).await.map_err(|e| FrameworkError::io(file, e))?;
+        let mut buf = vec![0u8; 8 << 20];
+        let mut total = 0u64;
+        loop {
+            let n = tokio::io::AsyncReadExt::read(&mut reader, &mut buf).await.map_err(|e| FrameworkError::io(file, e))?;
+            if n == 0 {
+                break;
+            }
+            upload.wait_for_capacity(4).await.map_err(|e| FrameworkError::store(key, e))?;
+            upload.write(&buf[..n]);
+            total += n as u64;
+        }
+        upload.finish().await.map_err(|e| FrameworkError::store(key, e))?;
+        Ok(total)
+    }
+
+    /// Stores a byte stream of at most `limit` bytes under `key`; a longer stream is refused and
+    /// nothing is stored. Returns the number of bytes.
+    pub async fn put_stream<S, E>(&self, key: &str, mut stream: S, limit: u64) -> Result<u64, FrameworkError>
+    where
+        S: futures::Stream<Item = Result<Bytes, E>> + Unpin,
+        E: std::fmt::Display,
+    {
+        let path = store_path(key)?;
+        let too_big = || FrameworkError::TooLarge { key: key.to_string(), limit };
+        let broken = |e: E| FrameworkError::Invalid(format!("upload of {key} broke off: {e}"));
+        let mut total = 0u64;
+        if let Some(dst) = self.local_path(key) {
+            if let Some(dir) = dst.parent() {
+                tokio::fs::create_dir_all(dir).await.map_err(|e| FrameworkError::io(dir, e))?;
+            }
+            let tmp = dst.with_extension(format!("upload-{}", uuid::Uuid::new_v4().simple()));
+            let mut out = tokio::fs::File::create(&tmp).await.map_err(|e| FrameworkError::io(&tmp, e))?;
+            let result: Result<(), FrameworkError> = async {
+                while let Some(chunk) = stream.try_next().await.map_err(broken)? {
+                    total += chunk.len() as u64;
+                    if total > limit {
+                        return Err(too_big());
+                    }
+                    out.write_all(&chunk).await.map_err(|e| FrameworkError::io(&tmp, e))?;
+                }
+                out.flush().await.map_err(|e| FrameworkError::io(&tmp, e))
+            }
+            .await;
+            if let Err(e) = result {
+                let _ = tokio::fs::remove_file(&tmp).await;
+                return Err(e);
+            }
+            tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
+            return Ok(total);
+        }
+        let mut upload = object_store::WriteMultipart::new_with_chunk_size(
+            self.inner.put_multipart(&path).await.map_err(|e| FrameworkError::store(key, e))?,
+            16 << 20,
+        );
+        let result: Result<(), FrameworkError> = async {
+            while let Some(chunk) = stream.try_next().await.map_err(broken)? {
+                total += chunk.len() as u64;
+                if total > limit {
+                    return Err(too_big());
+                }
+                upload.wait_for_capacity(4).await.map_err(|e| FrameworkError::store(key, e))?;
+                upload.write(&chunk);
+            }
+            Ok(())
+        }
+        .await;
+        match result {
+            Ok(()) => {
+                upload.finish().await.map_err(|e| FrameworkError::store(key, e))?;
+                Ok(total)
+            }
+            Err(e) => {
+                let _ = upload.abort().await;
+                Err(e)
+            }
+        }
+    }
+
+    /// Downloads `key` into `file` (streamed).
+    pub async fn get_to_file(&self, key: &str, file: &Path) -> Result<u64, FrameworkError> {
+        let path = store_path(key)?;
+        let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
+        let mut stream = result.into_stream();
+        if let Some(dir) = file.parent() {
+            tokio::fs::create_dir_all(dir).await.map_err(|e| FrameworkError::io(dir, e))?;
+        }
+        let mut out = tokio::fs::File::create(file).await.map_err(|e| FrameworkError::io(file, e))?;
+        let mut total = 0u64;
+        while let Some(chunk) = stream.try_next().await.map_err(|e| FrameworkError::store(key, e))? {
+            out.write_all(&chunk).await.map_err(|e| FrameworkError::io(file, e))?;
+            total += chunk.len() as u64;
+        }
+        out.flush().await.map_err(|e| FrameworkError::io(file, e))?;
+        Ok(total)
+    }
+
+    /// A byte stream of `key` (for HTTP downloads), with its size.
+    pub async fn stream(
+        &self,
+        key: &str,
+    ) -> Result<(u64, futures::stream::BoxStream<'static, object_store::Result<Bytes>>), FrameworkError> {
+        let path = store_path(key)?;
+        let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
+        let size = result.meta.size;
+        Ok((size, result.into_stream()))
+    }
+
+    /// Every key under `prefix` (a folder, without the trailing '/').
+    pub async fn list(&self, prefix: &str) -> Result<Vec<String>, FrameworkError> {
+        let path = store_path(prefix)?;
+        let metas: Vec<_> =
+            self.inner.list(Some(&path)).try_collect().await.map_err(|e| FrameworkError::store(prefix, e))?;
+        Ok(metas.into_iter().map(|m| m.location.to_string()).collect())
+    }
+
+    pub async fn delete(&self, key: &str) -> Result<(), FrameworkError> {
+        let path = store_path(key)?;
+        match self.inner.delete(&path).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(FrameworkError::store(key, e)),
+        }
+    }
+
+    /// Deletes every object under `prefix`; returns how many.
+    pub async fn delete_prefix(&self, prefix: &str) -> Result<usize, FrameworkError> {
+        let keys = self.list(prefix).await?;
+        for key in &keys {
+            self.delete(key).await?;
+        }
+        if let Some(dir) = self.local_path(prefix) {
+            // The file store leaves empty folders behind.
+            let _ = tokio::fs::remove_dir_all(dir).await;
+        }
+        Ok(keys.len())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_outside_the_store_are_rejected() {
+        for bad in ["", "/etc/passwd", "../x", "a/../../b", "a//b", "file:///etc/passwd", "s3://b/k", "a\\b", "a\0b", "./a"]
+        {
+            assert!(validate_key(bad).is_err(), "{bad:?} accepted");
+        }
+        for good in ["a", "inputs/1/strips/p01.las", "c/x/tiles/1_-2/s.chunk"] {
+            assert!(validate_key(good).is_ok(), "{good:?} rejected");
+        }
+    }
+
+    #[tokio::test]
+    async fn file_store_round_trip_list_and_delete() {
+        let dir = tempfile::tempdir().unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().display())).unwrap();
+        objects.put("c/1/a.bin", Bytes::from_static(b"hello")).await.unwrap();
+        objects.put("c/1/b/c.bin", Bytes::from_static(b"world")).await.unwrap();
+        objects.put("c/2/a.bin", Bytes::from_static(b"other")).await.unwrap();
+        assert_eq!(&objects.get("c/1/a.bin").await.unwrap()[..], b"hello");
+        assert!(objects.exists("c/1/b/c.bin").await.unwrap());
+        assert!(!objects.exists("c/1/none").await.unwrap());
+        let mut keys = objects.list("c/1").await.unwrap();
+        keys.sort();
+        assert_eq!(keys, ["c/1/a.bin", "c/1/b/c.bin"]);
+        assert_eq!(objects.delete_prefix("c/1").await.unwrap(), 2);
+        assert!(objects.list("c/1").await.unwrap().is_empty());
+        assert_eq!(&objects.get("c/2/a.bin").await.unwrap()[..], b"other");
+        assert!(objects.get("../x").await.is_err());
+        assert!(Objects::from_url("file://relative/path").is_err());
+        assert!(Objects::from_url("http://example.com").is_err());
+    }
+}

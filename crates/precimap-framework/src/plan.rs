@@ -1,0 +1,595 @@
+//! The campaign's stage graph, as a pure state machine the job store runs inside the transaction
+//! that completes a stage's last task (DESIGN §3: barriers without a coordinator):
+//!
+//! `prepare` (one `segment_strip` per strip) → { `estimate` k (one `estimate_tile` per tile) →
+//! `solve` k (one `solve_trajectory` per trajectory) } for each schedule step, with the in-process
+//! driver's early-stop rule → `export` (`export_strip` per strip, `export_trajectory` per
+//! trajectory) → `report` (`write_report`) → succeeded.
+//!
+//! Everything a task needs travels in its input (store keys of its inputs, parameters, the
+//! schedule step), so an executor never reads more than its own task row and its own objects.
+
+use precimap_core::{IterationStep, Parameters, TileKey};
+use precimap_estimate::{ResidualHistogram, TileStats};
+use precimap_formats::Manifest;
+use precimap_jobs::{
+    CampaignRecord, FinishedStage, FinishedTask, IterationRecord, NewCampaign, NewTask, Next, QueueConfig, StageSpec,
+    StagePlanner, StripRecord, TileRecord, TrajectoryRecord, Transition,
+};
+use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
+use precimap_pipeline::{after_iteration, iteration_report, AfterIteration};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+pub const STAGE_PREPARE: &str = "prepare";
+pub const STAGE_ESTIMATE: &str = "estimate";
+pub const STAGE_SOLVE: &str = "solve";
+pub const STAGE_EXPORT: &str = "export";
+pub const STAGE_REPORT: &str = "report";
+
+pub const KIND_SEGMENT_STRIP: &str = "segment_strip";
+pub const KIND_ESTIMATE_TILE: &str = "estimate_tile";
+pub const KIND_SOLVE_TRAJECTORY: &str = "solve_trajectory";
+pub const KIND_EXPORT_STRIP: &str = "export_strip";
+pub const KIND_EXPORT_TRAJECTORY: &str = "export_trajectory";
+pub const KIND_WRITE_REPORT: &str = "write_report";
+
+/// Output names: `tile` chunks are named by their tile key, blocks by `blocks/{trajectory index}`.
+pub const OUTPUT_CORRECTIONS: &str = "corrections";
+pub const BLOCKS_PREFIX: &str = "blocks/";
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct StripInput {
+    pub index: u32,
+    pub id: String,
+    pub uri: String,
+    pub trajectory: u32,
+    pub trajectory_id: String,
+    pub trajectory_uri: String,
+    pub lever_arm: [f64; 3],
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct TrajectoryInput {
+    pub index: u32,
+    pub id: String,
+    pub uri: String,
+    /// Mean lever arm of the trajectory's scanners (see `precimap_pipeline::campaign`).
+    pub mean_lever_arm: [f64; 3],
+}
+
+/// A trajectory's corrections as a task reads them: the recorded object, or zeros over its
+/// anchor range before the first solve.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct CorrectionsRef {
+    pub trajectory: u32,
+    pub anchors: (u32, u32),
+    pub key: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ChunkRef {
+    pub strip: u32,
+    pub key: String,
+}
+
+/// One task's input (the `input` column), tagged by kind.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum TaskInput {
+    SegmentStrip {
+        prefix: String,
+        strip: StripInput,
+        params: Parameters,
+    },
+    EstimateTile {
+        prefix: String,
+        iteration: u32,
+        tile: TileKey,
+        step: IterationStep,
+        params: Parameters,
+        trajectories: u32,
+        chunks: Vec<ChunkRef>,
+        corrections: Vec<CorrectionsRef>,
+    },
+    SolveTrajectory {
+        prefix: String,
+        iteration: u32,
+        trajectory: TrajectoryInput,
+        step: IterationStep,
+        params: Parameters,
+        with_sigma: bool,
+        current: CorrectionsRef,
+        /// Blocks object keys in tile order (the in-process driver's summation order).
+        blocks: Vec<String>,
+    },
+    ExportStrip {
+        prefix: String,
+        strip: StripInput,
+        anchor_spacing_m: f64,
+        corrections: CorrectionsRef,
+    },
+    ExportTrajectory {
+        prefix: String,
+        trajectory: TrajectoryInput,
+        anchor_spacing_m: f64,
+        corrections: CorrectionsRef,
+    },
+    WriteReport {
+        prefix: String,
+        report: Box<Report>,
+    },
+}
+
+impl TaskInput {
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::SegmentStrip { .. } => KIND_SEGMENT_STRIP,
+            Self::EstimateTile { .. } => KIND_ESTIMATE_TILE,
+            Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
+            Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
+            Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
+            Self::WriteReport { .. } => KIND_WRITE_REPORT,
+        }
+    }
+
+    fn task(&self, key: String) -> NewTask {
+        NewTask { kind: self.kind().to_string(), key, input: serde_json::to_value(self).expect("task input serialises") }
+    }
+}
+
+/// Task results (the `result` column) the planner reads back.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SegmentResult {
+    pub strip: u32,
+    pub stats: precimap_estimate::PrepareStats,
+    pub tiles: Vec<TileKey>,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EstimateResult {
+    pub stats: TileStats,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SolveResult {
+    pub trajectory: u32,
+    pub max_change_m: f64,
+    pub report: TrajectoryReport,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ExportResult {
+    pub points: u64,
+    pub seconds: f64,
+}
+
+/// The planner's memory between stages (the campaign's `plan_state` column).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PlanState {
+    pub name: String,
+    pub prefix: String,
+    pub params: Parameters,
+    pub strips: Vec<StripInput>,
+    pub trajectories: Vec<TrajectoryInput>,
+    /// Tile → its chunks in strip order (filled when `prepare` completes).
+    pub tiles: Vec<(TileKey, Vec<ChunkRef>)>,
+    pub anchor_ranges: Vec<(u32, u32)>,
+    pub strip_reports: Vec<StripReport>,
+    pub points_total: u64,
+    /// Schedule step of the current (or next) iteration and the iteration count so far.
+    pub step_index: usize,
+    pub iteration: u32,
+    /// Latest recorded corrections per trajectory.
+    pub corrections: Vec<Option<String>>,
+    /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
+    pub pending_stats: Option<TileStats>,
+    pub pending_seconds: f64,
+    pub iterations: Vec<IterationReport>,
+    pub converged: bool,
+    pub trajectory_reports: Vec<TrajectoryReport>,
+    pub histogram: ResidualHistogram,
+    pub prepare_s: f64,
+    pub estimate_s: f64,
+    pub export_s: f64,
+}
+
+/// Builds a new campaign's rows and first stage from a validated manifest whose URIs are store keys.
+pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (NewCampaign, StageSpec) {
+    let traj_index: BTreeMap<&str, u32> =
+        manifest.trajectories.iter().enumerate().map(|(i, t)| (t.id.as_str(), i as u32)).collect();
+    let mut lever_sums = vec![([0.0f64; 3], 0usize); manifest.trajectories.len()];
+    let strips: Vec<StripInput> = manifest
+        .strips
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let t = traj_index.get(s.trajectory.as_str()).copied().unwrap_or(0);
+            let lever_arm = manifest.scanners.get(&s.scanner).map(|sc| sc.lever_arm_m).unwrap_or([0.0; 3]);
+            let sum = &mut lever_sums[t as usize];
+            for k in 0..3 {
+                sum.0[k] += lever_arm[k];
+            }
+            sum.1 += 1;
+            StripInput {
+                index: i as u32,
+                id: s.id.clone(),
+                uri: s.uri.clone(),
+                trajectory: t,
+                trajectory_id: s.trajectory.clone(),
+                trajectory_uri: manifest.trajectories[t as usize].uri.clone(),
+                lever_arm,
+            }
+        })
+        .collect();
+    let trajectories: Vec<TrajectoryInput> = manifest
+        .trajectories
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let (sum, n) = lever_sums[i];
+            let mean = if n > 0 { sum.map(|v| v / n as f64) } else { [0.0; 3] };
+            TrajectoryInput { index: i as u32, id: t.id.clone(), uri: t.uri.clone(), mean_lever_arm: mean }
+        })
+        .collect();
+    let state = PlanState {
+        name: manifest.name.clone(),
+        prefix: prefix.to_string(),
+        params: manifest.parameters.clone(),
+        strips: strips.clone(),
+        trajectories: trajectories.clone(),
+        tiles: Vec::new(),
+        anchor_ranges: Vec::new(),
+        strip_reports: Vec::new(),
+        points_total: 0,
+        step_index: 0,
+        iteration: 0,
+        corrections: vec![None; trajectories.len()],
+        pending_stats: None,
+        pending_seconds: 0.0,
+        iterations: Vec::new(),
+        converged: false,
+        trajectory_reports: Vec::new(),
+        histogram: ResidualHistogram::default(),
+        prepare_s: 0.0,
+        estimate_s: 0.0,
+        export_s: 0.0,
+    };
+    let first = StageSpec {
+        stage: STAGE_PREPARE.to_string(),
+        iteration: 0,
+        tasks: strips
+            .iter()
+            .map(|s| {
+                TaskInput::SegmentStrip { prefix: prefix.to_string(), strip: s.clone(), params: manifest.parameters.clone() }
+                    .task(s.id.clone())
+            })
+            .collect(),
+    };
+    let campaign = NewCampaign {
+        name: manifest.name.clone(),
+        spec: serde_json::to_value(manifest).expect("manifest serialises"),
+        plan_state: serde_json::to_value(&state).expect("plan state serialises"),
+        object_prefix: prefix.to_string(),
+        iterations_planned: manifest.parameters.schedule.len() as i32,
+        strips: strips
+            .iter()
+            .map(|s| StripRecord {
+                index: s.index as i32,
+                id: s.id.clone(),
+                trajectory: s.trajectory_id.clone(),
+                uri: s.uri.clone(),
+                points: None,
+            })
+            .collect(),
+        trajectories: trajectories
+            .iter()
+            .map(|t| TrajectoryRecord { index: t.index as i32, id: t.id.clone(), uri: t.uri.clone() })
+            .collect(),
+        queue,
+    };
+    (campaign, first)
+}
+
+/// The planner the job store calls at every stage barrier.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CampaignPlanner;
+
+impl StagePlanner for CampaignPlanner {
+    fn plan(&self, campaign: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String> {
+        let mut state: PlanState = serde_json::from_value(campaign.plan_state.clone())
+            .map_err(|e| format!("the campaign's plan state is unreadable ({e}); it was written by another version"))?;
+        let mut tiles = Vec::new();
+        let mut iteration = None;
+        let next = match finished.stage.as_str() {
+            STAGE_PREPARE => {
+                tiles = after_prepare(&mut state, &finished.tasks)?;
+                if state.tiles.is_empty() {
+                    // Nothing overlaps: every correction stays zero.
+                    export_stage(&state)
+                } else {
+                    estimate_stage(&mut state)
+                }
+            }
+            STAGE_ESTIMATE => after_estimate(&mut state, &finished.tasks)?,
+            STAGE_SOLVE => {
+                let (record, next) = after_solve(&mut state, &finished.tasks)?;
+                iteration = Some(record);
+                next
+            }
+            STAGE_EXPORT => {
+                state.export_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
+                report_stage(&state, campaign)
+            }
+            STAGE_REPORT => Next::Succeed,
+            other => return Err(format!("unknown stage {other:?}")),
+        };
+        Ok(Transition {
+            plan_state: serde_json::to_value(&state).map_err(|e| e.to_string())?,
+            tiles,
+            iteration,
+            next,
+        })
+    }
+}
+
+fn parse<T: serde::de::DeserializeOwned>(task: &FinishedTask) -> Result<T, String> {
+    serde_json::from_value(task.result.clone())
+        .map_err(|e| format!("{} {}: unreadable result ({e})", task.kind, task.key))
+}
+
+fn seconds_of<T: serde::de::DeserializeOwned>(tasks: &[FinishedTask], f: impl Fn(&T) -> f64) -> Result<f64, String> {
+    let mut total = 0.0;
+    for t in tasks {
+        if t.kind == KIND_WRITE_REPORT {
+            continue;
+        }
+        total += f(&parse::<T>(t)?);
+    }
+    Ok(total)
+}
+
+fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<TileRecord>, String> {
+    let mut results: Vec<(SegmentResult, &FinishedTask)> =
+        tasks.iter().map(|t| parse::<SegmentResult>(t).map(|r| (r, t))).collect::<Result<_, _>>()?;
+    // Strip order, as the in-process driver combines them.
+    results.sort_by_key(|(r, _)| r.strip);
+    let mut tiles: BTreeMap<TileKey, Vec<ChunkRef>> = BTreeMap::new();
+    let mut ranges = vec![(u32::MAX, 0u32); state.trajectories.len()];
+    let mut reports = Vec::with_capacity(results.len());
+    let mut points_total = 0;
+    let mut seconds = 0.0;
+    for (r, task) in &results {
+        let strip = state.strips.get(r.strip as usize).ok_or_else(|| format!("result names unknown strip {}", r.strip))?;
+        let range = &mut ranges[strip.trajectory as usize];
+        range.0 = range.0.min(r.stats.first_anchor);
+        range.1 = range.1.max(r.stats.last_anchor);
+        for out in &task.outputs {
+            let tile: TileKey = out.name.parse().map_err(|_| format!("{}: output {:?} is not a tile key", task.key, out.name))?;
+            tiles.entry(tile).or_default().push(ChunkRef { strip: r.strip, key: out.object_key.clone() });
+        }
+        points_total += r.stats.points;
+        seconds += r.seconds;
+        reports.push(StripReport {
+            id: strip.id.clone(),
+            points: r.stats.points,
+            points_with_normal: r.stats.points_with_normal,
+            points_emitted: r.stats.points_emitted,
+            revolutions: r.stats.revolutions,
+            rows_per_revolution: r.stats.rows_per_revolution,
+            tiles: r.tiles.len(),
+        });
+    }
+    for r in &mut ranges {
+        if r.0 == u32::MAX {
+            *r = (0, 0);
+        }
+    }
+    let records = tiles
+        .iter()
+        .map(|(tile, chunks)| TileRecord {
+            key: tile.to_string(),
+            strips: chunks.iter().map(|c| state.strips[c.strip as usize].id.clone()).collect(),
+            points: 0,
+        })
+        .collect();
+    state.tiles = tiles.into_iter().collect();
+    state.anchor_ranges = ranges;
+    state.strip_reports = reports;
+    state.points_total = points_total;
+    state.prepare_s = seconds;
+    Ok(records)
+}
+
+fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
+    CorrectionsRef {
+        trajectory,
+        anchors: state.anchor_ranges[trajectory as usize],
+        key: state.corrections[trajectory as usize].clone(),
+    }
+}
+
+fn estimate_stage(state: &mut PlanState) -> Next {
+    state.iteration += 1;
+    let step = state.params.schedule[state.step_index].clone();
+    let tasks = state
+        .tiles
+        .iter()
+        .map(|(tile, chunks)| {
+            let mut used: Vec<u32> = chunks.iter().map(|c| state.strips[c.strip as usize].trajectory).collect();
+            used.sort_unstable();
+            used.dedup();
+            TaskInput::EstimateTile {
+                prefix: state.prefix.clone(),
+                iteration: state.iteration,
+                tile: *tile,
+                step: step.clone(),
+                params: state.params.clone(),
+                trajectories: state.trajectories.len() as u32,
+                chunks: chunks.clone(),
+                corrections: used.into_iter().map(|t| corrections_ref(state, t)).collect(),
+            }
+            .task(tile.to_string())
+        })
+        .collect();
+    Next::Stage(StageSpec { stage: STAGE_ESTIMATE.to_string(), iteration: state.iteration as i32, tasks })
+}
+
+fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, String> {
+    let mut per_tile: Vec<(TileKey, &FinishedTask)> = tasks
+        .iter()
+        .map(|t| t.key.parse::<TileKey>().map(|k| (k, t)).map_err(|_| format!("estimate task key {:?} is not a tile", t.key)))
+        .collect::<Result<_, _>>()?;
+    // Tile order: the in-process driver sums blocks and statistics in this order.
+    per_tile.sort_by_key(|(k, _)| *k);
+    let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
+    let mut blocks: Vec<Vec<String>> = vec![Vec::new(); state.trajectories.len()];
+    let mut seconds = 0.0;
+    for (_, task) in &per_tile {
+        let r: EstimateResult = parse(task)?;
+        stats.merge(&r.stats);
+        seconds += r.seconds;
+        for out in &task.outputs {
+            let t: usize = out
+                .name
+                .strip_prefix(BLOCKS_PREFIX)
+                .and_then(|s| s.parse().ok())
+                .filter(|&t: &usize| t < blocks.len())
+                .ok_or_else(|| format!("{}: unexpected output {:?}", task.key, out.name))?;
+            blocks[t].push(out.object_key.clone());
+        }
+    }
+    state.pending_stats = Some(stats);
+    state.pending_seconds = seconds;
+    let step = state.params.schedule[state.step_index].clone();
+    let with_sigma = state.step_index + 1 == state.params.schedule.len();
+    let tasks = state
+        .trajectories
+        .iter()
+        .map(|traj| {
+            TaskInput::SolveTrajectory {
+                prefix: state.prefix.clone(),
+                iteration: state.iteration,
+                trajectory: traj.clone(),
+                step: step.clone(),
+                params: state.params.clone(),
+                with_sigma,
+                current: corrections_ref(state, traj.index),
+                blocks: std::mem::take(&mut blocks[traj.index as usize]),
+            }
+            .task(traj.id.clone())
+        })
+        .collect();
+    Ok(Next::Stage(StageSpec { stage: STAGE_SOLVE.to_string(), iteration: state.iteration as i32, tasks }))
+}
+
+fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(IterationRecord, Next), String> {
+    let mut max_change = 0.0f64;
+    let mut reports = vec![None; state.trajectories.len()];
+    let mut seconds = state.pending_seconds;
+    for task in tasks {
+        let r: SolveResult = parse(task)?;
+        let t = r.trajectory as usize;
+        if t >= reports.len() {
+            return Err(format!("{}: result names unknown trajectory {t}", task.key));
+        }
+        max_change = max_change.max(r.max_change_m);
+        seconds += r.seconds;
+        let key = task
+            .outputs
+            .iter()
+            .find(|o| o.name == OUTPUT_CORRECTIONS)
+            .ok_or_else(|| format!("{}: no corrections recorded", task.key))?;
+        state.corrections[t] = Some(key.object_key.clone());
+        reports[t] = Some(r.report);
+    }
+    state.trajectory_reports = reports.into_iter().flatten().collect();
+    let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
+    let step = &state.params.schedule[state.step_index];
+    let report = iteration_report(state.iteration as usize, step, &stats, max_change, seconds);
+    state.histogram = stats.histogram.clone();
+    state.estimate_s += seconds;
+    state.iterations.push(report.clone());
+    let record = IterationRecord {
+        iteration: state.iteration as i32,
+        stats: serde_json::to_value(&report).map_err(|e| e.to_string())?,
+    };
+    let next = match after_iteration(
+        state.step_index,
+        state.params.schedule.len(),
+        max_change,
+        state.params.convergence_tolerance_m,
+    ) {
+        AfterIteration::Step(s) => {
+            state.step_index = s;
+            estimate_stage(state)
+        }
+        AfterIteration::Done { converged } => {
+            state.converged = converged;
+            export_stage(state)
+        }
+    };
+    Ok((record, next))
+}
+
+fn export_stage(state: &PlanState) -> Next {
+    let spacing = state.params.anchor_spacing_m;
+    let mut tasks: Vec<NewTask> = state
+        .strips
+        .iter()
+        .map(|s| {
+            TaskInput::ExportStrip {
+                prefix: state.prefix.clone(),
+                strip: s.clone(),
+                anchor_spacing_m: spacing,
+                corrections: corrections_or_zero(state, s.trajectory),
+            }
+            .task(s.id.clone())
+        })
+        .collect();
+    tasks.extend(state.trajectories.iter().map(|t| {
+        TaskInput::ExportTrajectory {
+            prefix: state.prefix.clone(),
+            trajectory: t.clone(),
+            anchor_spacing_m: spacing,
+            corrections: corrections_or_zero(state, t.index),
+        }
+        .task(t.id.clone())
+    }));
+    Next::Stage(StageSpec { stage: STAGE_EXPORT.to_string(), iteration: 0, tasks })
+}
+
+fn corrections_or_zero(state: &PlanState, trajectory: u32) -> CorrectionsRef {
+    CorrectionsRef {
+        trajectory,
+        anchors: state.anchor_ranges.get(trajectory as usize).copied().unwrap_or((0, 0)),
+        key: state.corrections.get(trajectory as usize).cloned().flatten(),
+    }
+}
+
+fn report_stage(state: &PlanState, campaign: &CampaignRecord) -> Next {
+    let report = Report {
+        campaign: state.name.clone(),
+        manifest: format!("campaign {}", campaign.id),
+        points_total: state.points_total,
+        tiles: state.tiles.len(),
+        strips: state.strip_reports.clone(),
+        iterations: state.iterations.clone(),
+        converged: state.converged,
+        trajectories: state.trajectory_reports.clone(),
+        residual_histogram: state.histogram.clone(),
+        // Framework timings are the stages' summed task seconds (CPU-bound tasks: the work done,
+        // independent of how many executors shared it); total is wall time since submission.
+        timings: Timings {
+            prepare_s: state.prepare_s,
+            estimate_s: state.estimate_s,
+            export_s: state.export_s,
+            total_s: (campaign.updated_at_ms - campaign.created_at_ms).max(0) as f64 / 1000.0,
+        },
+    };
+    let task = TaskInput::WriteReport { prefix: state.prefix.clone(), report: Box::new(report) }.task("report".into());
+    Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })
+}

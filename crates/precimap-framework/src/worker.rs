@@ -1,0 +1,228 @@
+//! Stateless executors: claim one task, run it while heart-beating its lease, commit its outputs
+//! through the job store (the commit point), repeat. `work --once` is one round of this loop; the
+//! embedded default and `serve` run the loop in-process.
+
+use crate::error::{FrameworkError, TaskError};
+use crate::exec::{execute, TaskContext};
+use crate::plan::{CampaignPlanner, TaskInput};
+use precimap_jobs::{ClaimedTask, JobError, JobStore};
+use std::future::Future;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::{watch, Notify};
+use tracing::{debug, info, warn};
+
+/// What one round of an executor did.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum WorkOutcome {
+    /// The task ran and its outputs were committed.
+    Done { kind: String, key: String },
+    /// No task was runnable.
+    NoWork,
+    /// The task failed; it will be retried or, if permanent or out of attempts, fail its campaign.
+    Failed { kind: String, key: String, error: String },
+    /// Another executor took the task over (the lease expired) or its campaign was cancelled;
+    /// nothing of this attempt was committed.
+    LeaseLost { kind: String, key: String },
+}
+
+#[derive(Clone, Debug)]
+pub struct ExecutorConfig {
+    pub worker_id: String,
+    /// Lease per claim; heartbeats renew it every third of it.
+    pub lease: Duration,
+    /// How long an executor keeps retrying a database that is unreachable before giving up.
+    pub database_patience: Duration,
+}
+
+impl Default for ExecutorConfig {
+    fn default() -> Self {
+        Self {
+            worker_id: format!("{}-{}", hostname(), std::process::id()),
+            lease: Duration::from_secs(60),
+            database_patience: Duration::from_secs(120),
+        }
+    }
+}
+
+fn hostname() -> String {
+    std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_else(|_| "executor".into())
+}
+
+#[derive(Clone, Debug)]
+pub struct Executor {
+    jobs: JobStore,
+    ctx: TaskContext,
+    config: ExecutorConfig,
+    /// Wakes idle in-process executors when a task completes (a stage may have opened).
+    wake: Arc<Notify>,
+}
+
+/// Retries `op` while it fails with a transient database error (a restart, a dropped
+/// connection), with back-off, for at most `patience`.
+pub async fn retry_transient<T, F, Fut>(patience: Duration, mut op: F) -> Result<T, JobError>
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<T, JobError>>,
+{
+    let started = Instant::now();
+    let mut delay = Duration::from_millis(100);
+    loop {
+        match op().await {
+            Err(e) if e.is_transient() && started.elapsed() < patience => {
+                warn!(error = %e, "database unavailable; retrying in {delay:?}");
+                tokio::time::sleep(delay).await;
+                delay = (delay * 2).min(Duration::from_secs(5));
+            }
+            other => return other,
+        }
+    }
+}
+
+impl Executor {
+    pub fn new(jobs: JobStore, ctx: TaskContext, config: ExecutorConfig) -> Self {
+        Self { jobs, ctx, config, wake: Arc::new(Notify::new()) }
+    }
+
+    pub fn jobs(&self) -> &JobStore {
+        &self.jobs
+    }
+
+    /// Rescues expired leases (any executor may; it is idempotent).
+    pub async fn reconcile(&self) -> Result<(), FrameworkError> {
+        let report = retry_transient(self.config.database_patience, || self.jobs.reconcile()).await?;
+        if report.requeued + report.dead > 0 {
+            info!(requeued = report.requeued, dead = report.dead, "rescued expired leases");
+        }
+        Ok(())
+    }
+
+    /// Claims and runs at most one task.
+    pub async fn work_once(&self) -> Result<WorkOutcome, FrameworkError> {
+        let patience = self.config.database_patience;
+        let claimed = retry_transient(patience, || self.jobs.claim(&self.config.worker_id, self.config.lease)).await?;
+        match claimed {
+            None => Ok(WorkOutcome::NoWork),
+            Some(task) => self.run_claimed(task).await,
+        }
+    }
+
+    async fn run_claimed(&self, task: ClaimedTask) -> Result<WorkOutcome, FrameworkError> {
+        let patience = self.config.database_patience;
+        let (kind, key) = (task.kind.clone(), task.key.clone());
+        debug!(%kind, %key, attempt = task.attempt, "running");
+        let input: TaskInput = match serde_json::from_value(task.input.clone()) {
+            Ok(i) => i,
+            Err(e) => {
+                let error = format!("unreadable task input ({e}); it was queued by another version");
+                return self.fail(&task, TaskError::permanent(error)).await;
+            }
+        };
+        let (lost_tx, mut lost_rx) = watch::channel(false);
+        let heartbeat = {
+            let jobs = self.jobs.clone();
+            let task = task.clone();
+            let lease = self.config.lease;
+            tokio::spawn(async move {
+                loop {
+                    tokio::time::sleep(lease / 3).await;
+                    match jobs.heartbeat(&task, lease).await {
+                        Ok(()) => {}
+                        Err(JobError::LeaseLost) => {
+                            let _ = lost_tx.send(true);
+                            return;
+                        }
+                        // A database restart: keep trying; the lease may still survive it.
+                        Err(e) => warn!(error = %e, "heartbeat failed"),
+                    }
+                }
+            })
+        };
+        let result = tokio::select! {
+            r = execute(&self.ctx, input, task.lease_token) => Some(r),
+            _ = lost_rx.wait_for(|lost| *lost) => None,
+        };
+        heartbeat.abort();
+        let Some(result) = result else {
+            warn!(%kind, %key, "lease lost while running; abandoning this attempt");
+            return Ok(WorkOutcome::LeaseLost { kind, key });
+        };
+        match result {
+            Ok(outcome) => {
+                let planner = CampaignPlanner;
+                match retry_transient(patience, || self.jobs.complete(&task, outcome.clone(), &planner)).await {
+                    Ok(_) => {
+                        self.wake.notify_waiters();
+                        Ok(WorkOutcome::Done { kind, key })
+                    }
+                    Err(JobError::LeaseLost) => Ok(WorkOutcome::LeaseLost { kind, key }),
+                    Err(e) => Err(e.into()),
+                }
+            }
+            Err(e) => self.fail(&task, e).await,
+        }
+    }
+
+    async fn fail(&self, task: &ClaimedTask, error: TaskError) -> Result<WorkOutcome, FrameworkError> {
+        let (kind, key) = (task.kind.clone(), task.key.clone());
+        warn!(%kind, %key, permanent = error.permanent, error = %error.message, "task failed");
+        match retry_transient(self.config.database_patience, || {
+            self.jobs.fail(task, &error.message, error.permanent)
+        })
+        .await
+        {
+            Ok(_) => {
+                self.wake.notify_waiters();
+                Ok(WorkOutcome::Failed { kind, key, error: error.message })
+            }
+            Err(JobError::LeaseLost) => Ok(WorkOutcome::LeaseLost { kind, key }),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// Runs `concurrency` executor loops until `stop` turns true. Idle loops poll with back-off
+    /// (a remote database) and wake at once when a sibling completes a task.
+    pub async fn work_loop(&self, concurrency: usize, stop: watch::Receiver<bool>) -> Result<(), FrameworkError> {
+        let mut loops = tokio::task::JoinSet::new();
+        for i in 0..concurrency.max(1) {
+            let mut me = self.clone();
+            me.config.worker_id = format!("{}-{i}", self.config.worker_id);
+            let mut stop = stop.clone();
+            loops.spawn(async move {
+                let mut idle = Duration::from_millis(20);
+                let mut last_reconcile = Instant::now() - me.config.lease;
+                while !*stop.borrow() {
+                    if last_reconcile.elapsed() >= me.config.lease / 2 {
+                        me.reconcile().await?;
+                        last_reconcile = Instant::now();
+                    }
+                    match me.work_once().await? {
+                        WorkOutcome::NoWork => {
+                            tokio::select! {
+                                _ = me.wake.notified() => {}
+                                _ = tokio::time::sleep(idle) => {}
+                                _ = stop.changed() => {}
+                            }
+                            idle = (idle * 2).min(Duration::from_secs(1));
+                        }
+                        _ => idle = Duration::from_millis(20),
+                    }
+                }
+                Ok::<(), FrameworkError>(())
+            });
+        }
+        let mut first_error = None;
+        while let Some(joined) = loops.join_next().await {
+            match joined {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    first_error.get_or_insert(e);
+                }
+                Err(e) => {
+                    first_error.get_or_insert(FrameworkError::Internal(format!("executor loop stopped: {e}")));
+                }
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+}
