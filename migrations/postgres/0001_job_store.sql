@@ -13,6 +13,9 @@ CREATE TABLE campaigns (
     plan_state         JSONB NOT NULL,
     object_prefix      TEXT NOT NULL,
     error              TEXT,
+    -- Queued + leased tasks of the current stage: the completion that takes it to 0 is the
+    -- stage barrier (kept under the campaign row lock, so no count over tasks is needed).
+    open_tasks         BIGINT NOT NULL DEFAULT 0,
     max_attempts       INTEGER NOT NULL CHECK (max_attempts >= 1),
     backoff_base_ms    BIGINT NOT NULL CHECK (backoff_base_ms >= 0),
     backoff_max_ms     BIGINT NOT NULL CHECK (backoff_max_ms >= 0),
