@@ -26,6 +26,7 @@ both_backends!(
     cancel_and_delete,
     planner_error_fails_campaign,
     records_round_trip,
+    empty_stage_is_planned_through,
 );
 
 async fn lease_guard(store: JobStore, _url: String) {
@@ -337,6 +338,46 @@ async fn records_round_trip(store: JobStore, _url: String) {
     assert_eq!(events.last().map(|e| e.kind.as_str()), Some("succeeded"));
     let tail = store.events(id, events[2].id, 2).await.unwrap();
     assert_eq!(tail, events[3..5].to_vec(), "paging after an id");
+}
+
+/// s0 → `gap` (no tasks) → s2 (one task) → `Next::Fail` with a message.
+struct GapPlanner;
+
+impl StagePlanner for GapPlanner {
+    fn plan(&self, _: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String> {
+        let next = match finished.stage.as_str() {
+            "s0" => Next::Stage(StageSpec { stage: "gap".into(), iteration: 1, tasks: vec![] }),
+            "gap" => {
+                assert!(finished.tasks.is_empty());
+                Next::Stage(stage("s2", 2, 1))
+            }
+            _ => Next::Fail("converged to nonsense".into()),
+        };
+        Ok(Transition { plan_state: json!({ "after": finished.stage }), tiles: vec![], iteration: None, next })
+    }
+}
+
+async fn empty_stage_is_planned_through(store: JobStore, _url: String) {
+    let id = store.create_campaign(new_campaign("gap", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t, outcome(&t), &GapPlanner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Running });
+    let rec = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((rec.stage.as_str(), rec.iteration, rec.plan_state.clone()), ("s2", 2, json!({ "after": "gap" })));
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(t.stage, "s2");
+    let c = store.complete(&t, outcome(&t), &GapPlanner).await.unwrap();
+    assert_eq!(c.campaign_state, CampaignState::Failed);
+    assert_eq!(store.campaign(id).await.unwrap().unwrap().error.as_deref(), Some("converged to nonsense"));
+    // An empty first stage could never finish: refused up front.
+    let err = store
+        .create_campaign(
+            new_campaign("empty", QueueConfig::default()),
+            StageSpec { stage: "s0".into(), iteration: 0, tasks: vec![] },
+        )
+        .await
+        .unwrap_err();
+    assert!(matches!(err, JobError::Invalid(_)), "{err}");
 }
 
 #[tokio::test]
