@@ -588,11 +588,16 @@ impl JobStore {
              AND stage = $2 AND iteration = $3 RETURNING open_tasks",
         );
         let full = format!("SELECT {CAMPAIGN_COLS} FROM campaigns WHERE id = $1");
-        // PostgreSQL: the guarded update and its event in one round trip; SQLite runs them one by one.
+        // PostgreSQL: the guarded update, the outputs (a JSON array) and the event in one round trip,
+        // to keep the campaign lock short; SQLite runs them one by one.
         let pg_done = self.sql(
             "WITH d AS ( \
                UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
                WHERE id = $1 AND lease_token = $2 AND state = 'leased' RETURNING id, campaign, kind, key, attempt), \
+             outs AS ( \
+               INSERT INTO task_outputs (task_id, campaign, name, object_key) \
+               SELECT d.id, d.campaign, o.name, o.object_key \
+               FROM d, jsonb_to_recordset($4) AS o(name text, object_key text)), \
              ev AS ( \
                INSERT INTO events (campaign, at_ms, kind, task_id, message) \
                SELECT campaign, NOW_MS, 'done', id, kind || ' ' || key || ' done (attempt ' || attempt || ')' FROM d) \
@@ -620,6 +625,7 @@ impl JobStore {
                     .bind(task.id)
                     .bind(task.lease_token)
                     .bind(Json(&outcome.result))
+                    .bind(Json(&outcome.outputs))
                     .fetch_one(&mut *tx)
                     .await?
             } else {
@@ -639,7 +645,7 @@ impl JobStore {
             if updated == 0 {
                 return Err(JobError::LeaseLost);
             }
-            if !outcome.outputs.is_empty() {
+            if !is_pg && !outcome.outputs.is_empty() {
                 let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
                 qb.push_values(&outcome.outputs, |mut b, o| {
                     b.push_bind(task.id).push_bind(task.campaign).push_bind(o.name.as_str())
