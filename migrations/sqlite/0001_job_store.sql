@@ -80,11 +80,11 @@ CREATE TABLE tasks (
     finished_at_ms      INTEGER,
     UNIQUE (campaign, stage, iteration, kind, key)
 );
--- Claim scans queued tasks oldest first; reconcile scans leased tasks by expiry.
+-- Claim scans queued tasks oldest first; reconcile scans leased tasks by expiry. Per-campaign and
+-- per-stage look-ups use the UNIQUE index's prefix: every index on `state` would be rewritten by
+-- each claim and completion (no HOT update), so there are no more of them.
 CREATE INDEX tasks_queued ON tasks (id) WHERE state = 'queued';
 CREATE INDEX tasks_leased ON tasks (lease_expires_at_ms) WHERE state = 'leased';
-CREATE INDEX tasks_stage ON tasks (campaign, stage, iteration, state);
-CREATE INDEX tasks_campaign_state ON tasks (campaign, state);
 
 CREATE TABLE task_outputs (
     task_id    INTEGER NOT NULL REFERENCES tasks (id) ON DELETE CASCADE,

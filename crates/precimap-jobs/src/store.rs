@@ -225,6 +225,9 @@ impl JobStore {
                 opts = opts.options([("synchronous_commit", "off")]);
             }
             let pool = PgPoolOptions::new()
+                // No ping before every use (a round trip per operation): a dead connection shows
+                // up as a transient error, which callers retry anyway.
+                .test_before_acquire(false)
                 .max_connections(options.max_connections.max(1))
                 .acquire_timeout(options.acquire_timeout)
                 .connect_with(opts)
@@ -322,6 +325,11 @@ impl JobStore {
                 first.iteration, first.tasks.len());
             event!(self, tx, id, "campaign_created", None::<i64>, &msg);
         });
+        if self.is_pg() {
+            // Fresh statistics: a planner that believes the queue is tiny claims by sorting a bitmap
+            // scan (measured 3 ms per claim instead of 0.35 ms on 5,000 new tasks).
+            with_pool!(self, p => sqlx::query("ANALYZE tasks").execute(p).await.map(|_| ())?);
+        }
         info!(campaign = %id, name = %c.name, stage = %first.stage, tasks = first.tasks.len(), "campaign created");
         Ok(id)
     }
