@@ -13,6 +13,9 @@ CREATE TABLE campaigns (
     plan_state         TEXT NOT NULL,
     object_prefix      TEXT NOT NULL,
     error              TEXT,
+    -- Queued + leased tasks of the current stage: the completion that takes it to 0 is the
+    -- stage barrier (kept under the campaign row lock, so no count over tasks is needed).
+    open_tasks         INTEGER NOT NULL DEFAULT 0,
     max_attempts       INTEGER NOT NULL CHECK (max_attempts >= 1),
     backoff_base_ms    INTEGER NOT NULL CHECK (backoff_base_ms >= 0),
     backoff_max_ms     INTEGER NOT NULL CHECK (backoff_max_ms >= 0),
@@ -77,11 +80,11 @@ CREATE TABLE tasks (
     finished_at_ms      INTEGER,
     UNIQUE (campaign, stage, iteration, kind, key)
 );
--- Claim scans queued tasks oldest first; reconcile scans leased tasks by expiry.
+-- Claim scans queued tasks oldest first; reconcile scans leased tasks by expiry. Per-campaign and
+-- per-stage look-ups use the UNIQUE index's prefix: every index on `state` would be rewritten by
+-- each claim and completion (no HOT update), so there are no more of them.
 CREATE INDEX tasks_queued ON tasks (id) WHERE state = 'queued';
 CREATE INDEX tasks_leased ON tasks (lease_expires_at_ms) WHERE state = 'leased';
-CREATE INDEX tasks_stage ON tasks (campaign, stage, iteration, state);
-CREATE INDEX tasks_campaign_state ON tasks (campaign, state);
 
 CREATE TABLE task_outputs (
     task_id    INTEGER NOT NULL REFERENCES tasks (id) ON DELETE CASCADE,

@@ -11,5 +11,5 @@ mod store;
 mod types;
 
 pub use error::JobError;
-pub use store::JobStore;
+pub use store::{JobStore, StoreOptions};
 pub use types::*;

@@ -1,0 +1,22 @@
+//! `cargo run --release -p precimap-jobs --example queue_bench -- URL [TASKS] [CLAIMERS...]`
+//! prints one JSON line of figures per claimer count. `PRECIMAP_BENCH_ASYNC_COMMIT=1` turns off
+//! PostgreSQL's `synchronous_commit` (see `StoreOptions::durable_commits`).
+
+use precimap_jobs::bench::queue_bench_with;
+
+#[tokio::main]
+async fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let url = args.next().unwrap_or_else(|| "postgres://postgres@127.0.0.1:5432/postgres".into());
+    let tasks: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(5000);
+    let mut claimers: Vec<usize> = args.map(|s| s.parse()).collect::<Result<_, _>>()?;
+    if claimers.is_empty() {
+        claimers = vec![1, 4, 16];
+    }
+    let durable = std::env::var("PRECIMAP_BENCH_ASYNC_COMMIT").map_or(true, |v| v != "1");
+    for n in claimers {
+        let figures = queue_bench_with(&url, n, tasks, durable).await?;
+        println!("{}", serde_json::to_string(&figures)?);
+    }
+    Ok(())
+}

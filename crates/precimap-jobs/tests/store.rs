@@ -1,0 +1,406 @@
+//! Behaviour of the job store, each scenario on SQLite (temp file) and PostgreSQL (fresh database).
+
+mod common;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use common::*;
+use precimap_jobs::*;
+use serde_json::json;
+use uuid::Uuid;
+
+const LONG: Duration = Duration::from_secs(60);
+
+fn quick_retries(max_attempts: i32) -> QueueConfig {
+    QueueConfig { max_attempts, backoff_base: Duration::from_millis(0), backoff_max: Duration::from_millis(0) }
+}
+
+both_backends!(
+    lease_guard,
+    concurrent_claimers,
+    killed_worker,
+    retries_then_dead,
+    permanent_failure_and_expired_last_attempt,
+    cancel_and_delete,
+    planner_error_fails_campaign,
+    records_round_trip,
+    empty_stage_is_planned_through,
+);
+
+async fn lease_guard(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[2]);
+    let id = store.create_campaign(new_campaign("lease", QueueConfig::default()), planner.first()).await.unwrap();
+    let task = store.claim("w1", LONG).await.unwrap().expect("a task");
+    assert_eq!((task.campaign, task.attempt, task.key.as_str()), (id, 1, "s00000"));
+
+    let stale = ClaimedTask { lease_token: Uuid::new_v4(), ..task.clone() };
+    assert!(matches!(store.heartbeat(&stale, LONG).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.complete(&stale, outcome(&stale), &planner).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.fail(&stale, "boom", false).await, Err(JobError::LeaseLost)));
+    assert!(store.recorded_keys(id).await.unwrap().is_empty(), "a stale token records nothing");
+
+    let before = task.lease_expires_at_ms;
+    let after = store.heartbeat_until(&task, Duration::from_secs(120)).await.unwrap();
+    assert!(after > before, "heartbeat extends the lease");
+    assert_eq!(store.live_lease_tokens(id).await.unwrap(), vec![task.lease_token]);
+
+    let done = store.complete(&task, outcome(&task), &planner).await.unwrap();
+    assert_eq!(done, Completion { stage_finished: false, campaign_state: CampaignState::Running });
+    // Completing twice (a duplicated delivery) is refused and records nothing more.
+    assert!(matches!(store.complete(&task, outcome(&task), &planner).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.heartbeat(&task, LONG).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.fail(&task, "late", false).await, Err(JobError::LeaseLost)));
+    let outs = store.outputs(id, "s0", 0).await.unwrap();
+    assert_eq!(outs.len(), 1);
+    assert_eq!(outs[0].task_key, "s00000");
+    assert_eq!(store.recorded_keys(id).await.unwrap(), vec![outs[0].object_key.clone()]);
+    assert!(store.live_lease_tokens(id).await.unwrap().is_empty());
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased), (1, 1, 0));
+
+    // Duplicate output names are a caller bug, refused before anything is written.
+    let t2 = store.claim("w1", LONG).await.unwrap().unwrap();
+    let twice = TaskOutcome {
+        result: json!(null),
+        outputs: vec![
+            OutputKey { name: "a".into(), object_key: "x".into() },
+            OutputKey { name: "a".into(), object_key: "y".into() },
+        ],
+    };
+    assert!(matches!(store.complete(&t2, twice, &planner).await, Err(JobError::Invalid(_))));
+    let last = store.complete(&t2, outcome(&t2), &planner).await.unwrap();
+    assert_eq!(last, Completion { stage_finished: true, campaign_state: CampaignState::Succeeded });
+    assert_eq!(planner.calls(), vec![("s0".to_string(), 0, 2)]);
+}
+
+async fn concurrent_claimers(store: JobStore, url: String) {
+    let planner = Arc::new(ChainPlanner::new(&[500, 40, 7]));
+    let id = store.create_campaign(new_campaign("race", QueueConfig::default()), planner.first()).await.unwrap();
+    // A second store (its own pool) plays a second executor process.
+    let other = JobStore::connect(&url).await.unwrap();
+    let completed: Arc<Mutex<HashMap<(String, String), usize>>> = Arc::default();
+    let barriers = Arc::new(Mutex::new(0usize));
+    let mut workers = Vec::new();
+    for w in 0..16 {
+        let store = if w % 2 == 0 { store.clone() } else { other.clone() };
+        let (planner, completed, barriers) = (planner.clone(), completed.clone(), barriers.clone());
+        workers.push(tokio::spawn(async move {
+            let name = format!("w{w}");
+            loop {
+                match store.claim(&name, LONG).await.unwrap() {
+                    Some(task) => {
+                        let c = store.complete(&task, outcome(&task), planner.as_ref()).await.unwrap();
+                        *completed.lock().unwrap().entry((task.stage.clone(), task.key.clone())).or_default() += 1;
+                        if c.stage_finished {
+                            *barriers.lock().unwrap() += 1;
+                        }
+                    }
+                    None => {
+                        let c = store.campaign(id).await.unwrap().unwrap();
+                        if c.state.is_finished() {
+                            break;
+                        }
+                        // The stage's last tasks are still running elsewhere.
+                        tokio::time::sleep(Duration::from_millis(2)).await;
+                    }
+                }
+            }
+        }));
+    }
+    for w in workers {
+        w.await.unwrap();
+    }
+    let completed = completed.lock().unwrap().clone();
+    assert_eq!(completed.len(), 547, "every task was completed");
+    assert!(completed.values().all(|&n| n == 1), "no task was completed twice");
+    assert_eq!(*barriers.lock().unwrap(), 3, "one barrier per stage");
+    assert_eq!(
+        planner.calls(),
+        vec![("s0".to_string(), 0, 500), ("s1".to_string(), 1, 40), ("s2".to_string(), 2, 7)],
+        "the planner ran exactly once per stage, with all of the stage's tasks"
+    );
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!(c.state, CampaignState::Succeeded);
+    assert_eq!(c.plan_state, json!({ "stage": 3, "seen": 3 }));
+    assert_eq!((c.stage.as_str(), c.iteration), ("s2", 2));
+    assert!(c.finished_at_ms.is_some());
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased, counts.dead), (547, 0, 0, 0));
+    assert_eq!(counts.stage.done, 7);
+    assert_eq!(store.outputs(id, "s0", 0).await.unwrap().len(), 500);
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 547);
+    other.close().await;
+}
+
+async fn killed_worker(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[1]);
+    let id = store.create_campaign(new_campaign("killed", quick_retries(3)), planner.first()).await.unwrap();
+    let dead_worker = store.claim("w-dead", Duration::from_millis(200)).await.unwrap().unwrap();
+    assert_eq!(store.reconcile().await.unwrap(), ReconcileReport::default(), "lease still valid");
+    assert!(store.claim("w2", LONG).await.unwrap().is_none(), "a leased task is not claimable");
+
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Several executors reconcile at once: the task is rescued exactly once.
+    let (a, b) = tokio::join!(store.reconcile(), store.reconcile());
+    let (a, b) = (a.unwrap(), b.unwrap());
+    assert_eq!(a.requeued + b.requeued, 1);
+    assert_eq!(a.dead + b.dead, 0);
+
+    let rescued = store.claim("w2", LONG).await.unwrap().expect("rescued task");
+    assert_eq!((rescued.id, rescued.attempt), (dead_worker.id, 2));
+    assert_ne!(rescued.lease_token, dead_worker.lease_token);
+    assert_eq!(store.live_lease_tokens(id).await.unwrap(), vec![rescued.lease_token]);
+
+    // The worker that was thought dead wakes up: everything it tries is refused.
+    assert!(matches!(store.heartbeat(&dead_worker, LONG).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.complete(&dead_worker, outcome(&dead_worker), &planner).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.fail(&dead_worker, "late", false).await, Err(JobError::LeaseLost)));
+
+    let c = store.complete(&rescued, outcome(&rescued), &planner).await.unwrap();
+    assert_eq!(c.campaign_state, CampaignState::Succeeded);
+    let keys = store.recorded_keys(id).await.unwrap();
+    assert_eq!(keys.len(), 1);
+    assert!(keys[0].contains(&rescued.lease_token.to_string()), "the rescuer's objects are the recorded ones");
+    let kinds: Vec<String> = store.events(id, 0, 100).await.unwrap().into_iter().map(|e| e.kind).collect();
+    assert!(kinds.contains(&"lease_expired".to_string()), "{kinds:?}");
+}
+
+async fn retries_then_dead(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[2]);
+    let queue = QueueConfig {
+        max_attempts: 3,
+        backoff_base: Duration::from_millis(300),
+        backoff_max: Duration::from_millis(500),
+    };
+    assert_eq!(queue.backoff(1), Duration::from_millis(300));
+    assert_eq!(queue.backoff(2), Duration::from_millis(500), "capped");
+    let a = store.create_campaign(new_campaign("a", queue), planner.first()).await.unwrap();
+    let b = store.create_campaign(new_campaign("b", queue), stage("s0", 0, 1)).await.unwrap();
+
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!((t.campaign, t.key.as_str(), t.attempt), (a, "s00000", 1));
+    let now = store.now_ms().await.unwrap();
+    let FailOutcome::Retry { not_before_ms } = store.fail(&t, "disk full", false).await.unwrap() else {
+        panic!("first failure must be retried");
+    };
+    assert!((not_before_ms - now - 300).abs() < 200, "back-off of the first retry ≈ 300 ms");
+
+    // While a's first task backs off, the next runnable tasks are claimed.
+    let a2 = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!((a2.campaign, a2.key.as_str()), (a, "s00001"));
+    let b1 = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(b1.campaign, b);
+    assert!(store.claim("w", LONG).await.unwrap().is_none(), "the failed task waits for its back-off");
+
+    let mut attempt = 1;
+    loop {
+        let t = loop {
+            if let Some(t) = store.claim("w", LONG).await.unwrap() {
+                break t;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        attempt += 1;
+        assert_eq!((t.key.as_str(), t.attempt), ("s00000", attempt));
+        match store.fail(&t, "disk full", false).await.unwrap() {
+            FailOutcome::Retry { .. } => assert!(attempt < 3),
+            FailOutcome::Dead => {
+                assert_eq!(attempt, 3, "dead after max_attempts");
+                break;
+            }
+        }
+    }
+    let ca = store.campaign(a).await.unwrap().unwrap();
+    assert_eq!(ca.state, CampaignState::Failed);
+    assert_eq!(ca.error.as_deref(), Some("`work s00000`: disk full"));
+    let counts = store.task_counts(a).await.unwrap();
+    assert_eq!((counts.dead, counts.cancelled, counts.queued, counts.leased), (1, 1, 0, 0));
+    // a's other running task was cancelled with the campaign.
+    assert!(matches!(store.complete(&a2, outcome(&a2), &planner).await, Err(JobError::LeaseLost)));
+
+    // b is unaffected.
+    assert_eq!(store.campaign(b).await.unwrap().unwrap().state, CampaignState::Running);
+    let done = store.complete(&b1, outcome(&b1), &ChainPlanner::new(&[1])).await.unwrap();
+    assert_eq!(done.campaign_state, CampaignState::Succeeded);
+}
+
+async fn permanent_failure_and_expired_last_attempt(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[1]);
+    let a = store.create_campaign(new_campaign("perm", quick_retries(5)), planner.first()).await.unwrap();
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(store.fail(&t, "not a LAS file", true).await.unwrap(), FailOutcome::Dead);
+    let c = store.campaign(a).await.unwrap().unwrap();
+    assert_eq!((c.state, c.error.as_deref()), (CampaignState::Failed, Some("`work s00000`: not a LAS file")));
+
+    // A lease that expires on the last attempt makes the task dead and fails the campaign.
+    let b = store.create_campaign(new_campaign("expire", quick_retries(1)), stage("s0", 0, 2)).await.unwrap();
+    let t = store.claim("w-crash", Duration::from_millis(100)).await.unwrap().unwrap();
+    assert_eq!(t.campaign, b);
+    tokio::time::sleep(Duration::from_millis(250)).await;
+    assert_eq!(store.reconcile().await.unwrap(), ReconcileReport { requeued: 0, dead: 1 });
+    let c = store.campaign(b).await.unwrap().unwrap();
+    assert_eq!(c.state, CampaignState::Failed);
+    assert!(c.error.as_deref().unwrap_or("").starts_with("`work s00000`: lease expired"), "{:?}", c.error);
+    assert!(store.claim("w", LONG).await.unwrap().is_none(), "the failed campaign's other task was cancelled");
+}
+
+async fn cancel_and_delete(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[3, 1]);
+    let keep = store.create_campaign(new_campaign("keep", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let id = store.create_campaign(new_campaign("gone", QueueConfig::default()), planner.first()).await.unwrap();
+    let kept = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(kept.campaign, keep);
+    let first = store.claim("w", LONG).await.unwrap().unwrap();
+    let second = store.claim("w", LONG).await.unwrap().unwrap();
+    store.complete(&first, outcome(&first), &planner).await.unwrap();
+
+    assert!(store.cancel_campaign(id).await.unwrap());
+    assert!(!store.cancel_campaign(id).await.unwrap(), "already finished");
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!(c.state, CampaignState::Cancelled);
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.cancelled, counts.queued, counts.leased), (1, 2, 0, 0));
+    assert!(store.claim("w", LONG).await.unwrap().is_none(), "nothing of a cancelled campaign is claimable");
+    assert!(matches!(store.heartbeat(&second, LONG).await, Err(JobError::LeaseLost)));
+    assert!(matches!(store.complete(&second, outcome(&second), &planner).await, Err(JobError::LeaseLost)));
+    assert!(store.live_lease_tokens(id).await.unwrap().is_empty());
+
+    assert_eq!(store.delete_campaign(id).await.unwrap().as_deref(), Some("c/gone/"));
+    assert!(store.campaign(id).await.unwrap().is_none());
+    assert!(store.strips(id).await.unwrap().is_empty());
+    assert!(store.trajectories(id).await.unwrap().is_empty());
+    assert!(store.events(id, 0, 100).await.unwrap().is_empty());
+    assert!(store.recorded_keys(id).await.unwrap().is_empty());
+    assert!(matches!(store.task_counts(id).await, Err(JobError::NotFound(_))));
+    assert!(matches!(store.cancel_campaign(id).await, Err(JobError::NotFound(_))));
+    assert_eq!(store.delete_campaign(id).await.unwrap(), None);
+
+    // The other campaign is untouched.
+    assert_eq!(store.strips(keep).await.unwrap().len(), 2);
+    let c = store.complete(&kept, outcome(&kept), &ChainPlanner::new(&[1])).await.unwrap();
+    assert_eq!(c.campaign_state, CampaignState::Succeeded);
+}
+
+async fn planner_error_fails_campaign(store: JobStore, _url: String) {
+    let id = store.create_campaign(new_campaign("bad", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t, outcome(&t), &FailingPlanner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Failed });
+    let rec = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!(rec.state, CampaignState::Failed);
+    assert_eq!(rec.error.as_deref(), Some("no tile has points: check the manifest's CRS"));
+    // The task's own result stays committed: the failure is the planner's, not the task's.
+    assert_eq!(store.outputs(id, "s0", 0).await.unwrap().len(), 1);
+    let last = store.events(id, 0, 100).await.unwrap().pop().unwrap();
+    assert_eq!(last.kind, "failed");
+}
+
+async fn records_round_trip(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[1, 1]);
+    let older = store.create_campaign(new_campaign("older", QueueConfig::default()), stage("x", 0, 1)).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(5)).await;
+    let nc = new_campaign("newer", QueueConfig::default());
+    let id = store.create_campaign(nc.clone(), planner.first()).await.unwrap();
+    let list = store.list_campaigns(10).await.unwrap();
+    assert_eq!(list.iter().map(|c| c.id).collect::<Vec<_>>(), vec![id, older], "newest first");
+    assert_eq!(store.list_campaigns(1).await.unwrap().len(), 1);
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((c.name.as_str(), c.spec.clone(), c.queue), ("newer", nc.spec.clone(), nc.queue));
+    assert_eq!(store.strips(id).await.unwrap(), nc.strips);
+    assert_eq!(store.trajectories(id).await.unwrap(), nc.trajectories);
+
+    // Skip the older campaign's task; run the newer one through its two stages.
+    let x = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(x.campaign, older);
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(t.input, json!({ "i": 0 }));
+    let c = store.complete(&t, outcome(&t), &planner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Running });
+    assert_eq!(
+        store.tiles(id).await.unwrap(),
+        vec![TileRecord { key: "1_2".into(), strips: vec!["s0".into(), "s1".into()], points: 42 }]
+    );
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.stage.queued, counts.stage.done), (1, 1, 1, 0));
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!((t.stage.as_str(), t.iteration), ("s1", 1));
+    store.complete(&t, outcome(&t), &planner).await.unwrap();
+    assert_eq!(
+        store.iterations(id).await.unwrap(),
+        vec![IterationRecord { iteration: 1, stats: json!({ "tasks": 1 }) }]
+    );
+
+    let events = store.events(id, 0, 1000).await.unwrap();
+    assert!(events.windows(2).all(|w| w[0].id < w[1].id));
+    assert_eq!(events.first().map(|e| e.kind.as_str()), Some("campaign_created"));
+    assert_eq!(events.last().map(|e| e.kind.as_str()), Some("succeeded"));
+    let tail = store.events(id, events[2].id, 2).await.unwrap();
+    assert_eq!(tail, events[3..5].to_vec(), "paging after an id");
+}
+
+/// s0 → `gap` (no tasks) → s2 (one task) → `Next::Fail` with a message.
+struct GapPlanner;
+
+impl StagePlanner for GapPlanner {
+    fn plan(&self, _: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String> {
+        let next = match finished.stage.as_str() {
+            "s0" => Next::Stage(StageSpec { stage: "gap".into(), iteration: 1, tasks: vec![] }),
+            "gap" => {
+                assert!(finished.tasks.is_empty());
+                Next::Stage(stage("s2", 2, 1))
+            }
+            _ => Next::Fail("converged to nonsense".into()),
+        };
+        Ok(Transition { plan_state: json!({ "after": finished.stage }), tiles: vec![], iteration: None, next })
+    }
+}
+
+async fn empty_stage_is_planned_through(store: JobStore, _url: String) {
+    let id = store.create_campaign(new_campaign("gap", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t, outcome(&t), &GapPlanner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Running });
+    let rec = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((rec.stage.as_str(), rec.iteration, rec.plan_state.clone()), ("s2", 2, json!({ "after": "gap" })));
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    assert_eq!(t.stage, "s2");
+    let c = store.complete(&t, outcome(&t), &GapPlanner).await.unwrap();
+    assert_eq!(c.campaign_state, CampaignState::Failed);
+    assert_eq!(store.campaign(id).await.unwrap().unwrap().error.as_deref(), Some("converged to nonsense"));
+    // An empty first stage could never finish: refused up front.
+    let err = store
+        .create_campaign(
+            new_campaign("empty", QueueConfig::default()),
+            StageSpec { stage: "s0".into(), iteration: 0, tasks: vec![] },
+        )
+        .await
+        .unwrap_err();
+    assert!(matches!(err, JobError::Invalid(_)), "{err}");
+}
+
+#[tokio::test]
+async fn unknown_scheme_is_a_clear_error() {
+    let err = JobStore::connect("mysql://localhost/db").await.unwrap_err();
+    assert!(matches!(err, JobError::BadUrl { .. }), "{err}");
+    assert!(err.to_string().contains("postgres://"), "{err}");
+}
+
+#[tokio::test]
+async fn unreachable_database_is_transient() {
+    // Nothing listens on port 1: the error must be one a worker retries.
+    let opts = StoreOptions { acquire_timeout: Duration::from_secs(2), ..StoreOptions::default() };
+    let err = JobStore::connect_with("postgres://postgres@127.0.0.1:1/none", opts).await.unwrap_err();
+    assert!(err.is_transient(), "{err:?}");
+}
+
+#[tokio::test]
+async fn in_memory_sqlite_works() {
+    let store = JobStore::connect("sqlite::memory:").await.unwrap();
+    let id = store.create_campaign(new_campaign("mem", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t, outcome(&t), &ChainPlanner::new(&[1])).await.unwrap();
+    assert_eq!(c.campaign_state, CampaignState::Succeeded);
+    assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
+}
