@@ -70,14 +70,19 @@ impl Client {
         Err(ClientError::Status { url: url.to_string(), status, body })
     }
 
-    async fn json<T: serde::de::DeserializeOwned>(&self, response: reqwest::Response, url: &str) -> Result<T, ClientError> {
+    async fn json<T: serde::de::DeserializeOwned>(
+        &self,
+        response: reqwest::Response,
+        url: &str,
+    ) -> Result<T, ClientError> {
         response.json().await.map_err(|source| ClientError::Http { url: url.to_string(), source })
     }
 
     /// Streams a local file to the server's store under `key` (which must start with `inputs/`).
     pub async fn upload(&self, key: &str, file: &Path) -> Result<u64, ClientError> {
         let url = self.url(&format!("/v1/objects/{key}"));
-        let f = tokio::fs::File::open(file).await.map_err(|source| ClientError::Io { path: file.to_path_buf(), source })?;
+        let f =
+            tokio::fs::File::open(file).await.map_err(|source| ClientError::Io { path: file.to_path_buf(), source })?;
         let len = f.metadata().await.map_err(|source| ClientError::Io { path: file.to_path_buf(), source })?.len();
         let body = reqwest::Body::wrap_stream(tokio_util::io::ReaderStream::new(f));
         let rb = self.authed(self.http.put(&url)).header(reqwest::header::CONTENT_LENGTH, len).body(body);
@@ -94,7 +99,11 @@ impl Client {
 
     /// Uploads every file a local manifest names under `inputs/{upload id}/`, then submits the
     /// manifest with its URIs pointing there.
-    pub async fn submit_local(&self, manifest_path: &Path, mut on_upload: impl FnMut(&str, u64)) -> Result<Submitted, ClientError> {
+    pub async fn submit_local(
+        &self,
+        manifest_path: &Path,
+        mut on_upload: impl FnMut(&str, u64),
+    ) -> Result<Submitted, ClientError> {
         let mut manifest = precimap_formats::load_manifest(manifest_path)?;
         let dir = manifest_path.parent().unwrap_or(Path::new(".")).to_path_buf();
         let base = format!("inputs/{}", Uuid::new_v4().simple());

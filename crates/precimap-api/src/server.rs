@@ -47,10 +47,7 @@ pub fn app(state: ApiState) -> Router {
     let state = Arc::new(state);
     Router::new()
         .route("/healthz", get(healthz))
-        .route(
-            "/v1/campaigns",
-            get(list_campaigns).post(submit_campaign).layer(DefaultBodyLimit::max(manifest_limit)),
-        )
+        .route("/v1/campaigns", get(list_campaigns).post(submit_campaign).layer(DefaultBodyLimit::max(manifest_limit)))
         .route("/v1/campaigns/{id}", get(campaign_status).delete(delete_campaign))
         .route("/v1/campaigns/{id}/cancel", post(cancel_campaign))
         .route("/v1/campaigns/{id}/events", get(campaign_events))
@@ -100,7 +97,9 @@ impl From<FrameworkError> for ApiError {
     fn from(e: FrameworkError) -> Self {
         match e {
             FrameworkError::Jobs(j) => j.into(),
-            FrameworkError::BadKey { .. } | FrameworkError::Invalid(_) => Self::new(StatusCode::BAD_REQUEST, e.to_string()),
+            FrameworkError::BadKey { .. } | FrameworkError::Invalid(_) => {
+                Self::new(StatusCode::BAD_REQUEST, e.to_string())
+            }
             FrameworkError::TooLarge { .. } => Self::new(StatusCode::PAYLOAD_TOO_LARGE, e.to_string()),
             ref other if other.is_not_found() => Self::new(StatusCode::NOT_FOUND, e.to_string()),
             other => {
@@ -316,7 +315,9 @@ async fn upload_object(
         ));
     }
     let limit = state.max_upload_bytes;
-    if let Some(len) = headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok()) {
+    if let Some(len) =
+        headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok())
+    {
         if len > limit {
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,

@@ -98,12 +98,15 @@ async fn a_bad_manifest_gets_422_with_every_problem_and_its_path() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
     let body: ErrorBody = serde_json::from_value(body).unwrap();
     let paths: Vec<&str> = body.problems.iter().map(|p| p.path.as_str()).collect();
-    for expected in ["$.scanners.left.lever_arm_m", "$.trajectories[0].uri", "$.strips[0].uri", "$.strips[0].trajectory"] {
+    for expected in
+        ["$.scanners.left.lever_arm_m", "$.trajectories[0].uri", "$.strips[0].uri", "$.strips[0].trajectory"]
+    {
         assert!(paths.contains(&expected), "{expected} missing in {paths:?}");
     }
     // Syntactically fine, but the objects are not in the store.
     let (status, body) =
-        call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), manifest("inputs/a/s.las", "inputs/a/t.csv"))).await;
+        call(&s, request(Method::POST, "/v1/campaigns", Some(TOKEN), manifest("inputs/a/s.las", "inputs/a/t.csv")))
+            .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     let body: ErrorBody = serde_json::from_value(body).unwrap();
     let paths: Vec<&str> = body.problems.iter().map(|p| p.path.as_str()).collect();

@@ -47,7 +47,8 @@ impl Backends {
                 }
             }
         }
-        let jobs = JobStore::connect(&self.db).await.with_context(|| format!("connecting to the job store {}", self.db))?;
+        let jobs =
+            JobStore::connect(&self.db).await.with_context(|| format!("connecting to the job store {}", self.db))?;
         let objects = Objects::from_url(&self.store_url()?)?;
         Ok(Framework { jobs, objects, queue: default_queue() })
     }
@@ -73,32 +74,34 @@ pub fn run_framework(manifest: &Path, out: &Path, keep_work: bool) -> Result<pre
     let options = EmbeddedOptions { out_dir: out.to_path_buf(), concurrency: cores(), keep_state: keep_work };
     let mut shown = 0usize;
     let mut last_stage = String::new();
-    runtime()?.block_on(run_embedded(manifest, &options, |s: &RunStatus| {
-        let stage = &s.campaign.stage;
-        if *stage != last_stage && (stage == "prepare" || stage == "export") {
-            display.permanent(&format!("{stage}: {} tasks", s.counts.stage.total()));
-        }
-        last_stage.clone_from(stage);
-        for it in s.iterations.iter().skip(shown) {
-            if let Ok(report) = serde_json::from_value::<precimap_pipeline::report::IterationReport>(it.stats.clone()) {
-                display.iteration(&report, s.campaign.iterations_planned as usize);
+    runtime()?
+        .block_on(run_embedded(manifest, &options, |s: &RunStatus| {
+            let stage = &s.campaign.stage;
+            if *stage != last_stage && (stage == "prepare" || stage == "export") {
+                display.permanent(&format!("{stage}: {} tasks", s.counts.stage.total()));
             }
-        }
-        shown = s.iterations.len();
-        display.transient(&format!(
-            "{} {}: {} done, {} running, {} queued",
-            s.campaign.stage,
-            if s.campaign.iteration > 0 { format!("{}", s.campaign.iteration) } else { String::new() },
-            s.counts.stage.done,
-            s.counts.stage.leased,
-            s.counts.stage.queued
-        ));
-    }))
-    .with_context(|| format!("running {}", manifest.display()))?;
+            last_stage.clone_from(stage);
+            for it in s.iterations.iter().skip(shown) {
+                if let Ok(report) =
+                    serde_json::from_value::<precimap_pipeline::report::IterationReport>(it.stats.clone())
+                {
+                    display.iteration(&report, s.campaign.iterations_planned as usize);
+                }
+            }
+            shown = s.iterations.len();
+            display.transient(&format!(
+                "{} {}: {} done, {} running, {} queued",
+                s.campaign.stage,
+                if s.campaign.iteration > 0 { format!("{}", s.campaign.iteration) } else { String::new() },
+                s.counts.stage.done,
+                s.counts.stage.leased,
+                s.counts.stage.queued
+            ));
+        }))
+        .with_context(|| format!("running {}", manifest.display()))?;
     let path = out.join("report.json");
-    let report: precimap_pipeline::Report = serde_json::from_slice(
-        &std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?,
-    )?;
+    let report: precimap_pipeline::Report =
+        serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)?;
     display.finish(&report);
     Ok(report)
 }
@@ -128,7 +131,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let auth = match (&args.token, args.no_auth) {
         (Some(t), _) if !t.is_empty() => Auth::Token(t.clone()),
         (_, true) => Auth::Disabled,
-        _ => bail!("set PRECIMAP_TOKEN (or --token) so that only authorised clients can write; --no-auth disables this"),
+        _ => {
+            bail!("set PRECIMAP_TOKEN (or --token) so that only authorised clients can write; --no-auth disables this")
+        }
     };
     runtime()?.block_on(async move {
         let framework = args.backends.connect().await?;
@@ -137,7 +142,12 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
-        eprintln!("precimap serving on http://{} (job store {}, object store {})", listener.local_addr()?, args.backends.db, framework.objects.url());
+        eprintln!(
+            "precimap serving on http://{} (job store {}, object store {})",
+            listener.local_addr()?,
+            args.backends.db,
+            framework.objects.url()
+        );
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let executor = args.backends.executor(&framework);
         let workers = args.workers;

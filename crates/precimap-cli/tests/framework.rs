@@ -59,7 +59,12 @@ async fn wait_finished(jobs: &JobStore, id: uuid::Uuid, limit: Duration) -> prec
         if c.state != CampaignState::Running {
             return c;
         }
-        assert!(started.elapsed() < limit, "campaign {id} still {} after {limit:?} (stage {})", c.state.as_str(), c.stage);
+        assert!(
+            started.elapsed() < limit,
+            "campaign {id} still {} after {limit:?} (stage {})",
+            c.state.as_str(),
+            c.stage
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
@@ -289,7 +294,10 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         }
     };
     drop(workers);
-    eprintln!("chaos: {kills} executors killed, database restarted: {restarted}, {:.0} s", started.elapsed().as_secs_f64());
+    eprintln!(
+        "chaos: {kills} executors killed, database restarted: {restarted}, {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
     assert_eq!(status.state, "succeeded", "{:?}", status.error);
     assert!(restarted && kills > 0);
     let out = dir.path().join("results");

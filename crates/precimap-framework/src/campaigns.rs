@@ -107,8 +107,13 @@ impl Framework {
     pub async fn clean_orphans(&self, id: Uuid) -> Result<usize, FrameworkError> {
         let Some(campaign) = self.jobs.campaign(id).await? else { return Ok(0) };
         let recorded: HashSet<String> = self.jobs.recorded_keys(id).await?.into_iter().collect();
-        let live: Vec<String> =
-            self.jobs.live_lease_tokens(id).await?.into_iter().map(|t| t.simple().to_string()[..12].to_string()).collect();
+        let live: Vec<String> = self
+            .jobs
+            .live_lease_tokens(id)
+            .await?
+            .into_iter()
+            .map(|t| t.simple().to_string()[..12].to_string())
+            .collect();
         let mut removed = 0;
         for key in self.objects.list(&campaign.object_prefix).await? {
             if recorded.contains(&key) || live.iter().any(|tag| key.contains(tag.as_str())) {
@@ -134,10 +139,7 @@ impl Framework {
 
 /// Copies (hard-links where possible) the files a local manifest names into the store under
 /// `inputs/{upload id}/` and returns the manifest with its URIs rewritten to those keys.
-pub async fn upload_local_inputs(
-    objects: &Objects,
-    manifest_path: &Path,
-) -> Result<Manifest, FrameworkError> {
+pub async fn upload_local_inputs(objects: &Objects, manifest_path: &Path) -> Result<Manifest, FrameworkError> {
     let mut manifest = precimap_formats::load_manifest(manifest_path)?;
     let dir = manifest_path.parent().unwrap_or(Path::new(".")).to_path_buf();
     let base = format!("inputs/{}", Uuid::new_v4().simple());

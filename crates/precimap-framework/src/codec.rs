@@ -180,7 +180,13 @@ mod tests {
         for (a, b) in blocks.iter().zip(&back) {
             assert_eq!(a.anchor, b.anchor);
             assert_eq!(a.observations, b.observations);
-            assert!(a.diag.iter().chain(&a.next).chain(&a.rhs).zip(b.diag.iter().chain(&b.next).chain(&b.rhs)).all(|(x, y)| x.to_bits() == y.to_bits()));
+            assert!(a
+                .diag
+                .iter()
+                .chain(&a.next)
+                .chain(&a.rhs)
+                .zip(b.diag.iter().chain(&b.next).chain(&b.rhs))
+                .all(|(x, y)| x.to_bits() == y.to_bits()));
         }
         assert!(decode_blocks(&bytes[..bytes.len() - 1]).is_err());
         assert!(matches!(decode_blocks(b"PMCORR01xxxx"), Err(CodecError::BadMagic { .. })));

@@ -45,8 +45,10 @@ impl TaskContext {
             }
             return Ok(LocalObject { path, _temp: None });
         }
-        std::fs::create_dir_all(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
-        let dir = tempfile::tempdir_in(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        std::fs::create_dir_all(&self.scratch)
+            .map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let dir = tempfile::tempdir_in(&self.scratch)
+            .map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
         let name = key.rsplit('/').next().unwrap_or("object");
         let path = dir.path().join(name);
         self.objects.get_to_file(key, &path).await.map_err(TaskError::from_store)?;
@@ -78,8 +80,10 @@ impl TaskContext {
             std::fs::rename(&tmp, &dst).map_err(|e| TaskError::transient(FrameworkError::io(&dst, e)))?;
             return Ok(());
         }
-        std::fs::create_dir_all(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
-        let dir = tempfile::tempdir_in(&self.scratch).map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        std::fs::create_dir_all(&self.scratch)
+            .map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
+        let dir = tempfile::tempdir_in(&self.scratch)
+            .map_err(|e| TaskError::transient(FrameworkError::io(&self.scratch, e)))?;
         let path = dir.path().join(key.rsplit('/').next().unwrap_or("object"));
         let p2 = path.clone();
         blocking(move || produce(&p2)).await?.map_err(TaskError::from_pipeline)?;
@@ -102,14 +106,24 @@ fn attempt_tag(token: Uuid) -> String {
 async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<TrajectoryEntry, TaskError> {
     let local = ctx.local(&t.uri).await?;
     let path = local.path.clone();
-    let data = blocking(move || precimap_formats::read_trajectory_csv(&path)).await?.map_err(|e| {
-        TaskError::permanent(format!("trajectory {} ({}): {e}", t.id, t.uri))
-    })?;
-    Ok(TrajectoryEntry { id: t.id.clone(), path: PathBuf::from(&t.uri), data, mean_lever_arm: Vec3::from(t.mean_lever_arm) })
+    let data = blocking(move || precimap_formats::read_trajectory_csv(&path))
+        .await?
+        .map_err(|e| TaskError::permanent(format!("trajectory {} ({}): {e}", t.id, t.uri)))?;
+    Ok(TrajectoryEntry {
+        id: t.id.clone(),
+        path: PathBuf::from(&t.uri),
+        data,
+        mean_lever_arm: Vec3::from(t.mean_lever_arm),
+    })
 }
 
 fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
-    TrajectoryInput { index: s.trajectory, id: s.trajectory_id.clone(), uri: s.trajectory_uri.clone(), mean_lever_arm: [0.0; 3] }
+    TrajectoryInput {
+        index: s.trajectory,
+        id: s.trajectory_id.clone(),
+        uri: s.trajectory_uri.clone(),
+        mean_lever_arm: [0.0; 3],
+    }
 }
 
 async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<TrajectoryCorrections, TaskError> {
@@ -198,7 +212,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let mut all = Vec::new();
             for key in &blocks {
                 let bytes = ctx.get(key).await?;
-                all.extend(decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?);
+                all.extend(
+                    decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?,
+                );
             }
             let id = trajectory.id.clone();
             let solution = blocking(move || {

@@ -11,7 +11,9 @@ pub mod objects;
 pub mod plan;
 pub mod worker;
 
-pub use campaigns::{default_queue, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus, SubmitError};
+pub use campaigns::{
+    default_queue, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus, SubmitError,
+};
 pub use error::{FrameworkError, TaskError};
 pub use exec::TaskContext;
 pub use objects::{validate_key, Objects};

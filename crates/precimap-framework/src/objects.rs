@@ -152,7 +152,8 @@ impl Objects {
         let mut buf = vec![0u8; 8 << 20];
         let mut total = 0u64;
         loop {
-            let n = tokio::io::AsyncReadExt::read(&mut reader, &mut buf).await.map_err(|e| FrameworkError::io(file, e))?;
+            let n =
+                tokio::io::AsyncReadExt::read(&mut reader, &mut buf).await.map_err(|e| FrameworkError::io(file, e))?;
             if n == 0 {
                 break;
             }
@@ -292,7 +293,8 @@ mod tests {
 
     #[test]
     fn keys_outside_the_store_are_rejected() {
-        for bad in ["", "/etc/passwd", "../x", "a/../../b", "a//b", "file:///etc/passwd", "s3://b/k", "a\\b", "a\0b", "./a"]
+        for bad in
+            ["", "/etc/passwd", "../x", "a/../../b", "a//b", "file:///etc/passwd", "s3://b/k", "a\\b", "a\0b", "./a"]
         {
             assert!(validate_key(bad).is_err(), "{bad:?} accepted");
         }

@@ -13,8 +13,8 @@ use precimap_core::{IterationStep, Parameters, TileKey};
 use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{
-    CampaignRecord, FinishedStage, FinishedTask, IterationRecord, NewCampaign, NewTask, Next, QueueConfig, StageSpec,
-    StagePlanner, StripRecord, TileRecord, TrajectoryRecord, Transition,
+    CampaignRecord, FinishedStage, FinishedTask, IterationRecord, NewCampaign, NewTask, Next, QueueConfig,
+    StagePlanner, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
 };
 use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use precimap_pipeline::{after_iteration, iteration_report, AfterIteration};
@@ -134,7 +134,11 @@ impl TaskInput {
     }
 
     fn task(&self, key: String) -> NewTask {
-        NewTask { kind: self.kind().to_string(), key, input: serde_json::to_value(self).expect("task input serialises") }
+        NewTask {
+            kind: self.kind().to_string(),
+            key,
+            input: serde_json::to_value(self).expect("task input serialises"),
+        }
     }
 }
 
@@ -264,8 +268,12 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         tasks: strips
             .iter()
             .map(|s| {
-                TaskInput::SegmentStrip { prefix: prefix.to_string(), strip: s.clone(), params: manifest.parameters.clone() }
-                    .task(s.id.clone())
+                TaskInput::SegmentStrip {
+                    prefix: prefix.to_string(),
+                    strip: s.clone(),
+                    params: manifest.parameters.clone(),
+                }
+                .task(s.id.clone())
             })
             .collect(),
     };
@@ -327,12 +335,7 @@ impl StagePlanner for CampaignPlanner {
             STAGE_REPORT => Next::Succeed,
             other => return Err(format!("unknown stage {other:?}")),
         };
-        Ok(Transition {
-            plan_state: serde_json::to_value(&state).map_err(|e| e.to_string())?,
-            tiles,
-            iteration,
-            next,
-        })
+        Ok(Transition { plan_state: serde_json::to_value(&state).map_err(|e| e.to_string())?, tiles, iteration, next })
     }
 }
 
@@ -363,12 +366,14 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<Ti
     let mut points_total = 0;
     let mut seconds = 0.0;
     for (r, task) in &results {
-        let strip = state.strips.get(r.strip as usize).ok_or_else(|| format!("result names unknown strip {}", r.strip))?;
+        let strip =
+            state.strips.get(r.strip as usize).ok_or_else(|| format!("result names unknown strip {}", r.strip))?;
         let range = &mut ranges[strip.trajectory as usize];
         range.0 = range.0.min(r.stats.first_anchor);
         range.1 = range.1.max(r.stats.last_anchor);
         for out in &task.outputs {
-            let tile: TileKey = out.name.parse().map_err(|_| format!("{}: output {:?} is not a tile key", task.key, out.name))?;
+            let tile: TileKey =
+                out.name.parse().map_err(|_| format!("{}: output {:?} is not a tile key", task.key, out.name))?;
             tiles.entry(tile).or_default().push(ChunkRef { strip: r.strip, key: out.object_key.clone() });
         }
         points_total += r.stats.points;
@@ -441,7 +446,9 @@ fn estimate_stage(state: &mut PlanState) -> Next {
 fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, String> {
     let mut per_tile: Vec<(TileKey, &FinishedTask)> = tasks
         .iter()
-        .map(|t| t.key.parse::<TileKey>().map(|k| (k, t)).map_err(|_| format!("estimate task key {:?} is not a tile", t.key)))
+        .map(|t| {
+            t.key.parse::<TileKey>().map(|k| (k, t)).map_err(|_| format!("estimate task key {:?} is not a tile", t.key))
+        })
         .collect::<Result<_, _>>()?;
     // Tile order: the in-process driver sums blocks and statistics in this order.
     per_tile.sort_by_key(|(k, _)| *k);

@@ -166,10 +166,8 @@ impl Executor {
     async fn fail(&self, task: &ClaimedTask, error: TaskError) -> Result<WorkOutcome, FrameworkError> {
         let (kind, key) = (task.kind.clone(), task.key.clone());
         warn!(%kind, %key, permanent = error.permanent, error = %error.message, "task failed");
-        match retry_transient(self.config.database_patience, || {
-            self.jobs.fail(task, &error.message, error.permanent)
-        })
-        .await
+        match retry_transient(self.config.database_patience, || self.jobs.fail(task, &error.message, error.permanent))
+            .await
         {
             Ok(_) => {
                 self.wake.notify_waiters();

@@ -12,4 +12,6 @@ pub mod tasks;
 pub use campaign::Campaign;
 pub use error::PipelineError;
 pub use report::Report;
-pub use run::{after_iteration, iteration_report, run_campaign, trajectory_report, AfterIteration, Progress, RunOptions};
+pub use run::{
+    after_iteration, iteration_report, run_campaign, trajectory_report, AfterIteration, Progress, RunOptions,
+};

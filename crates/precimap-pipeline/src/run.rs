@@ -264,7 +264,11 @@ pub fn iteration_report(
         points_used: stats.points_used,
         residual_mean_m: stats.residual_mean_m(),
         residual_std_m: stats.residual_std_m(),
-        pixel_std_mean_m: if stats.pixels_shared > 0 { stats.pixel_std_sum_m / stats.pixels_shared as f64 } else { 0.0 },
+        pixel_std_mean_m: if stats.pixels_shared > 0 {
+            stats.pixel_std_sum_m / stats.pixels_shared as f64
+        } else {
+            0.0
+        },
         max_correction_change_m: max_change_m,
         seconds,
     }
