@@ -2,6 +2,7 @@
 
 mod bench;
 mod progress;
+mod segments;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -61,6 +62,8 @@ enum Command {
         #[arg(long, default_value = "demo")]
         out: PathBuf,
     },
+    /// Segment one strip in its scan image; draw the segments (--png).
+    Segments(segments::SegmentsArgs),
     /// Benchmarks printing per-core throughput.
     Bench {
         #[command(subcommand)]
@@ -101,6 +104,7 @@ fn real_main() -> Result<()> {
             );
             Ok(())
         }
+        Command::Segments(args) => segments::run(args),
         Command::Bench { what } => bench::run(what),
     }
 }

@@ -17,6 +17,8 @@ pub use normals::{estimate_normals, NormalMethod, PixelNormal};
 
 /// Segment id of a point that belongs to no segment (no normal, or a removed small region).
 pub const NO_SEGMENT: u32 = u32::MAX;
+/// Segment id of a point whose revolution was dropped at standstill (never segmented).
+pub const DROPPED_SEGMENT: u32 = u32::MAX - 1;
 
 /// Parameters of the segmentation; the defaults are what the simulated campaigns were tuned with.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -34,7 +36,11 @@ pub struct SegmentParams {
     /// plus `gap_base_m`.
     pub gap_factor: f64,
     pub gap_base_m: f64,
-    /// Edge weight = max(step off the surface / inlier tolerance, normal angle / `c1_scale_deg`).
+    /// Edge weight = C0 + C1 with C0 = max(step off the surface / inlier tolerance − 1, 0) and
+    /// C1 = max(normal angle − `c1_noise_deg`, 0) / `c1_scale_deg`: differences within the noise
+    /// weigh nothing, so a surface (even a curved one) is one zero-weight component and only real
+    /// discontinuities compete with Felzenszwalb–Huttenlocher's `k / |C|`.
+    pub c1_noise_deg: f64,
     pub c1_scale_deg: f64,
     /// Hard C1 break: neighbours whose normals differ by more than this are never joined.
     pub c1_break_deg: f64,
@@ -56,6 +62,7 @@ impl Default for SegmentParams {
             min_inliers: 6,
             gap_factor: 2.5,
             gap_base_m: 0.01,
+            c1_noise_deg: 5.0,
             c1_scale_deg: 10.0,
             c1_break_deg: 40.0,
             fh_k: 3.0,
@@ -94,7 +101,8 @@ impl StripGeometry<'_> {
 pub struct Segmentation {
     /// Per point: its normal and edge limit, if the fit succeeded.
     pub normals: Vec<Option<PixelNormal>>,
-    /// Per point: segment id (dense, in order of first point) or [`NO_SEGMENT`].
+    /// Per point: segment id (dense, in order of first point), [`NO_SEGMENT`], or
+    /// [`DROPPED_SEGMENT`] for points of revolutions dropped at standstill.
     pub segment: Vec<u32>,
     pub stats: SegmentStats,
 }
@@ -118,13 +126,18 @@ pub struct SegmentStats {
 pub fn segment_strip(geo: &StripGeometry<'_>, image: &ScanImage, params: &SegmentParams) -> Segmentation {
     let grid = image.grid();
     let normals = estimate_normals(geo, image, &grid, params);
-    let segment = segment(geo, image, &grid, &normals, params);
+    let mut segment = segment(geo, image, &grid, &normals, params);
+    for (id, &c) in segment.ids.iter_mut().zip(&image.column) {
+        if c == DROPPED {
+            *id = DROPPED_SEGMENT;
+        }
+    }
     let mut stats = SegmentStats {
         points_in_image: image.column.iter().filter(|&&c| c != DROPPED).count() as u64,
         points_with_normal: normals.iter().filter(|n| n.is_some()).count() as u64,
         ..Default::default()
     };
-    stats.points_segmented = segment.ids.iter().filter(|&&s| s != NO_SEGMENT).count() as u64;
+    stats.points_segmented = segment.ids.iter().filter(|&&s| s < DROPPED_SEGMENT).count() as u64;
     stats.points_in_small_regions = stats.points_with_normal - stats.points_segmented;
     stats.regions = segment.regions;
     stats.segments = segment.segments;
@@ -165,7 +178,9 @@ pub fn edge_weight(
     if step > 3.0 * tol {
         return None;
     }
-    Some((step / tol).max(angle / params.c1_scale_deg) as f32)
+    let c0 = (step / tol - 1.0).max(0.0);
+    let c1 = (angle - params.c1_noise_deg).max(0.0) / params.c1_scale_deg;
+    Some((c0 + c1) as f32)
 }
 
 fn segment(

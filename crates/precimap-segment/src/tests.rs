@@ -59,7 +59,7 @@ fn scan(revolutions: usize) -> Scan {
             let t = rev as f64 * 0.01 + j as f64 * 0.01 / rows as f64;
             let hx = t * 8.0;
             let head = [hx, 0.0, 2.0];
-            let dir = [phi.to_radians().sin(), phi.to_radians().cos() * -1.0];
+            let dir = [phi.to_radians().sin(), -phi.to_radians().cos()];
             // Tree crown on the left, in front of the façade, for a stretch of the drive.
             let crown = (60..120).contains(&rev) && (-75.0..-55.0).contains(&phi);
             let (hit, id, nrm) = if crown && rand() < 0.8 {
