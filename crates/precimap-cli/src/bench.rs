@@ -176,8 +176,11 @@ struct PreprocessBench {
     strips: usize,
     points: u64,
     threads: usize,
-    /// All strips on all cores (rayon over strips), wall time × threads, LAZ decoding included.
+    /// All strips on all cores (rayon over strips), LAZ decoding included: points per CPU-second
+    /// of this process (robust on a shared machine).
     preprocess_points_per_s_per_core: f64,
+    /// The same per wall-second × threads (lower when other processes share the cores).
+    preprocess_points_per_s_per_core_wall: f64,
     /// Peak resident memory while preprocessing (threads strips in flight at once).
     peak_rss_bytes: u64,
     largest_strip_points: u64,
@@ -185,7 +188,7 @@ struct PreprocessBench {
     border_overhead: f64,
     chunk_bytes_per_point_copy: f64,
     chunk_bytes_total: u64,
-    /// (strips, nanoseconds per point per core) for the first n strips.
+    /// (strips, CPU nanoseconds per point) for the first n strips.
     cost_per_point_ns: Vec<(usize, f64)>,
     segment_purity: f64,
     surface_points_removed: f64,
@@ -205,8 +208,9 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
     let threads = rayon::current_num_threads();
     let params = precimap_estimate::SegmentParams::default();
     // One pass over the first n strips: (wall seconds, points, copies, chunk bytes, largest strip).
-    let pass = |n: usize, keep: bool| -> Result<(f64, u64, u64, u64, u64, Vec<Vec<u32>>)> {
+    let pass = |n: usize, keep: bool| -> Result<(f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>)> {
         let started = Instant::now();
+        let cpu_start = cpu_seconds();
         let per_strip = (0..n)
             .into_par_iter()
             .map(|s| -> Result<(u64, u64, u64, Vec<u32>)> {
@@ -217,23 +221,24 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
             })
             .collect::<Result<Vec<_>>>()?;
         let wall = started.elapsed().as_secs_f64();
+        let cpu = cpu_seconds() - cpu_start;
         let points = per_strip.iter().map(|r| r.0).sum();
         let copies = per_strip.iter().map(|r| r.1).sum();
         let bytes = per_strip.iter().map(|r| r.2).sum();
         let largest = per_strip.iter().map(|r| r.0).max().unwrap_or(0);
-        Ok((wall, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect()))
+        Ok((wall, cpu, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect()))
     };
     let strips = campaign.strips.len();
     reset_peak_rss();
     eprintln!("preprocessing {strips} strips on {threads} threads");
-    let (wall, points, copies, bytes, largest, segments) = pass(strips, true)?;
+    let (wall, cpu, points, copies, bytes, largest, segments) = pass(strips, true)?;
     let peak = peak_rss_bytes();
     let mut cost_per_point_ns = Vec::new();
     let mut n = 2;
     while n <= strips {
-        let (w, p, ..) = pass(n, false)?;
-        eprintln!("  {n} strips: {:.1} ns per point per core", w * threads as f64 / p as f64 * 1e9);
-        cost_per_point_ns.push((n, w * threads as f64 / p as f64 * 1e9));
+        let (_, c, p, ..) = pass(n, false)?;
+        eprintln!("  {n} strips: {:.1} CPU ns per point", c / p as f64 * 1e9);
+        cost_per_point_ns.push((n, c / p as f64 * 1e9));
         n *= 2;
     }
     // The segmentation against the simulator's truth.
@@ -258,7 +263,8 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         strips,
         points,
         threads,
-        preprocess_points_per_s_per_core: points as f64 / (wall * threads as f64),
+        preprocess_points_per_s_per_core: points as f64 / cpu,
+        preprocess_points_per_s_per_core_wall: points as f64 / (wall * threads as f64),
         peak_rss_bytes: peak,
         largest_strip_points: largest,
         border_overhead: copies as f64 / segmented.max(1) as f64 - 1.0,
@@ -290,6 +296,21 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         );
     }
     Ok(())
+}
+
+/// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`, clock
+/// ticks of 1/100 s); 0 elsewhere.
+fn cpu_seconds() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+            let rest = &s[s.rfind(')')? + 2..];
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            let ticks = f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?;
+            Some(ticks as f64 / 100.0)
+        })
+        .unwrap_or(0.0)
 }
 
 /// Resets the kernel's peak-RSS mark so it covers only what follows (Linux; a no-op elsewhere).

@@ -30,6 +30,9 @@ pub struct SegmentsArgs {
     /// Least-squares normals instead of RANSAC (for comparison).
     #[arg(long)]
     pub least_squares: bool,
+    /// Write the per-point segment ids here (the `OUT/segments/{strip}.seg` format).
+    #[arg(long)]
+    pub ids: Option<PathBuf>,
     /// Print the statistics as JSON.
     #[arg(long)]
     pub json: bool,
@@ -90,6 +93,10 @@ pub fn run(args: SegmentsArgs) -> Result<()> {
             s.points_in_small_regions,
             seconds
         );
+    }
+    if let Some(path) = &args.ids {
+        std::fs::write(path, precimap_formats::encode_segments(&prepared.segment))
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     if let Some(png) = &args.png {
         let range = match &args.columns {

@@ -199,7 +199,8 @@ fn strip_geometry(
     Ok(out)
 }
 
-/// Scan-image neighbour links: next row in the same revolution, same row in the next revolution.
+/// Scan-image neighbour links: next row in the same revolution (wrapping round), same row in the
+/// next revolution.
 #[derive(Debug)]
 struct Links {
     right: Vec<u32>,
@@ -219,8 +220,10 @@ impl Links {
                 continue;
             }
             let px = c as usize * rows + image.row[k] as usize;
-            if (image.row[k] as usize) + 1 < rows && grid[px + 1] != NO_POINT {
-                right[k] = grid[px + 1];
+            // Rows wrap around: the revolution is a circle.
+            let next = if (image.row[k] as usize) + 1 < rows { px + 1 } else { px + 1 - rows };
+            if rows > 2 && grid[next] != NO_POINT {
+                right[k] = grid[next];
             }
             if px + rows < grid.len() && grid[px + rows] != NO_POINT {
                 down[k] = grid[px + rows];
@@ -337,7 +340,10 @@ mod tests {
         // Interior points all get upward normals; only the image border loses some. Flat ground
         // is one segment.
         assert!(prepared.stats.points_with_normal as f64 > 0.9 * prepared.stats.points as f64);
-        assert_eq!(prepared.stats.segmentation.segments, 1);
+        let sizes: Vec<usize> = (0..prepared.stats.segmentation.segments as u32)
+            .map(|s| prepared.segment.iter().filter(|&&x| x == s).count())
+            .collect();
+        assert_eq!(prepared.stats.segmentation.segments, 1, "{sizes:?} {:?}", prepared.stats.segmentation);
         assert!(prepared.segment.iter().filter(|&&s| s == 0).count() as f64 > 0.9 * prepared.stats.points as f64);
         for chunk in &prepared.chunks {
             for nrm in &chunk.normal {

@@ -183,7 +183,9 @@ fn cell_key(p: &[f64; 3], inv_cell: f64, columns: bool) -> u64 {
 }
 
 /// Smallest distance between planes at which patches of different strips join one model.
-const JOIN_DISTANCE_MIN_M: f64 = 0.05;
+const JOIN_DISTANCE_MIN_M: f64 = 0.1;
+/// Largest distance between planes at which two segments of one strip pass join one model.
+const SAME_PASS_JOIN_M: f64 = 0.03;
 /// Anchors (0.5 m each) along a strip within which two of its segments count as one pass.
 const PASS_ANCHORS: u32 = 64;
 
@@ -248,7 +250,11 @@ pub fn estimate_tile(
             let n = rotate_small(theta, chunk.normal[k].map(f64::from));
             position.push(p);
             measurement.push(rr);
-            let key = (cell_key(&p, inv_cell, step.column_cells), chunk_index as u32, chunk.segment[k]);
+            let key = if params.segment_surfaces {
+                (cell_key(&p, inv_cell, step.column_cells), chunk_index as u32, chunk.segment[k])
+            } else {
+                (cell_key(&p, inv_cell, step.column_cells), u32::MAX, 0)
+            };
             if key != last.0 {
                 if last.0 .0 != u64::MAX {
                     patch_slots.insert(last.0, last.1);
@@ -294,10 +300,14 @@ pub fn estimate_tile(
     // 1b. Join the patches of a cell into surface models: a patch joins the model whose normal
     //     agrees and whose plane is nearest (within the join distance), unless that model already
     //     holds another segment of the same strip pass (road and sidewalk, both sides of a curb).
-    // Not below 5 cm: membership flipping between iterations as the strips move would make the
-    // corrections jump; 5 cm is still well under a curb's height.
+    // Not below 10 cm: strips that still disagree by a few centimetres must meet in one model, and
+    // membership flipping between iterations as the strips move would make the corrections jump.
     let join_distance = step.threshold_m.max(JOIN_DISTANCE_MIN_M);
-    let model_of_patch = join_patches(&patches, cos_group, join_distance);
+    let model_of_patch = if params.segment_surfaces {
+        join_patches(&patches, cos_group, join_distance)
+    } else {
+        (0..patches.len() as u32).collect()
+    };
     let mut models: Vec<SurfaceModel> = Vec::new();
     for (patch, &id) in patches.iter().zip(&model_of_patch) {
         if id == NONE {
@@ -470,14 +480,17 @@ fn join_patches(patches: &[Patch], cos_group: f64, join_distance: f64) -> Vec<u3
         let mut best: Option<(usize, f64)> = None;
         for (slot, (_, sn, sp, count, passes)) in open.iter().enumerate() {
             let w = normalize(*sn);
-            if dot(n, w) <= cos_group
-                || passes.iter().any(|&(s, a)| s == p.strip && a.abs_diff(p.anchor) < PASS_ANCHORS)
-            {
+            if dot(n, w) <= cos_group {
                 continue;
             }
             let o = [sp[0] / count, sp[1] / count, sp[2] / count];
             let d = dot(w, [centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]]).abs();
-            if d <= join_distance && best.is_none_or(|(_, bd)| d < bd) {
+            // Within one strip pass the geometry is exact up to the noise: another segment of the
+            // same pass joins only if coplanar (a surface split by an occlusion), never a parallel
+            // surface nearby (road and sidewalk either side of a curb).
+            let same_pass = passes.iter().any(|&(s, a)| s == p.strip && a.abs_diff(p.anchor) < PASS_ANCHORS);
+            let limit = if same_pass { SAME_PASS_JOIN_M } else { join_distance };
+            if d <= limit && best.is_none_or(|(_, bd)| d < bd) {
                 best = Some((slot, d));
             }
         }

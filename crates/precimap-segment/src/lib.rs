@@ -23,7 +23,8 @@ pub const DROPPED_SEGMENT: u32 = u32::MAX - 1;
 /// Parameters of the segmentation; the defaults are what the simulated campaigns were tuned with.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SegmentParams {
-    /// Half-width of the square image window of the normal fit (2 → 5×5 pixels).
+    /// Half-width of the image window of the normal fit: the 3×3 ring plus the pixels along the
+    /// row and column out to this distance (2 → 12 neighbours), at most 8.
     pub window: u32,
     pub method: NormalMethod,
     /// RANSAC inlier tolerance: `inlier_base_m + inlier_per_range · range` from the plane.
@@ -42,6 +43,9 @@ pub struct SegmentParams {
     /// discontinuities compete with Felzenszwalb–Huttenlocher's `k / |C|`.
     pub c1_noise_deg: f64,
     pub c1_scale_deg: f64,
+    /// Hard C0 break: neighbours further apart along their mean normal than this many inlier
+    /// tolerances are never joined (a curb, a window recess, an occlusion edge).
+    pub c0_break: f64,
     /// Hard C1 break: neighbours whose normals differ by more than this are never joined.
     pub c1_break_deg: f64,
     /// Felzenszwalb–Huttenlocher `k` (in edge-weight units × points).
@@ -58,15 +62,16 @@ impl Default for SegmentParams {
             window: 2,
             method: NormalMethod::Ransac,
             inlier_base_m: 0.015,
-            inlier_per_range: 0.001,
+            inlier_per_range: 0.0005,
             min_inliers: 6,
             gap_factor: 2.5,
             gap_base_m: 0.01,
             c1_noise_deg: 5.0,
             c1_scale_deg: 10.0,
+            c0_break: 2.0,
             c1_break_deg: 40.0,
             fh_k: 3.0,
-            min_region_points: 40,
+            min_region_points: 15,
             merge_max: 1.0,
         }
     }
@@ -159,6 +164,7 @@ pub fn edge_weight(
     np: &PixelNormal,
     nq: &PixelNormal,
     params: &SegmentParams,
+    cos_noise: f64,
 ) -> Option<f32> {
     let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
     let gap = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
@@ -167,7 +173,8 @@ pub fn edge_weight(
     }
     let (a, b) = (np.normal.map(f64::from), nq.normal.map(f64::from));
     let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
-    let angle = cos.acos().to_degrees();
+    // Cheap cosine tests first: most neighbours are within the noise.
+    let angle = if cos >= cos_noise { 0.0 } else { cos.acos().to_degrees() };
     if angle > params.c1_break_deg {
         return None;
     }
@@ -175,7 +182,7 @@ pub fn edge_weight(
     let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt().max(1e-12);
     let step = ((m[0] * d[0] + m[1] * d[1] + m[2] * d[2]) / len).abs();
     let tol = np.tolerance.max(nq.tolerance) as f64;
-    if step > 3.0 * tol {
+    if step > params.c0_break * tol {
         return None;
     }
     let c0 = (step / tol - 1.0).max(0.0);
@@ -193,6 +200,7 @@ fn segment(
     let n = geo.len();
     let rows = image.rows as usize;
     let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(2 * n);
+    let cos_noise = params.c1_noise_deg.to_radians().cos();
     for (pixel, &k) in grid.iter().enumerate() {
         if k == NO_POINT {
             continue;
@@ -204,13 +212,14 @@ fn segment(
                 return;
             }
             if let Some(nj) = &normals[j as usize] {
-                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params) {
+                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params, cos_noise) {
                     edges.push((w, k, j));
                 }
             }
         };
-        if r + 1 < rows {
-            link(grid[pixel + 1]);
+        // Rows wrap around (the revolution is a circle).
+        if rows > 2 {
+            link(grid[if r + 1 < rows { pixel + 1 } else { pixel + 1 - rows }]);
         }
         if c + 1 < image.columns as usize {
             link(grid[pixel + rows]);

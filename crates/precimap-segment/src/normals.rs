@@ -29,8 +29,8 @@ pub struct PixelNormal {
 const MIN_INCIDENCE_COS: f64 = 0.15;
 /// Plane hypotheses tried per pixel.
 const HYPOTHESES: u32 = 16;
-/// Largest window (half-width 3 → 7×7 = 48 neighbours).
-const MAX_NEIGHBOURS: usize = 48;
+/// Largest neighbourhood (3×3 ring plus 4 axial pixels per step out to half-width 8).
+const MAX_NEIGHBOURS: usize = 8 + 4 * 7;
 
 /// Normals of every point of the image (`None` for dropped points and failed fits).
 pub fn estimate_normals(
@@ -56,7 +56,21 @@ pub fn estimate_normals(
             d(c.checked_sub(1).map(|i| &column_head[i])).max(d(column_head.get(c + 1)))
         })
         .collect();
-    let w = params.window.min(3) as i64;
+    // The neighbourhood: the 3×3 ring plus the pixels along the row and the column out to the
+    // window's half-width (a cross-shaped 5×5 window has 12 neighbours instead of 24: half the
+    // cost, and still both directions at two scales).
+    let w = params.window.clamp(1, 8) as i64;
+    let mut offsets: Vec<(i64, i64)> = Vec::new();
+    for dc in -1..=1 {
+        for dr in -1..=1 {
+            if (dc, dr) != (0, 0) {
+                offsets.push((dc, dr));
+            }
+        }
+    }
+    for d in 2..=w {
+        offsets.extend([(d, 0), (-d, 0), (0, d), (0, -d)]);
+    }
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = [[0.0f64; 3]; MAX_NEIGHBOURS];
     for k in 0..geo.len() {
@@ -77,28 +91,24 @@ pub fn estimate_normals(
         let tol = params.inlier_base_m + params.inlier_per_range * range;
         let mut m = 0usize;
         let (mut has_along, mut has_across) = (false, false);
-        for dc in -w..=w {
-            let cc = c + dc;
-            if cc < 0 || cc >= columns as i64 {
+        for &(dc, dr) in &offsets {
+            // Rows wrap around: the last and the first measurement of a revolution are neighbours.
+            let (cc, rr) = (c + dc, (r + dr).rem_euclid(rows as i64));
+            if cc < 0 || cc >= columns as i64 || (dr.abs() as usize) >= rows {
                 continue;
             }
-            for dr in -w..=w {
-                let rr = r + dr;
-                if (dc == 0 && dr == 0) || rr < 0 || rr >= rows as i64 {
-                    continue;
-                }
-                let j = grid[cc as usize * rows + rr as usize];
-                if j == NO_POINT {
-                    continue;
-                }
-                let q = geo.point(j as usize);
-                let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
-                if (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() <= gate * dc.abs().max(dr.abs()) as f64 {
-                    cand[m] = d;
-                    m += 1;
-                    has_along |= dc == 0;
-                    has_across |= dr == 0;
-                }
+            let j = grid[cc as usize * rows + rr as usize];
+            if j == NO_POINT {
+                continue;
+            }
+            let q = geo.point(j as usize);
+            let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+            let reach = gate * dc.abs().max(dr.abs()) as f64;
+            if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= reach * reach {
+                cand[m] = d;
+                m += 1;
+                has_along |= dc == 0;
+                has_across |= dr == 0;
             }
         }
         if m + 1 < params.min_inliers as usize || !(has_along && has_across) {
@@ -160,7 +170,8 @@ fn ransac(pts: &[[f64; 3]], tol: f64, seed: u64, min_inliers: u32) -> Option<[f6
         let inliers = 1 + pts.iter().filter(|q| dot(n, **q).abs() <= tol).count() as u32;
         if best.is_none_or(|(_, s)| inliers > s) {
             best = Some((n, inliers));
-            if inliers as usize == pts.len() + 1 {
+            // A plane through the centre that most neighbours lie on is the centre's plane.
+            if inliers as usize * 5 >= (pts.len() + 1) * 4 {
                 break;
             }
         }
@@ -172,36 +183,100 @@ fn ransac(pts: &[[f64; 3]], tol: f64, seed: u64, min_inliers: u32) -> Option<[f6
     plane_fit(pts.iter().filter(|q| dot(n, **q).abs() <= tol))
 }
 
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn closed_form_eigenvector_of_a_plane_scatter() {
+        // Points on the plane z = 0.1·x + 0.2·y, scattered along two directions.
+        let mut pts = vec![];
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (i as f64 * 0.1, j as f64 * 0.07);
+                pts.push([x, y, 0.1 * x + 0.2 * y]);
+            }
+        }
+        let n = plane_fit(pts.iter()).unwrap();
+        let expect = [-0.1, -0.2, 1.0];
+        let len = norm(expect);
+        assert!((dot(n, expect).abs() / len - 1.0).abs() < 1e-9, "{n:?}");
+        // A line is not a plane.
+        let line: Vec<[f64; 3]> = (1..6).map(|i| [i as f64, 2.0 * i as f64, 0.0]).collect();
+        assert!(plane_fit(line.iter()).is_none());
+        // Eigenvalues of a diagonal matrix.
+        let (l0, l1, _, v) = smallest_eigen([3.0, 0.0, 0.0, 1.0, 0.0, 2.0]).unwrap();
+        assert!((l0 - 1.0).abs() < 1e-12 && (l1 - 2.0).abs() < 1e-12 && (v[1].abs() - 1.0).abs() < 1e-12);
+    }
+}
+
 /// Least-squares plane (smallest-eigenvalue direction of the scatter) of the centre (origin) and
 /// the given points; `None` unless clearly planar (not a line, not a blob).
-fn plane_fit<'a>(pts: impl Iterator<Item = &'a [f64; 3]> + Clone) -> Option<[f64; 3]> {
-    let mut count = 1.0;
-    let mut sum = [0.0; 3];
-    for q in pts.clone() {
+fn plane_fit<'a>(pts: impl Iterator<Item = &'a [f64; 3]>) -> Option<[f64; 3]> {
+    // Sums about the centre (the origin), then the scatter about the mean.
+    let (mut count, mut s, mut ss) = (1.0, [0.0; 3], [0.0; 6]);
+    for q in pts {
         count += 1.0;
         for a in 0..3 {
-            sum[a] += q[a];
+            s[a] += q[a];
         }
+        ss[0] += q[0] * q[0];
+        ss[1] += q[0] * q[1];
+        ss[2] += q[0] * q[2];
+        ss[3] += q[1] * q[1];
+        ss[4] += q[1] * q[2];
+        ss[5] += q[2] * q[2];
     }
-    let mean = sum.map(|s| s / count);
-    let mut cov = nalgebra::Matrix3::<f64>::zeros();
-    let mut add = |q: &[f64; 3]| {
-        let d = nalgebra::Vector3::new(q[0] - mean[0], q[1] - mean[1], q[2] - mean[2]);
-        cov += d * d.transpose();
-    };
-    add(&[0.0; 3]);
-    for q in pts {
-        add(q);
-    }
-    let eig = nalgebra::SymmetricEigen::new(cov);
-    let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-    let (l0, l1) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]]);
-    if l0.is_nan() || l1 <= 0.0 || l0 > 0.1 * l1 {
+    let m = s.map(|v| v / count);
+    let cov = [
+        ss[0] - count * m[0] * m[0],
+        ss[1] - count * m[0] * m[1],
+        ss[2] - count * m[0] * m[2],
+        ss[3] - count * m[1] * m[1],
+        ss[4] - count * m[1] * m[2],
+        ss[5] - count * m[2] * m[2],
+    ];
+    let (l0, l1, l2, n) = smallest_eigen(cov)?;
+    // A line (second extent under 1 % of the first) or a blob is no plane.
+    if l1.is_nan() || l1 <= 1e-4 * l2 || l0 > 0.1 * l1 {
         return None;
     }
-    let v = eig.eigenvectors.column(order[0]);
-    Some([v[0], v[1], v[2]])
+    Some(n)
+}
+
+/// Eigenvalues (ascending) of the symmetric 3×3 matrix `[a00 a01 a02 a11 a12 a22]` and the unit
+/// eigenvector of the smallest (closed form: trigonometric eigenvalues, the eigenvector
+/// as the longest cross product of two rows of `A − λI`).
+pub(crate) fn smallest_eigen(a: [f64; 6]) -> Option<(f64, f64, f64, [f64; 3])> {
+    let [a00, a01, a02, a11, a12, a22] = a;
+    let q = (a00 + a11 + a22) / 3.0;
+    let p1 = a01 * a01 + a02 * a02 + a12 * a12;
+    let p2 = (a00 - q).powi(2) + (a11 - q).powi(2) + (a22 - q).powi(2) + 2.0 * p1;
+    let p = (p2 / 6.0).sqrt();
+    if p.is_nan() || p <= 1e-300 {
+        return None;
+    }
+    let b = [(a00 - q) / p, a01 / p, a02 / p, (a11 - q) / p, a12 / p, (a22 - q) / p];
+    let det =
+        b[0] * (b[3] * b[5] - b[4] * b[4]) - b[1] * (b[1] * b[5] - b[4] * b[2]) + b[2] * (b[1] * b[4] - b[3] * b[2]);
+    let phi = (det / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
+    let l_max = q + 2.0 * p * phi.cos();
+    let l_min = q + 2.0 * p * (phi + 2.0 * std::f64::consts::FRAC_PI_3).cos();
+    let l_mid = 3.0 * q - l_max - l_min;
+    let r0 = [a00 - l_min, a01, a02];
+    let r1 = [a01, a11 - l_min, a12];
+    let r2 = [a02, a12, a22 - l_min];
+    let mut best = cross(r0, r1);
+    for c in [cross(r0, r2), cross(r1, r2)] {
+        if dot(c, c) > dot(best, best) {
+            best = c;
+        }
+    }
+    let len = norm(best);
+    if len.is_nan() || len <= 0.0 {
+        return None;
+    }
+    Some((l_min, l_mid, l_max, best.map(|v| v / len)))
 }
 
 #[inline]
