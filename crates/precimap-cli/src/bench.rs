@@ -196,6 +196,9 @@ struct PreprocessBench {
     segmentation: precimap_eval::SegmentEvaluation,
 }
 
+/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, segment ids.
+type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>);
+
 fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
     let dir = cache.join(format!("{scale:?}-{seed}-laz").to_lowercase());
     let manifest = dir.join("campaign").join("manifest.json");
@@ -208,7 +211,7 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
     let threads = rayon::current_num_threads();
     let params = precimap_estimate::SegmentParams::default();
     // One pass over the first n strips: (wall seconds, points, copies, chunk bytes, largest strip).
-    let pass = |n: usize, keep: bool| -> Result<(f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>)> {
+    let pass = |n: usize, keep: bool| -> Result<PassFigures> {
         let started = Instant::now();
         let cpu_start = cpu_seconds();
         let per_strip = (0..n)

@@ -457,6 +457,10 @@ struct Patch {
     count: u32,
 }
 
+/// A model of the cell being joined: (id, normal sum, position sum, count, member passes as
+/// (strip, anchor)).
+type OpenModel = (u32, [f64; 3], [f64; 3], f64, Vec<(u32, u32)>);
+
 /// Model id of every patch (dense ids, [`NONE`] where a cell ran out of model slots). Per cell,
 /// larger patches go first (ties by index, so the result does not depend on hash order); a patch
 /// joins the agreeing model with the nearest plane, or opens a new one.
@@ -465,8 +469,7 @@ fn join_patches(patches: &[Patch], cos_group: f64, join_distance: f64) -> Vec<u3
     order.sort_unstable_by_key(|&i| (patches[i as usize].cell, std::cmp::Reverse(patches[i as usize].count), i));
     let mut out = vec![NONE; patches.len()];
     let mut next_model = 0u32;
-    // Models of the current cell: (id, normal sum, position sum, count, member passes).
-    let mut open: Vec<(u32, [f64; 3], [f64; 3], f64, Vec<(u32, u32)>)> = Vec::new();
+    let mut open: Vec<OpenModel> = Vec::new();
     let mut cell = u64::MAX;
     for &i in &order {
         let p = &patches[i as usize];

@@ -94,7 +94,7 @@ pub fn estimate_normals(
         for &(dc, dr) in &offsets {
             // Rows wrap around: the last and the first measurement of a revolution are neighbours.
             let (cc, rr) = (c + dc, (r + dr).rem_euclid(rows as i64));
-            if cc < 0 || cc >= columns as i64 || (dr.abs() as usize) >= rows {
+            if cc < 0 || cc >= columns as i64 || dr.unsigned_abs() as usize >= rows {
                 continue;
             }
             let j = grid[cc as usize * rows + rr as usize];
@@ -183,33 +183,6 @@ fn ransac(pts: &[[f64; 3]], tol: f64, seed: u64, min_inliers: u32) -> Option<[f6
     plane_fit(pts.iter().filter(|q| dot(n, **q).abs() <= tol))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn closed_form_eigenvector_of_a_plane_scatter() {
-        // Points on the plane z = 0.1·x + 0.2·y, scattered along two directions.
-        let mut pts = vec![];
-        for i in -3..=3 {
-            for j in -3..=3 {
-                let (x, y) = (i as f64 * 0.1, j as f64 * 0.07);
-                pts.push([x, y, 0.1 * x + 0.2 * y]);
-            }
-        }
-        let n = plane_fit(pts.iter()).unwrap();
-        let expect = [-0.1, -0.2, 1.0];
-        let len = norm(expect);
-        assert!((dot(n, expect).abs() / len - 1.0).abs() < 1e-9, "{n:?}");
-        // A line is not a plane.
-        let line: Vec<[f64; 3]> = (1..6).map(|i| [i as f64, 2.0 * i as f64, 0.0]).collect();
-        assert!(plane_fit(line.iter()).is_none());
-        // Eigenvalues of a diagonal matrix.
-        let (l0, l1, _, v) = smallest_eigen([3.0, 0.0, 0.0, 1.0, 0.0, 2.0]).unwrap();
-        assert!((l0 - 1.0).abs() < 1e-12 && (l1 - 2.0).abs() < 1e-12 && (v[1].abs() - 1.0).abs() < 1e-12);
-    }
-}
-
 /// Least-squares plane (smallest-eigenvalue direction of the scatter) of the centre (origin) and
 /// the given points; `None` unless clearly planar (not a line, not a blob).
 fn plane_fit<'a>(pts: impl Iterator<Item = &'a [f64; 3]>) -> Option<[f64; 3]> {
@@ -292,4 +265,31 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 #[inline]
 fn norm(a: [f64; 3]) -> f64 {
     dot(a, a).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn closed_form_eigenvector_of_a_plane_scatter() {
+        // Points on the plane z = 0.1·x + 0.2·y, scattered along two directions.
+        let mut pts = vec![];
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (i as f64 * 0.1, j as f64 * 0.07);
+                pts.push([x, y, 0.1 * x + 0.2 * y]);
+            }
+        }
+        let n = plane_fit(pts.iter()).unwrap();
+        let expect = [-0.1, -0.2, 1.0];
+        let len = norm(expect);
+        assert!((dot(n, expect).abs() / len - 1.0).abs() < 1e-9, "{n:?}");
+        // A line is not a plane.
+        let line: Vec<[f64; 3]> = (1..6).map(|i| [i as f64, 2.0 * i as f64, 0.0]).collect();
+        assert!(plane_fit(line.iter()).is_none());
+        // Eigenvalues of a diagonal matrix.
+        let (l0, l1, _, v) = smallest_eigen([3.0, 0.0, 0.0, 1.0, 0.0, 2.0]).unwrap();
+        assert!((l0 - 1.0).abs() < 1e-12 && (l1 - 2.0).abs() < 1e-12 && (v[1].abs() - 1.0).abs() < 1e-12);
+    }
 }
