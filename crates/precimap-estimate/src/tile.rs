@@ -665,6 +665,33 @@ fn scan_triangle(x: [f64; 3], y: [f64; 3], h: [f64; 3], nu: i64, nv: i64, mut vi
 mod tests {
     use super::*;
 
+    fn patch(strip: u32, anchor: u32, normal: [f64; 3], centre: [f64; 3], count: u32) -> Patch {
+        let c = count as f64;
+        Patch { cell: 7, strip, anchor, sum_normal: normal.map(|v| v * c), sum_position: centre.map(|v| v * c), count }
+    }
+
+    /// Road and sidewalk of one pass never share a model; another strip's road and sidewalk each
+    /// join the nearest plane; a coplanar second segment of the same pass joins; an opposite
+    /// normal never does.
+    #[test]
+    fn patches_join_by_pass_normal_and_plane_distance() {
+        let up = [0.0, 0.0, 1.0];
+        let patches = [
+            patch(0, 10, up, [0.5, 0.5, 0.0], 100),               // 0: strip 0 road
+            patch(0, 10, up, [0.5, 0.9, 0.12], 50),               // 1: strip 0 sidewalk, 12 cm up
+            patch(1, 500, up, [0.4, 0.5, 0.02], 90),              // 2: strip 1 road, 2 cm off
+            patch(1, 500, up, [0.4, 0.9, 0.135], 40),             // 3: strip 1 sidewalk
+            patch(0, 11, up, [0.8, 0.2, 0.01], 30),               // 4: strip 0, road split by an occlusion
+            patch(1, 500, [0.0, 0.0, -1.0], [0.5, 0.5, 0.0], 20), // 5: underside
+        ];
+        let m = join_patches(&patches, 30f64.to_radians().cos(), 0.1);
+        assert_eq!(m[2], m[0]);
+        assert_eq!(m[4], m[0]);
+        assert_ne!(m[1], m[0]);
+        assert_eq!(m[3], m[1]);
+        assert!(m[5] != m[0] && m[5] != m[1]);
+    }
+
     /// The scanline rasteriser visits exactly the pixel centres a per-pixel barycentric test
     /// accepts, with the barycentric heights.
     #[test]
