@@ -24,6 +24,20 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Strip pre-processing (LAZ decoding, geometry, scan image, RANSAC normals, segmentation,
+    /// tiling and chunk encoding) on a simulated LAZ campaign: per-core throughput on all cores,
+    /// cost per point for growing strip counts, peak memory, and the segmentation against truth.
+    Preprocess {
+        #[arg(long, default_value = "small")]
+        scale: precimap_sim::Scale,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where the simulated LAZ campaign is cached between runs.
+        #[arg(long, default_value = "target/bench")]
+        cache: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
     /// The block-tridiagonal solver alone.
     Solve {
         #[arg(long, default_value_t = 20_000)]
@@ -36,6 +50,7 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
+        BenchCommand::Preprocess { scale, seed, cache, json } => bench_preprocess(scale, seed, &cache, json),
         BenchCommand::Solve { anchors, json } => {
             let rate = precimap_solve::bench_solve(anchors, 5);
             if json {
@@ -153,6 +168,152 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         );
     }
     Ok(())
+}
+
+#[derive(Serialize)]
+struct PreprocessBench {
+    scale: String,
+    strips: usize,
+    points: u64,
+    threads: usize,
+    /// All strips on all cores (rayon over strips), LAZ decoding included: points per CPU-second
+    /// of this process (robust on a shared machine).
+    preprocess_points_per_s_per_core: f64,
+    /// The same per wall-second × threads (lower when other processes share the cores).
+    preprocess_points_per_s_per_core_wall: f64,
+    /// Peak resident memory while preprocessing (threads strips in flight at once).
+    peak_rss_bytes: u64,
+    largest_strip_points: u64,
+    /// Emitted point copies (border duplicates included) per point segmented, minus one.
+    border_overhead: f64,
+    chunk_bytes_per_point_copy: f64,
+    chunk_bytes_total: u64,
+    /// (strips, CPU nanoseconds per point) for the first n strips.
+    cost_per_point_ns: Vec<(usize, f64)>,
+    segment_purity: f64,
+    surface_points_removed: f64,
+    foliage_points_removed: f64,
+    segmentation: precimap_eval::SegmentEvaluation,
+}
+
+/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, segment ids.
+type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>);
+
+fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
+    let dir = cache.join(format!("{scale:?}-{seed}-laz").to_lowercase());
+    let manifest = dir.join("campaign").join("manifest.json");
+    if !manifest.exists() {
+        eprintln!("simulating the {scale:?} LAZ campaign into {} (cached for later runs)", dir.display());
+        let config = precimap_sim::SimConfig::for_scale(scale, seed);
+        precimap_sim::simulate(&config, &dir.join("campaign"), true).context("simulating")?;
+    }
+    let campaign = Campaign::load(&manifest)?;
+    let threads = rayon::current_num_threads();
+    let params = precimap_estimate::SegmentParams::default();
+    // One pass over the first n strips: (wall seconds, points, copies, chunk bytes, largest strip).
+    let pass = |n: usize, keep: bool| -> Result<PassFigures> {
+        let started = Instant::now();
+        let cpu_start = cpu_seconds();
+        let per_strip = (0..n)
+            .into_par_iter()
+            .map(|s| -> Result<(u64, u64, u64, Vec<u32>)> {
+                let prepared = tasks::prepare_strip_in_memory(&campaign, s, &params)?;
+                let bytes: u64 = prepared.chunks.iter().map(|c| c.encode().len() as u64).sum();
+                let segment = if keep { prepared.segment } else { Vec::new() };
+                Ok((prepared.stats.points, prepared.stats.points_emitted, bytes, segment))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let wall = started.elapsed().as_secs_f64();
+        let cpu = cpu_seconds() - cpu_start;
+        let points = per_strip.iter().map(|r| r.0).sum();
+        let copies = per_strip.iter().map(|r| r.1).sum();
+        let bytes = per_strip.iter().map(|r| r.2).sum();
+        let largest = per_strip.iter().map(|r| r.0).max().unwrap_or(0);
+        Ok((wall, cpu, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect()))
+    };
+    let strips = campaign.strips.len();
+    reset_peak_rss();
+    eprintln!("preprocessing {strips} strips on {threads} threads");
+    let (wall, cpu, points, copies, bytes, largest, segments) = pass(strips, true)?;
+    let peak = peak_rss_bytes();
+    let mut cost_per_point_ns = Vec::new();
+    let mut n = 2;
+    while n <= strips {
+        let (_, c, p, ..) = pass(n, false)?;
+        eprintln!("  {n} strips: {:.1} CPU ns per point", c / p as f64 * 1e9);
+        cost_per_point_ns.push((n, c / p as f64 * 1e9));
+        n *= 2;
+    }
+    // The segmentation against the simulator's truth.
+    let truth = dir.join("campaign").join("truth");
+    let mut tallies = Vec::with_capacity(strips);
+    for (s, ids) in segments.iter().enumerate() {
+        let path = truth.join(format!("{}.truth", campaign.strips[s].id));
+        let mut reader = precimap_sim::truth::TruthReader::open(&path)?;
+        let mut tally = precimap_eval::SegmentTally::default();
+        let mut k = 0usize;
+        while let Some(t) = reader.next_point()? {
+            let id = *ids.get(k).with_context(|| format!("{} has more points than the strip", path.display()))?;
+            tally.add(id, t.surface_id, t.class, t.normal, t.position);
+            k += 1;
+        }
+        tallies.push(tally);
+    }
+    let segmentation = precimap_eval::SegmentEvaluation::from_tallies(&tallies);
+    let segmented: u64 = segmentation.points_segmented;
+    let result = PreprocessBench {
+        scale: format!("{scale:?}").to_lowercase(),
+        strips,
+        points,
+        threads,
+        preprocess_points_per_s_per_core: points as f64 / cpu,
+        preprocess_points_per_s_per_core_wall: points as f64 / (wall * threads as f64),
+        peak_rss_bytes: peak,
+        largest_strip_points: largest,
+        border_overhead: copies as f64 / segmented.max(1) as f64 - 1.0,
+        chunk_bytes_per_point_copy: bytes as f64 / copies.max(1) as f64,
+        chunk_bytes_total: bytes,
+        cost_per_point_ns,
+        segment_purity: segmentation.purity,
+        surface_points_removed: segmentation.surface_points_removed,
+        foliage_points_removed: segmentation.foliage_points_removed,
+        segmentation,
+    };
+    if json {
+        println!("{}", serde_json::to_string_pretty(&result)?);
+    } else {
+        println!(
+            "preprocess (LAZ → tile chunks), {} points in {} strips\n  {:.2} M points/s per core on {threads} threads, \
+             peak RSS {:.0} MiB (largest strip {} points)\n  {:.1} chunk bytes per point copy, border overhead {:.1} %\n  \
+             segment purity {:.2} %, surface points removed {:.2} %, foliage points removed {:.1} %",
+            result.points,
+            strips,
+            result.preprocess_points_per_s_per_core / 1e6,
+            result.peak_rss_bytes as f64 / (1 << 20) as f64,
+            result.largest_strip_points,
+            result.chunk_bytes_per_point_copy,
+            result.border_overhead * 100.0,
+            result.segment_purity * 100.0,
+            result.surface_points_removed * 100.0,
+            result.foliage_points_removed * 100.0
+        );
+    }
+    Ok(())
+}
+
+/// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`, clock
+/// ticks of 1/100 s); 0 elsewhere.
+fn cpu_seconds() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+            let rest = &s[s.rfind(')')? + 2..];
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            let ticks = f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?;
+            Some(ticks as f64 / 100.0)
+        })
+        .unwrap_or(0.0)
 }
 
 /// Resets the kernel's peak-RSS mark so it covers only what follows (Linux; a no-op elsewhere).

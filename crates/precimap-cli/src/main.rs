@@ -2,6 +2,7 @@
 
 mod bench;
 mod progress;
+mod segments;
 mod service;
 
 use anyhow::{Context, Result};
@@ -108,6 +109,8 @@ enum Command {
         #[arg(long, default_value = "demo")]
         out: PathBuf,
     },
+    /// Segment one strip in its scan image; draw the segments (--png).
+    Segments(segments::SegmentsArgs),
     /// Benchmarks printing per-core throughput.
     Bench {
         #[command(subcommand)]
@@ -173,6 +176,7 @@ fn real_main() -> Result<()> {
             );
             Ok(())
         }
+        Command::Segments(args) => segments::run(args),
         Command::Bench { what } => bench::run(what),
     }
 }

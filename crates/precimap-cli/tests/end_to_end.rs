@@ -35,6 +35,10 @@ fn tiny_campaign_is_adjusted_towards_the_truth() {
     // …and the points moved towards the true surfaces, the trajectories towards the true ones.
     assert!(e.surface_error_rms_m.after < 0.6 * e.surface_error_rms_m.before);
     assert!(e.trajectory_error_rms_m.after < e.trajectory_error_rms_m.before);
+    // The segmentation went to OUT/segments and was measured against the truth.
+    let purity = e.segment_purity.expect("segment purity");
+    assert!(purity > 0.9, "purity {purity}");
+    assert!(e.foliage_points_removed.unwrap() > 0.5);
     let last = report.iterations.last().unwrap();
     assert!(last.residual_std_m < 0.006, "final residual σ {}", last.residual_std_m);
 }
@@ -135,4 +139,56 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(out.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("/nonexistent/manifest.json") && !stderr.contains("panicked"), "{stderr}");
+}
+
+/// A truncated LAZ strip fails its own preparation task with an error naming the file and where
+/// it breaks; the other strips prepare normally.
+#[test]
+fn a_corrupt_strip_fails_only_its_own_task() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = dir.path().join("campaign");
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 4);
+    precimap_sim::simulate(&config, &campaign, true).expect("simulate tiny LAZ");
+    let laz = campaign.join("strips/v01-right.laz");
+    let bytes = std::fs::read(&laz).unwrap();
+    std::fs::write(&laz, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let c = precimap_pipeline::Campaign::load(&campaign.join("manifest.json")).unwrap();
+    let work = dir.path().join("work");
+    let mut failed = 0;
+    for s in 0..c.strips.len() {
+        match precimap_pipeline::tasks::prepare_strip_task(&c, s, &work) {
+            Ok(outcome) => {
+                assert!(outcome.stats.segmentation.segments > 0);
+                assert!(precimap_pipeline::tasks::segments_path(&work, &c.strips[s].id).is_file());
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                assert_eq!(c.strips[s].id, "v01-right", "{msg}");
+                assert!(msg.contains("v01-right.laz") && (msg.contains("point") || msg.contains("byte")), "{msg}");
+                failed += 1;
+            }
+        }
+    }
+    assert_eq!(failed, 1);
+}
+
+/// `precimap segments STRIP --png` draws the scan image.
+#[test]
+fn segments_command_writes_a_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 6);
+    let png = dir.path().join("s.png");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .arg("segments")
+        .arg(campaign.join("strips/v01-left.las"))
+        .arg("--png")
+        .arg(&png)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stats: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(stats["stats"]["segmentation"]["segments"].as_u64().unwrap() > 0);
+    let head = std::fs::read(&png).unwrap();
+    assert_eq!(&head[1..4], b"PNG");
 }

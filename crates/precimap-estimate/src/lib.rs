@@ -17,8 +17,10 @@ pub mod tile;
 
 pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
 pub use chunk::TileChunk;
+pub use precimap_segment::{NormalMethod, DROPPED as DROPPED_COLUMN};
 pub use prepare::{
-    measurement_geometry, prepare_strip, PrepareError, PrepareStats, PreparedStrip, StripContext, StripSamples,
+    measurement_geometry, prepare_strip, PrepareError, PrepareStats, PreparedStrip, ScanImage, SegmentParams,
+    SegmentStats, StripContext, StripSamples, DROPPED_SEGMENT, NO_SEGMENT,
 };
 pub use solve::{solve_trajectory, TrajectorySolution};
 pub use stats::{ResidualHistogram, TileStats};

@@ -1,10 +1,13 @@
-//! Per-strip preparation (the `segment_strip` map task of DESIGN §3, before segmentation lands):
-//! point geometry against the trajectory, the scan image (rows = measurement within a scanner
-//! revolution, columns = revolutions), scan-image neighbours, normals from the scan-image
-//! neighbourhood, and the points keyed into tiles with a border overlap.
+//! Per-strip preparation (the `segment_strip` map task of DESIGN §3): point geometry against the
+//! trajectory, the scan image (rows = measurement within a scanner revolution, columns =
+//! revolutions, per channel; [`precimap_segment::ScanImage`]), RANSAC normals and the
+//! Felzenszwalb–Huttenlocher segmentation ([`precimap_segment::segment_strip`]), and the
+//! segmented points keyed into tiles with a border overlap.
 
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
+use precimap_segment::{PixelNormal, StripGeometry, DROPPED, NO_POINT};
+pub use precimap_segment::{ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
 use std::collections::BTreeMap;
 
 /// A strip's points in acquisition order (struct of arrays, as read from LAS).
@@ -15,6 +18,8 @@ pub struct StripSamples<'a> {
     pub z: &'a [f64],
     pub gps_time: &'a [f64],
     pub scan_angle_deg: &'a [f32],
+    /// Scanner channel (revolutions are found per channel).
+    pub channel: &'a [u8],
 }
 
 impl StripSamples<'_> {
@@ -82,11 +87,16 @@ pub fn measurement_geometry(
     })
 }
 
-/// Everything a strip contributes to estimation.
+/// Everything a strip contributes to estimation, and its segmentation.
 #[derive(Debug)]
 pub struct PreparedStrip {
     pub chunks: Vec<TileChunk>,
     pub stats: PrepareStats,
+    /// Per point (file order): segment id, [`NO_SEGMENT`] (no normal, small region) or
+    /// [`DROPPED_SEGMENT`] (revolution dropped at standstill).
+    pub segment: Vec<u32>,
+    /// The scan image (row and column of every point).
+    pub image: ScanImage,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -103,6 +113,7 @@ pub struct PrepareStats {
     pub last_anchor: u32,
     pub time_start: f64,
     pub time_end: f64,
+    pub segmentation: SegmentStats,
 }
 
 /// Identity of a strip inside a campaign.
@@ -113,14 +124,14 @@ pub struct StripContext<'a> {
     pub trajectory_data: &'a Trajectory,
     pub lever_arm: Vec3,
     pub params: &'a Parameters,
+    pub segment: &'a SegmentParams,
 }
-
-/// Quantum of the LAS 1.4 scan-angle field, degrees.
-const SCAN_ANGLE_QUANTUM_DEG: f64 = 0.006;
 
 pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<PreparedStrip, PrepareError> {
     let n = samples.len();
-    if [samples.y.len(), samples.z.len(), samples.gps_time.len(), samples.scan_angle_deg.len()].iter().any(|&l| l != n)
+    if [samples.y.len(), samples.z.len(), samples.gps_time.len(), samples.scan_angle_deg.len(), samples.channel.len()]
+        .iter()
+        .any(|&l| l != n)
     {
         return Err(PrepareError::Shape(format!("{n} points")));
     }
@@ -128,12 +139,14 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
         return Err(PrepareError::Empty);
     }
     let geometry = strip_geometry(samples, ctx)?;
-    let mut image = ScanImage::build(samples);
-    image.thin_standstill(&geometry, ctx.params.min_revolution_advance_m);
+    let head: Vec<[f64; 3]> = geometry.iter().map(|g| g.t0).collect();
+    let mut image = ScanImage::build(samples.scan_angle_deg, samples.gps_time, samples.channel);
+    image.thin_standstill(&head, ctx.params.min_revolution_advance_m);
+    let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head: &head };
+    let segmentation = precimap_segment::segment_strip(&geo, &image, ctx.segment);
+    drop(head);
     let links = Links::build(&image);
-    let normals = estimate_normals(samples, &geometry, &image, &links, ctx.params.min_revolution_advance_m);
-    let chunks = emit_tiles(samples, ctx, &geometry, &links, &normals);
-    let with_normal = normals.iter().filter(|n| n.is_some()).count() as u64;
+    let chunks = emit_tiles(samples, ctx, &geometry, &links, &segmentation.normals, &segmentation.segment);
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.iter().map(|g| g.anchor).min().unwrap_or(0);
     let last_anchor = geometry.iter().map(|g| g.anchor).max().unwrap_or(0) + 1;
@@ -141,7 +154,7 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
         chunks,
         stats: PrepareStats {
             points: n as u64,
-            points_with_normal: with_normal,
+            points_with_normal: segmentation.stats.points_with_normal,
             points_emitted: emitted,
             revolutions: image.columns as u64,
             rows_per_revolution: image.rows,
@@ -150,7 +163,10 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
             last_anchor,
             time_start: samples.gps_time[0],
             time_end: samples.gps_time[n - 1],
+            segmentation: segmentation.stats,
         },
+        segment: segmentation.segment,
+        image,
     })
 }
 
@@ -183,271 +199,38 @@ fn strip_geometry(
     Ok(out)
 }
 
-/// Row and column of every point in the strip's scan image.
-#[derive(Debug)]
-struct ScanImage {
-    rows: u32,
-    columns: u32,
-    period_s: f64,
-    row: Vec<u32>,
-    /// Column of each point; [`DROPPED`] for revolutions skipped at standstill.
-    column: Vec<u32>,
-    angle_step_rad: f64,
-}
-
-/// Column of a point whose revolution is not used.
-const DROPPED: u32 = u32::MAX;
-
-impl ScanImage {
-    fn build(samples: &StripSamples<'_>) -> Self {
-        let n = samples.len();
-        let angles = samples.scan_angle_deg;
-        // The angular step is the most frequent positive difference between consecutive
-        // measurements (missing returns only make some differences multiples of it).
-        let mut histogram: BTreeMap<i64, (u64, f64)> = BTreeMap::new();
-        for w in angles.windows(2) {
-            let diff = w[1] as f64 - w[0] as f64;
-            let d = (diff / SCAN_ANGLE_QUANTUM_DEG).round() as i64;
-            if d > 0 && d < 60_000 {
-                let e = histogram.entry(d).or_default();
-                e.0 += 1;
-                e.1 += diff;
-            }
-        }
-        let mode = histogram.iter().max_by_key(|(d, (c, _))| (*c, -**d)).map(|(d, _)| *d).unwrap_or(60_000);
-        // 360°/N is rarely a whole number of 0.006° quanta, so quantised steps alternate between
-        // neighbouring values: average the raw steps next to the mode.
-        let (mut sum, mut count) = (0.0, 0u64);
-        for d in mode - 1..=mode + 1 {
-            if let Some(&(c, s)) = histogram.get(&d) {
-                sum += s;
-                count += c;
-            }
-        }
-        let step_deg = if count > 0 { sum / count as f64 } else { mode as f64 * SCAN_ANGLE_QUANTUM_DEG };
-        let rows = ((360.0 / step_deg).round() as u32).max(1);
-        // Revolution period: median time between angle wrap-arounds.
-        let mut wraps = Vec::new();
-        for k in 1..n {
-            if angles[k] < angles[k - 1] {
-                wraps.push(samples.gps_time[k]);
-            }
-        }
-        let mut periods: Vec<f64> = wraps.windows(2).map(|w| w[1] - w[0]).collect();
-        periods.sort_by(f64::total_cmp);
-        let period_s = periods.get(periods.len() / 2).copied().unwrap_or_else(|| {
-            let span = samples.gps_time[n - 1] - samples.gps_time[0];
-            span.max(1e-3)
-        });
-        let mut row = Vec::with_capacity(n);
-        let mut column = Vec::with_capacity(n);
-        let mut c: u32 = 0;
-        for k in 0..n {
-            if k > 0 {
-                let gap = samples.gps_time[k] - samples.gps_time[k - 1];
-                if gap > 0.75 * period_s {
-                    // Missing revolutions (a data gap): skip as many columns as elapsed.
-                    c += ((gap / period_s).round() as u32).max(1);
-                } else if angles[k] < angles[k - 1] {
-                    c += 1;
-                }
-            }
-            let r = ((angles[k] as f64 + 180.0) / step_deg).round() as i64;
-            row.push(r.rem_euclid(rows as i64) as u32);
-            column.push(c);
-        }
-        Self { rows, columns: c + 1, period_s, row, column, angle_step_rad: step_deg.to_radians() }
-    }
-
-    /// Drops revolutions taken before the scan head moved `min_advance` since the last kept one
-    /// and renumbers the kept columns so that consecutive kept revolutions are neighbours.
-    /// Columns separated by a data gap stay separated.
-    fn thin_standstill(&mut self, geometry: &[MeasurementGeometry], min_advance: f64) {
-        if min_advance <= 0.0 || self.column.is_empty() {
-            return;
-        }
-        let mut kept_position: Option<[f64; 3]> = None;
-        let mut last_original = u32::MAX;
-        let mut new_column = 0u32;
-        let mut keep = true;
-        let mut first = true;
-        // A jump in the original numbering (missing revolutions) since the last kept column.
-        let mut gap = false;
-        for k in 0..self.column.len() {
-            let c = self.column[k];
-            if c != last_original {
-                if last_original != u32::MAX && c > last_original + 1 {
-                    gap = true;
-                }
-                let head = geometry[k].t0;
-                keep = match kept_position {
-                    None => true,
-                    Some(p) => {
-                        let d = ((head[0] - p[0]).powi(2) + (head[1] - p[1]).powi(2) + (head[2] - p[2]).powi(2)).sqrt();
-                        d >= min_advance
-                    }
-                };
-                if keep {
-                    if !first {
-                        new_column += if gap { 2 } else { 1 };
-                    }
-                    first = false;
-                    gap = false;
-                    kept_position = Some(head);
-                }
-                last_original = c;
-            }
-            self.column[k] = if keep { new_column } else { DROPPED };
-        }
-        self.columns = new_column + 1;
-    }
-}
-
-/// Scan-image neighbour links: next/previous row in the same revolution, same row in the
-/// next/previous revolution.
+/// Scan-image neighbour links: next row in the same revolution (wrapping round), same row in the
+/// next revolution.
 #[derive(Debug)]
 struct Links {
     right: Vec<u32>,
-    left: Vec<u32>,
     down: Vec<u32>,
-    up: Vec<u32>,
 }
 
 impl Links {
     fn build(image: &ScanImage) -> Self {
         let n = image.row.len();
         let mut right = vec![NO_NEIGHBOUR; n];
-        let mut left = vec![NO_NEIGHBOUR; n];
         let mut down = vec![NO_NEIGHBOUR; n];
-        let mut up = vec![NO_NEIGHBOUR; n];
+        let grid = image.grid();
         let rows = image.rows as usize;
-        let mut previous_column = vec![NO_NEIGHBOUR; rows];
-        let mut current_column = vec![NO_NEIGHBOUR; rows];
-        let mut current = image.column.first().copied().unwrap_or(0);
         for k in 0..n {
             let c = image.column[k];
             if c == DROPPED {
                 continue;
             }
-            if c != current {
-                if c == current + 1 {
-                    std::mem::swap(&mut previous_column, &mut current_column);
-                } else {
-                    previous_column.fill(NO_NEIGHBOUR);
-                }
-                current_column.fill(NO_NEIGHBOUR);
-                current = c;
+            let px = c as usize * rows + image.row[k] as usize;
+            // Rows wrap around: the revolution is a circle.
+            let next = if (image.row[k] as usize) + 1 < rows { px + 1 } else { px + 1 - rows };
+            if rows > 2 && grid[next] != NO_POINT {
+                right[k] = grid[next];
             }
-            let r = image.row[k] as usize;
-            if k + 1 < n && image.column[k + 1] == c && image.row[k + 1] as usize == r + 1 {
-                right[k] = (k + 1) as u32;
-                left[k + 1] = k as u32;
+            if px + rows < grid.len() && grid[px + rows] != NO_POINT {
+                down[k] = grid[px + rows];
             }
-            let above = previous_column[r];
-            if above != NO_NEIGHBOUR {
-                up[k] = above;
-                down[above as usize] = k as u32;
-            }
-            current_column[r] = k as u32;
         }
-        Self { right, left, down, up }
+        Self { right, down }
     }
-}
-
-/// A point's normal (unit, facing the scanner) and the longest scan-image edge that still
-/// counts as continuous surface around it.
-#[derive(Clone, Copy, Debug)]
-struct PointNormal {
-    normal: [f32; 3],
-    edge_limit: f32,
-}
-
-/// Longest continuous edge: 2.5 times the larger of the along-profile spacing (range × angular
-/// step) and the across-profile spacing (distance driven per revolution), plus 1 cm for noise.
-fn edge_limit(range: f64, angle_step_rad: f64, speed: f64, period_s: f64) -> f64 {
-    2.5 * (range * angle_step_rad).max(speed * period_s).max(0.005) + 0.01
-}
-
-fn estimate_normals(
-    samples: &StripSamples<'_>,
-    geometry: &[MeasurementGeometry],
-    image: &ScanImage,
-    links: &Links,
-    min_advance: f64,
-) -> Vec<Option<PointNormal>> {
-    let n = samples.len();
-    let p = |k: usize| Vec3::new(samples.x[k], samples.y[k], samples.z[k]);
-    let step = |k: u32, f: &dyn Fn(usize) -> u32| if k == NO_NEIGHBOUR { NO_NEIGHBOUR } else { f(k as usize) };
-    let mut out = Vec::with_capacity(n);
-    for k in 0..n {
-        if image.column[k] == DROPPED {
-            out.push(None);
-            continue;
-        }
-        let g = &geometry[k];
-        let r = Vec3::from(g.r);
-        let range = r.norm();
-        let limit = edge_limit(range, image.angle_step_rad, g.speed.max(min_advance / image.period_s), image.period_s);
-        let (u, d) = (links.up[k], links.down[k]);
-        let neighbours = [
-            links.left[k],
-            links.right[k],
-            u,
-            d,
-            step(u, &|j| links.left[j]),
-            step(u, &|j| links.right[j]),
-            step(d, &|j| links.left[j]),
-            step(d, &|j| links.right[j]),
-        ];
-        let centre = p(k);
-        let mut pts = [Vec3::zeros(); 9];
-        pts[0] = centre;
-        let mut m = 1;
-        let (mut along, mut across) = (false, false);
-        for (slot, &j) in neighbours.iter().enumerate() {
-            if j == NO_NEIGHBOUR {
-                continue;
-            }
-            let q = p(j as usize);
-            if (q - centre).norm() <= limit {
-                pts[m] = q;
-                m += 1;
-                if slot < 2 {
-                    along = true;
-                } else if slot < 4 {
-                    across = true;
-                }
-            }
-        }
-        if m < 4 || !(along && across) {
-            out.push(None);
-            continue;
-        }
-        let mean = pts[..m].iter().sum::<Vec3>() / m as f64;
-        let mut cov = nalgebra::Matrix3::<f64>::zeros();
-        for q in &pts[..m] {
-            let d = q - mean;
-            cov += d * d.transpose();
-        }
-        let eig = nalgebra::SymmetricEigen::new(cov);
-        let mut order = [0usize, 1, 2];
-        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-        let (l0, l1) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]]);
-        // Not planar (foliage, edges, corners): no reliable normal.
-        if l0.is_nan() || l0 > 0.1 * l1 || l1 <= 0.0 {
-            out.push(None);
-            continue;
-        }
-        let mut normal: Vec3 = eig.eigenvectors.column(order[0]).into();
-        if normal.dot(&r) > 0.0 {
-            normal = -normal;
-        }
-        out.push(Some(PointNormal {
-            normal: [normal.x as f32, normal.y as f32, normal.z as f32],
-            edge_limit: limit as f32,
-        }));
-    }
-    out
 }
 
 fn emit_tiles(
@@ -455,7 +238,8 @@ fn emit_tiles(
     ctx: &StripContext<'_>,
     geometry: &[MeasurementGeometry],
     links: &Links,
-    normals: &[Option<PointNormal>],
+    normals: &[Option<PixelNormal>],
+    segment: &[u32],
 ) -> Vec<TileChunk> {
     let params = ctx.params;
     // Points per tile, in acquisition order.
@@ -463,7 +247,8 @@ fn emit_tiles(
     let max_range2 = params.max_range_m * params.max_range_m;
     for k in 0..samples.len() {
         let r = geometry[k].r;
-        if normals[k].is_none() || r[0] * r[0] + r[1] * r[1] + r[2] * r[2] > max_range2 {
+        if segment[k] >= DROPPED_SEGMENT || normals[k].is_none() || r[0] * r[0] + r[1] * r[1] + r[2] * r[2] > max_range2
+        {
             continue;
         }
         for key in TileKey::with_overlap(samples.x[k], samples.y[k], params.tile_size_m, params.tile_overlap_m) {
@@ -485,7 +270,7 @@ fn emit_tiles(
             for &g in &globals {
                 let k = g as usize;
                 let geo = &geometry[k];
-                let nrm = normals[k].expect("only points with normals are emitted");
+                let Some(nrm) = normals[k] else { continue };
                 chunk.push(
                     [(geo.t0[0] - ox) as f32, (geo.t0[1] - oy) as f32, geo.t0[2] as f32],
                     [geo.r[0] as f32, geo.r[1] as f32, geo.r[2] as f32],
@@ -495,6 +280,7 @@ fn emit_tiles(
                     local(links.right[k]),
                     local(links.down[k]),
                     nrm.edge_limit,
+                    segment[k],
                 );
             }
             chunk
@@ -535,16 +321,30 @@ mod tests {
                 a.push(phi as f32);
             }
         }
-        let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a };
+        let channel = vec![0u8; x.len()];
+        let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
         let params = Parameters::default();
-        let ctx =
-            StripContext { strip: 3, trajectory: 1, trajectory_data: &traj, lever_arm: Vec3::zeros(), params: &params };
+        let segment = SegmentParams::default();
+        let ctx = StripContext {
+            strip: 3,
+            trajectory: 1,
+            trajectory_data: &traj,
+            lever_arm: Vec3::zeros(),
+            params: &params,
+            segment: &segment,
+        };
         let prepared = prepare_strip(&samples, &ctx).unwrap();
         assert_eq!(prepared.stats.rows_per_revolution, rows);
         assert_eq!(prepared.stats.revolutions, 60);
         assert!((prepared.stats.revolution_period_s - 0.02).abs() < 1e-9);
-        // Interior points all get upward normals; only the image border loses some.
+        // Interior points all get upward normals; only the image border loses some. Flat ground
+        // is one segment.
         assert!(prepared.stats.points_with_normal as f64 > 0.9 * prepared.stats.points as f64);
+        let sizes: Vec<usize> = (0..prepared.stats.segmentation.segments as u32)
+            .map(|s| prepared.segment.iter().filter(|&&x| x == s).count())
+            .collect();
+        assert_eq!(prepared.stats.segmentation.segments, 1, "{sizes:?} {:?}", prepared.stats.segmentation);
+        assert!(prepared.segment.iter().filter(|&&s| s == 0).count() as f64 > 0.9 * prepared.stats.points as f64);
         for chunk in &prepared.chunks {
             for nrm in &chunk.normal {
                 assert!(nrm[2] > 0.999, "{nrm:?}");
@@ -560,18 +360,34 @@ mod tests {
         let traj =
             Trajectory::new(vec![0.0, 1.0], vec![Vec3::zeros(), Vec3::new(1.0, 0.0, 0.0)], vec![[0.0; 3]; 2]).unwrap();
         let params = Parameters::default();
-        let ctx =
-            StripContext { strip: 0, trajectory: 0, trajectory_data: &traj, lever_arm: Vec3::zeros(), params: &params };
+        let segment = SegmentParams::default();
+        let ctx = StripContext {
+            strip: 0,
+            trajectory: 0,
+            trajectory_data: &traj,
+            lever_arm: Vec3::zeros(),
+            params: &params,
+            segment: &segment,
+        };
         let xs = [0.0, 0.0];
-        let samples = StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 2.0], scan_angle_deg: &[0.0, 1.0] };
+        let ch = [0u8, 0];
+        let samples =
+            StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 2.0], scan_angle_deg: &[0.0, 1.0], channel: &ch };
         assert_eq!(
             prepare_strip(&samples, &ctx).unwrap_err(),
             PrepareError::NotCovered { index: 1, time: 2.0, start: 0.0, end: 1.0 }
         );
-        let samples = StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 0.4], scan_angle_deg: &[0.0, 1.0] };
-        assert!(matches!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotInOrder { index: 1, .. }));
         let samples =
-            StripSamples { x: &[0.0, f64::NAN], y: &xs, z: &xs, gps_time: &[0.5, 0.6], scan_angle_deg: &[0.0, 1.0] };
+            StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 0.4], scan_angle_deg: &[0.0, 1.0], channel: &ch };
+        assert!(matches!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotInOrder { index: 1, .. }));
+        let samples = StripSamples {
+            x: &[0.0, f64::NAN],
+            y: &xs,
+            z: &xs,
+            gps_time: &[0.5, 0.6],
+            scan_angle_deg: &[0.0, 1.0],
+            channel: &ch,
+        };
         assert_eq!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotFinite { index: 1, field: "x" });
     }
 }

@@ -182,10 +182,18 @@ fn cell_key(p: &[f64; 3], inv_cell: f64, columns: bool) -> u64 {
     (ix << 42) | (iy << 21) | iz
 }
 
+/// Smallest distance between planes at which patches of different strips join one model.
+const JOIN_DISTANCE_MIN_M: f64 = 0.1;
+/// Largest distance between planes at which two segments of one strip pass join one model.
+const SAME_PASS_JOIN_M: f64 = 0.03;
+/// Anchors (0.5 m each) along a strip within which two of its segments count as one pass.
+const PASS_ANCHORS: u32 = 64;
+
 /// Identifies one pass of one strip over a place: passes of the same strip more than
 /// 64 anchors (32 m) apart along the trajectory count as different views.
 #[inline]
 fn pass_tag(strip: u32, anchor: u32) -> u32 {
+    const _: () = assert!(PASS_ANCHORS == 64);
     (strip << 16) | ((anchor >> 6) & 0xFFFF)
 }
 
@@ -217,16 +225,17 @@ pub fn estimate_tile(
     let grid = step.grid_m;
     let total: usize = chunks.iter().map(TileChunk::len).sum();
 
-    // 1. Correct every point and sort it into a cell's surface model.
+    // 1. Correct every point and sort it into a patch: the points of one strip segment in one
+    //    cell whose normals agree (a segment can wrap round a pole or a corner within a cell).
     let mut position = Vec::with_capacity(total);
     let mut measurement = Vec::with_capacity(total);
-    let mut model_of = Vec::with_capacity(total);
-    let mut cells: FxHashMap<u64, CellModels> = FxHashMap::default();
-    let mut models: Vec<SurfaceModel> = Vec::new();
-    for chunk in chunks {
+    let mut patch_of = Vec::with_capacity(total);
+    let mut patches: Vec<Patch> = Vec::new();
+    let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
+    for (chunk_index, chunk) in chunks.iter().enumerate() {
         let corr = &corrections[chunk.trajectory as usize];
         let shift = [chunk.origin[0] - ox, chunk.origin[1] - oy, chunk.origin[2]];
-        let mut last_cell = (u64::MAX, CellModels::default());
+        let mut last = ((u64::MAX, 0u32, 0u32), CellModels::default());
         for k in 0..chunk.len() {
             let c = corr.at(chunk.anchor[k], chunk.lambda[k]);
             let theta = [c[3], c[4], c[5]];
@@ -241,46 +250,82 @@ pub fn estimate_tile(
             let n = rotate_small(theta, chunk.normal[k].map(f64::from));
             position.push(p);
             measurement.push(rr);
-            let key = cell_key(&p, inv_cell, step.column_cells);
-            if key != last_cell.0 {
-                if last_cell.0 != u64::MAX {
-                    cells.insert(last_cell.0, last_cell.1);
+            let key = if params.segment_surfaces {
+                (cell_key(&p, inv_cell, step.column_cells), chunk_index as u32, chunk.segment[k])
+            } else {
+                (cell_key(&p, inv_cell, step.column_cells), u32::MAX, 0)
+            };
+            if key != last.0 {
+                if last.0 .0 != u64::MAX {
+                    patch_slots.insert(last.0, last.1);
                 }
-                last_cell = (key, cells.get(&key).copied().unwrap_or_default());
+                last = (key, patch_slots.get(&key).copied().unwrap_or_default());
             }
-            let slots = &mut last_cell.1;
+            let slots = &mut last.1;
             let mut best = NONE;
             let mut best_cos = cos_group;
             for &id in &slots.ids[..slots.len as usize] {
-                let m = &models[id as usize];
-                let len = dot(m.sum_normal, m.sum_normal).sqrt();
-                let cos = dot(n, m.sum_normal) / len;
+                let m = &patches[id as usize];
+                let cos = dot(n, m.sum_normal) / dot(m.sum_normal, m.sum_normal).sqrt();
                 if cos > best_cos {
                     best_cos = cos;
                     best = id;
                 }
             }
             if best == NONE && (slots.len as usize) < MAX_MODELS_PER_CELL {
-                best = models.len() as u32;
-                models.push(SurfaceModel::new());
+                best = patches.len() as u32;
+                patches.push(Patch {
+                    cell: key.0,
+                    strip: chunk.strip,
+                    anchor: chunk.anchor[k],
+                    sum_normal: [0.0; 3],
+                    sum_position: [0.0; 3],
+                    count: 0,
+                });
                 slots.ids[slots.len as usize] = best;
                 slots.len += 1;
             }
             if best != NONE {
-                let m = &mut models[best as usize];
+                let m = &mut patches[best as usize];
                 for a in 0..3 {
                     m.sum_normal[a] += n[a];
                     m.sum_position[a] += p[a];
                 }
                 m.count += 1;
             }
-            model_of.push(best);
-        }
-        if last_cell.0 != u64::MAX {
-            cells.insert(last_cell.0, last_cell.1);
+            patch_of.push(best);
         }
     }
-    drop(cells);
+    drop(patch_slots);
+    // 1b. Join the patches of a cell into surface models: a patch joins the model whose normal
+    //     agrees and whose plane is nearest (within the join distance), unless that model already
+    //     holds another segment of the same strip pass (road and sidewalk, both sides of a curb).
+    // Not below 10 cm: strips that still disagree by a few centimetres must meet in one model, and
+    // membership flipping between iterations as the strips move would make the corrections jump.
+    let join_distance = step.threshold_m.max(JOIN_DISTANCE_MIN_M);
+    let model_of_patch = if params.segment_surfaces {
+        join_patches(&patches, cos_group, join_distance)
+    } else {
+        (0..patches.len() as u32).collect()
+    };
+    let mut models: Vec<SurfaceModel> = Vec::new();
+    for (patch, &id) in patches.iter().zip(&model_of_patch) {
+        if id == NONE {
+            continue;
+        }
+        if id as usize >= models.len() {
+            models.resize(id as usize + 1, SurfaceModel::new());
+        }
+        let m = &mut models[id as usize];
+        for a in 0..3 {
+            m.sum_normal[a] += patch.sum_normal[a];
+            m.sum_position[a] += patch.sum_position[a];
+        }
+        m.count += patch.count;
+    }
+    let model_of: Vec<u32> =
+        patch_of.iter().map(|&p| if p == NONE { NONE } else { model_of_patch[p as usize] }).collect();
+    drop(patch_of);
     for m in &mut models {
         m.finish_frame();
     }
@@ -398,6 +443,79 @@ pub fn estimate_tile(
         .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
         .collect();
     Ok(TileEstimate { tile, blocks, stats })
+}
+
+/// The points of one strip segment in one cell whose normals agree.
+#[derive(Clone, Debug)]
+struct Patch {
+    cell: u64,
+    strip: u32,
+    /// Anchor of the first point (tells passes of one strip apart, see [`pass_tag`]).
+    anchor: u32,
+    sum_normal: [f64; 3],
+    sum_position: [f64; 3],
+    count: u32,
+}
+
+/// A model of the cell being joined: (id, normal sum, position sum, count, member passes as
+/// (strip, anchor)).
+type OpenModel = (u32, [f64; 3], [f64; 3], f64, Vec<(u32, u32)>);
+
+/// Model id of every patch (dense ids, [`NONE`] where a cell ran out of model slots). Per cell,
+/// larger patches go first (ties by index, so the result does not depend on hash order); a patch
+/// joins the agreeing model with the nearest plane, or opens a new one.
+fn join_patches(patches: &[Patch], cos_group: f64, join_distance: f64) -> Vec<u32> {
+    let mut order: Vec<u32> = (0..patches.len() as u32).collect();
+    order.sort_unstable_by_key(|&i| (patches[i as usize].cell, std::cmp::Reverse(patches[i as usize].count), i));
+    let mut out = vec![NONE; patches.len()];
+    let mut next_model = 0u32;
+    let mut open: Vec<OpenModel> = Vec::new();
+    let mut cell = u64::MAX;
+    for &i in &order {
+        let p = &patches[i as usize];
+        if p.cell != cell {
+            open.clear();
+            cell = p.cell;
+        }
+        let n = normalize(p.sum_normal);
+        let c = p.count as f64;
+        let centre = [p.sum_position[0] / c, p.sum_position[1] / c, p.sum_position[2] / c];
+        let mut best: Option<(usize, f64)> = None;
+        for (slot, (_, sn, sp, count, passes)) in open.iter().enumerate() {
+            let w = normalize(*sn);
+            if dot(n, w) <= cos_group {
+                continue;
+            }
+            let o = [sp[0] / count, sp[1] / count, sp[2] / count];
+            let d = dot(w, [centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]]).abs();
+            // Within one strip pass the geometry is exact up to the noise: another segment of the
+            // same pass joins only if coplanar (a surface split by an occlusion), never a parallel
+            // surface nearby (road and sidewalk either side of a curb).
+            let same_pass = passes.iter().any(|&(s, a)| s == p.strip && a.abs_diff(p.anchor) < PASS_ANCHORS);
+            let limit = if same_pass { SAME_PASS_JOIN_M } else { join_distance };
+            if d <= limit && best.is_none_or(|(_, bd)| d < bd) {
+                best = Some((slot, d));
+            }
+        }
+        let slot = match best {
+            Some((slot, _)) => slot,
+            None if open.len() < 2 * MAX_MODELS_PER_CELL => {
+                open.push((next_model, [0.0; 3], [0.0; 3], 0.0, Vec::new()));
+                next_model += 1;
+                open.len() - 1
+            }
+            None => continue,
+        };
+        let m = &mut open[slot];
+        for a in 0..3 {
+            m.1[a] += p.sum_normal[a];
+            m.2[a] += p.sum_position[a];
+        }
+        m.3 += c;
+        m.4.push((p.strip, p.anchor));
+        out[i as usize] = m.0;
+    }
+    out
 }
 
 /// Latent height at (u, v), bilinear between the four surrounding pixel centres, all of which
@@ -546,6 +664,33 @@ fn scan_triangle(x: [f64; 3], y: [f64; 3], h: [f64; 3], nu: i64, nv: i64, mut vi
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn patch(strip: u32, anchor: u32, normal: [f64; 3], centre: [f64; 3], count: u32) -> Patch {
+        let c = count as f64;
+        Patch { cell: 7, strip, anchor, sum_normal: normal.map(|v| v * c), sum_position: centre.map(|v| v * c), count }
+    }
+
+    /// Road and sidewalk of one pass never share a model; another strip's road and sidewalk each
+    /// join the nearest plane; a coplanar second segment of the same pass joins; an opposite
+    /// normal never does.
+    #[test]
+    fn patches_join_by_pass_normal_and_plane_distance() {
+        let up = [0.0, 0.0, 1.0];
+        let patches = [
+            patch(0, 10, up, [0.5, 0.5, 0.0], 100),               // 0: strip 0 road
+            patch(0, 10, up, [0.5, 0.9, 0.12], 50),               // 1: strip 0 sidewalk, 12 cm up
+            patch(1, 500, up, [0.4, 0.5, 0.02], 90),              // 2: strip 1 road, 2 cm off
+            patch(1, 500, up, [0.4, 0.9, 0.135], 40),             // 3: strip 1 sidewalk
+            patch(0, 11, up, [0.8, 0.2, 0.01], 30),               // 4: strip 0, road split by an occlusion
+            patch(1, 500, [0.0, 0.0, -1.0], [0.5, 0.5, 0.0], 20), // 5: underside
+        ];
+        let m = join_patches(&patches, 30f64.to_radians().cos(), 0.1);
+        assert_eq!(m[2], m[0]);
+        assert_eq!(m[4], m[0]);
+        assert_ne!(m[1], m[0]);
+        assert_eq!(m[3], m[1]);
+        assert!(m[5] != m[0] && m[5] != m[1]);
+    }
 
     /// The scanline rasteriser visits exactly the pixel centres a per-pixel barycentric test
     /// accepts, with the barycentric heights.

@@ -7,14 +7,18 @@
 //! - `CAMP/truth/{strip}.truth`: per point, in file order, the noise-free position, true normal,
 //!   surface id and class ([`precimap_sim::truth`]);
 //! - `CAMP/truth/trajectories/{trajectory}.csv`: the true trajectories;
-//! - `OUT/strips/{strip}.las|.laz`, `OUT/trajectories/{trajectory}.csv`, `OUT/report.json`.
+//! - `OUT/strips/{strip}.las|.laz`, `OUT/trajectories/{trajectory}.csv`, `OUT/report.json`;
+//! - `OUT/segments/{strip}.seg` (optional): the segment id of every point, as `precimap run` wrote
+//!   it; with it, the segmentation is measured too ([`SegmentEvaluation`]).
 //!
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
 
+mod segments;
 mod stats;
 mod trajectory;
 
+pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, TileStripMeans};
 pub use trajectory::{trajectory_errors, TrajectoryErrors};
 
@@ -104,6 +108,14 @@ pub struct Evaluation {
     pub per_class: BTreeMap<String, ClassEvaluation>,
     pub per_strip: Vec<StripEvaluation>,
     pub per_trajectory: Vec<TrajectoryEvaluation>,
+    /// Quality of the scan-image segmentation (when `OUT/segments` exists).
+    pub segmentation: Option<SegmentEvaluation>,
+    /// Share of a segment's points on its dominant true surface, weighted by points (0–1).
+    pub segment_purity: Option<f64>,
+    /// Share of true-surface points (in the scan image) that are in no segment (0–1).
+    pub surface_points_removed: Option<f64>,
+    /// Share of foliage points (in the scan image) that are in no segment (0–1).
+    pub foliage_points_removed: Option<f64>,
     /// After the adjustment, the tiles whose strips disagree most (see
     /// [`TileStripMeans::worst_tiles`]): where the remaining spread comes from.
     pub worst_tiles_after: Vec<TileDisagreement>,
@@ -208,6 +220,7 @@ struct StripOutcome {
     per_class: BTreeMap<u8, (ErrorStats, ErrorStats)>,
     tiles_before: TileStripMeans,
     tiles_after: TileStripMeans,
+    segments: Option<SegmentTally>,
 }
 
 fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
@@ -267,11 +280,26 @@ fn evaluate_strip(
         per_class: BTreeMap::new(),
         tiles_before: TileStripMeans::new(),
         tiles_after: TileStripMeans::new(),
+        segments: None,
     };
+    let segment_path = result_dir.join("segments").join(format!("{id}.seg"));
+    let segment_ids = if segment_path.is_file() {
+        let ids = precimap_formats::read_segments(&segment_path)?;
+        if ids.len() as u64 != expected {
+            return Err(count_error("segment", &segment_path, ids.len()));
+        }
+        Some(ids)
+    } else {
+        None
+    };
+    let mut tally = SegmentTally::default();
     let mut i = 0usize;
     while let Some(t) = truth.next_point()? {
         let k = i;
         i += 1;
+        if let Some(ids) = &segment_ids {
+            tally.add(ids[k], t.surface_id, t.class, t.normal, t.position);
+        }
         if !t.class.is_surface() {
             continue;
         }
@@ -294,6 +322,7 @@ fn evaluate_strip(
         out.tiles_before.add(tile, index, eb);
         out.tiles_after.add(tile, index, ea);
     }
+    out.segments = segment_ids.map(|_| tally);
     Ok(out)
 }
 
@@ -343,8 +372,12 @@ fn assemble(
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
+    let mut segment_tallies = Vec::new();
     for ((id, _), s) in strip_jobs.iter().zip(strips) {
         points += s.points;
+        if let Some(t) = s.segments {
+            segment_tallies.push(t);
+        }
         before.merge(&s.before);
         after.merge(&s.after);
         for (class, (b, a)) in &s.per_class {
@@ -410,7 +443,13 @@ fn assemble(
         .collect();
 
     let surface_points = before.count();
+    let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
+        .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
     Evaluation {
+        segment_purity: segmentation.as_ref().map(|s| s.purity),
+        surface_points_removed: segmentation.as_ref().map(|s| s.surface_points_removed),
+        foliage_points_removed: segmentation.as_ref().map(|s| s.foliage_points_removed),
+        segmentation,
         strip_offset_spread_m: metric(spread_before, spread_after),
         surface_error_rms_m: metric(before.rms(), after.rms()),
         surface_error_mean_m: metric(before.mean(), after.mean()),

@@ -4,7 +4,7 @@
 use crate::error::FrameworkError;
 use crate::exec::TaskContext;
 use crate::objects::{validate_key, Objects};
-use crate::plan::{new_campaign, STAGE_EXPORT, STAGE_REPORT};
+use crate::plan::{new_campaign, SEGMENTS_PREFIX, STAGE_EXPORT, STAGE_PREPARE, STAGE_REPORT};
 use crate::worker::{Executor, ExecutorConfig};
 use precimap_formats::{Manifest, ManifestProblem};
 use precimap_jobs::{CampaignRecord, CampaignState, JobStore, QueueConfig};
@@ -71,7 +71,14 @@ impl Framework {
     /// The downloadable results of a succeeded campaign: `(name, object key)` with names such as
     /// `strips/p01-left.las`, `trajectories/p01.csv`, `report.json`.
     pub async fn results(&self, id: Uuid) -> Result<Vec<(String, String)>, FrameworkError> {
-        let mut out = Vec::new();
+        let mut out: Vec<(String, String)> = self
+            .jobs
+            .outputs(id, STAGE_PREPARE, 0)
+            .await?
+            .into_iter()
+            .filter(|o| o.name.starts_with(SEGMENTS_PREFIX))
+            .map(|o| (o.name, o.object_key))
+            .collect();
         for stage in [STAGE_EXPORT, STAGE_REPORT] {
             for o in self.jobs.outputs(id, stage, 0).await? {
                 out.push((o.name, o.object_key));

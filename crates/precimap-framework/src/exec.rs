@@ -8,12 +8,12 @@ use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
     CorrectionsRef, EstimateResult, ExportResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
-    BLOCKS_PREFIX, OUTPUT_CORRECTIONS,
+    BLOCKS_PREFIX, OUTPUT_CORRECTIONS, SEGMENTS_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::Vec3;
-use precimap_estimate::TileChunk;
+use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
 use precimap_pipeline::tasks::{export_strip_file, export_trajectory_file, prepare_strip_chunks};
@@ -154,16 +154,21 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             };
             let index = strip.index;
             let prepared = blocking(move || {
-                prepare_strip_chunks(&entry, index, &traj, &params).map(|p| {
+                prepare_strip_chunks(&entry, index, &traj, &params, &SegmentParams::default()).map(|p| {
                     let encoded: Vec<_> = p.chunks.iter().map(|c| (c.tile, c.encode())).collect();
-                    (p.stats, encoded)
+                    (p.stats, encoded, precimap_formats::encode_segments(&p.segment))
                 })
             })
             .await?
             .map_err(|e| TaskError::from_pipeline(e).naming(&strip.uri))?;
             drop(local);
-            let (stats, chunks) = prepared;
-            let mut outputs = Vec::with_capacity(chunks.len());
+            let (stats, chunks, segments) = prepared;
+            let mut outputs = Vec::with_capacity(chunks.len() + 1);
+            // The segmentation is a result too (evaluate measures its purity).
+            let name = format!("{SEGMENTS_PREFIX}{}.seg", strip.id);
+            let key = format!("{prefix}/out/{tag}/{name}");
+            ctx.put(&key, segments).await?;
+            outputs.push(OutputKey { name, object_key: key });
             let mut tiles = Vec::with_capacity(chunks.len());
             for (tile, bytes) in chunks {
                 let key = format!("{prefix}/tiles/{tile}/{}.{tag}.chunk", strip.id);

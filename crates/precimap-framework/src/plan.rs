@@ -37,6 +37,8 @@ pub const KIND_WRITE_REPORT: &str = "write_report";
 /// Output names: `tile` chunks are named by their tile key, blocks by `blocks/{trajectory index}`.
 pub const OUTPUT_CORRECTIONS: &str = "corrections";
 pub const BLOCKS_PREFIX: &str = "blocks/";
+/// A strip's per-point segment ids (a result, like the exported strips).
+pub const SEGMENTS_PREFIX: &str = "segments/";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct StripInput {
@@ -371,7 +373,7 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<Ti
         let range = &mut ranges[strip.trajectory as usize];
         range.0 = range.0.min(r.stats.first_anchor);
         range.1 = range.1.max(r.stats.last_anchor);
-        for out in &task.outputs {
+        for out in task.outputs.iter().filter(|o| !o.name.starts_with(SEGMENTS_PREFIX)) {
             let tile: TileKey =
                 out.name.parse().map_err(|_| format!("{}: output {:?} is not a tile key", task.key, out.name))?;
             tiles.entry(tile).or_default().push(ChunkRef { strip: r.strip, key: out.object_key.clone() });

@@ -189,6 +189,12 @@ pub fn run_campaign(
         export_trajectory_task(&campaign, t, c, out)?;
     }
     let export_s = t.elapsed().as_secs_f64();
+    // The segmentation is a result too (evaluate measures its purity against the truth).
+    let segments = out.join("segments");
+    if segments.exists() {
+        std::fs::remove_dir_all(&segments).map_err(|e| PipelineError::io(&segments, e))?;
+    }
+    std::fs::rename(work.join("segments"), &segments).map_err(|e| PipelineError::io(&segments, e))?;
     if !options.keep_work {
         std::fs::remove_dir_all(&work).map_err(|e| PipelineError::io(&work, e))?;
     }

@@ -8,8 +8,8 @@ use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, PreparedStrip, StripContext,
-    StripSamples, TileChunk, TileEstimate, TrajectorySolution,
+    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, PreparedStrip, SegmentParams,
+    StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
 };
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -17,6 +17,12 @@ use std::path::{Path, PathBuf};
 /// Where a tile chunk of one strip lives in the work folder.
 pub fn chunk_path(work: &Path, tile: TileKey, strip_id: &str) -> PathBuf {
     work.join("tiles").join(tile.to_string()).join(format!("{strip_id}.chunk"))
+}
+
+/// Where the per-point segment ids of one strip live in the work folder (`run` moves the folder
+/// to `OUT/segments`).
+pub fn segments_path(work: &Path, strip_id: &str) -> PathBuf {
+    work.join("segments").join(format!("{strip_id}.seg"))
 }
 
 /// Writes a file atomically (temporary name, then rename), so a reader never sees half a file.
@@ -34,11 +40,12 @@ pub struct PrepareOutcome {
     pub tiles: Vec<TileKey>,
 }
 
-/// `segment_strip`: reads one strip, checks it against its trajectory, and writes its tile chunks.
+/// `segment_strip`: reads one strip, checks it against its trajectory, segments it, and writes its
+/// tile chunks and its per-point segment ids (`segments/{strip}.seg`).
 pub fn prepare_strip_task(campaign: &Campaign, strip: usize, work: &Path) -> Result<PrepareOutcome, PipelineError> {
     let entry = &campaign.strips[strip];
-    let traj = &campaign.trajectories[entry.trajectory as usize];
-    let prepared = prepare_strip_chunks(entry, strip as u32, traj, &campaign.params)?;
+    let prepared = prepare_strip_in_memory(campaign, strip, &SegmentParams::default())?;
+    write_atomic(&segments_path(work, &entry.id), &precimap_formats::encode_segments(&prepared.segment))?;
     let mut tiles = Vec::with_capacity(prepared.chunks.len());
     for chunk in &prepared.chunks {
         write_atomic(&chunk_path(work, chunk.tile, &entry.id), &chunk.encode())?;
@@ -47,14 +54,29 @@ pub fn prepare_strip_task(campaign: &Campaign, strip: usize, work: &Path) -> Res
     Ok(PrepareOutcome { stats: prepared.stats, tiles })
 }
 
-/// The storage-free part of `segment_strip`: reads the strip file, checks it against its
-/// trajectory and returns its tile chunks in memory. `strip_index` and `entry.trajectory` are the
-/// campaign-wide indices the chunks carry.
+/// Reads strip `strip` of the campaign and prepares it (geometry, scan image, segmentation,
+/// tile chunks) without writing anything. A corrupt or truncated strip is an error naming the
+/// file and the point index.
+pub fn prepare_strip_in_memory(
+    campaign: &Campaign,
+    strip: usize,
+    segment_params: &SegmentParams,
+) -> Result<PreparedStrip, PipelineError> {
+    let entry = &campaign.strips[strip];
+    let traj = &campaign.trajectories[entry.trajectory as usize];
+    prepare_strip_chunks(entry, strip as u32, traj, &campaign.params, segment_params)
+}
+
+/// The storage-free part of `segment_strip` over explicit entries (what a job-framework executor
+/// has): reads the strip file, checks it against its trajectory and returns its segment ids and
+/// tile chunks in memory. `strip_index` and `entry.trajectory` are the campaign-wide indices the
+/// chunks carry.
 pub fn prepare_strip_chunks(
     entry: &StripEntry,
     strip_index: u32,
     traj: &TrajectoryEntry,
     params: &Parameters,
+    segment_params: &SegmentParams,
 ) -> Result<PreparedStrip, PipelineError> {
     let points = precimap_formats::read_strip(&entry.path)?;
     let (t_first, t_last) = time_range(&points.gps_time);
@@ -76,6 +98,7 @@ pub fn prepare_strip_chunks(
         z: &points.z,
         gps_time: &points.gps_time,
         scan_angle_deg: &points.scan_angle_deg,
+        channel: &points.channel,
     };
     let ctx = StripContext {
         strip: strip_index,
@@ -83,6 +106,7 @@ pub fn prepare_strip_chunks(
         trajectory_data: &traj.data,
         lever_arm: entry.lever_arm,
         params,
+        segment: segment_params,
     };
     prepare_strip(&samples, &ctx).map_err(|source| PipelineError::Prepare {
         strip: entry.id.clone(),

@@ -1,0 +1,254 @@
+//! Segmentation of one scan strip in its acquisition topology (paper §4): the points are put into
+//! a scan image ([`ScanImage`]), every pixel gets a normal from a robust RANSAC plane fit in its
+//! image neighbourhood ([`estimate_normals`]), neighbouring pixels are compared by C0 (gap off the
+//! surface relative to the noise, jump relative to the beam spacing) and C1 (normal angle)
+//! continuity, and the Felzenszwalb–Huttenlocher graph segmentation ([`segment`]) groups them
+//! into continuous regions; regions smaller than a threshold (tree foliage, noise) are removed.
+//!
+//! Pure: slices in, vectors out, no I/O. Memory is a few words per point of one strip.
+
+mod fh;
+mod image;
+mod normals;
+
+pub use fh::{felzenszwalb_huttenlocher, UnionFind};
+pub use image::{ScanImage, DROPPED, NO_POINT};
+pub use normals::{estimate_normals, NormalMethod, PixelNormal};
+
+/// Segment id of a point that belongs to no segment (no normal, or a removed small region).
+pub const NO_SEGMENT: u32 = u32::MAX;
+/// Segment id of a point whose revolution was dropped at standstill (never segmented).
+pub const DROPPED_SEGMENT: u32 = u32::MAX - 1;
+
+/// Parameters of the segmentation; the defaults are what the simulated campaigns were tuned with.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SegmentParams {
+    /// Half-width of the image window of the normal fit: the 3×3 ring plus the pixels along the
+    /// row and column out to this distance (2 → 12 neighbours), at most 8.
+    pub window: u32,
+    pub method: NormalMethod,
+    /// RANSAC inlier tolerance: `inlier_base_m + inlier_per_range · range` from the plane.
+    pub inlier_base_m: f64,
+    pub inlier_per_range: f64,
+    /// A normal needs at least this many inliers (centre included).
+    pub min_inliers: u32,
+    /// Longest continuous image edge: `gap_factor ×` the larger of the along-profile beam spacing
+    /// (range × angular step) and the across-profile spacing (scan-head advance per revolution),
+    /// plus `gap_base_m`.
+    pub gap_factor: f64,
+    pub gap_base_m: f64,
+    /// Edge weight = C0 + C1 with C0 = max(step off the surface / inlier tolerance − 1, 0) and
+    /// C1 = max(normal angle − `c1_noise_deg`, 0) / `c1_scale_deg`: differences within the noise
+    /// weigh nothing, so a surface (even a curved one) is one zero-weight component and only real
+    /// discontinuities compete with Felzenszwalb–Huttenlocher's `k / |C|`.
+    pub c1_noise_deg: f64,
+    pub c1_scale_deg: f64,
+    /// Hard C0 break: neighbours further apart along their mean normal than this many inlier
+    /// tolerances are never joined (a curb, a window recess, an occlusion edge).
+    pub c0_break: f64,
+    /// Hard C1 break: neighbours whose normals differ by more than this are never joined.
+    pub c1_break_deg: f64,
+    /// Felzenszwalb–Huttenlocher `k` (in edge-weight units × points).
+    pub fh_k: f64,
+    /// Regions with fewer points are removed (after joining them to a neighbour over an edge no
+    /// heavier than `merge_max`, i.e. within the noise).
+    pub min_region_points: u32,
+    pub merge_max: f64,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        Self {
+            window: 2,
+            method: NormalMethod::Ransac,
+            inlier_base_m: 0.015,
+            inlier_per_range: 0.0005,
+            min_inliers: 6,
+            gap_factor: 2.5,
+            gap_base_m: 0.01,
+            c1_noise_deg: 5.0,
+            c1_scale_deg: 10.0,
+            c0_break: 2.0,
+            c1_break_deg: 40.0,
+            fh_k: 3.0,
+            min_region_points: 15,
+            merge_max: 1.0,
+        }
+    }
+}
+
+/// A strip's points and scan-head positions (absolute, acquisition order).
+#[derive(Clone, Copy, Debug)]
+pub struct StripGeometry<'a> {
+    pub x: &'a [f64],
+    pub y: &'a [f64],
+    pub z: &'a [f64],
+    pub head: &'a [[f64; 3]],
+}
+
+impl StripGeometry<'_> {
+    #[inline]
+    pub fn point(&self, k: usize) -> [f64; 3] {
+        [self.x[k], self.y[k], self.z[k]]
+    }
+
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+}
+
+/// The result of segmenting one strip.
+#[derive(Clone, Debug)]
+pub struct Segmentation {
+    /// Per point: its normal and edge limit, if the fit succeeded.
+    pub normals: Vec<Option<PixelNormal>>,
+    /// Per point: segment id (dense, in order of first point), [`NO_SEGMENT`], or
+    /// [`DROPPED_SEGMENT`] for points of revolutions dropped at standstill.
+    pub segment: Vec<u32>,
+    pub stats: SegmentStats,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SegmentStats {
+    /// Points in the image (not dropped at standstill).
+    pub points_in_image: u64,
+    pub points_with_normal: u64,
+    /// Regions found by Felzenszwalb–Huttenlocher (including the small ones).
+    pub regions: u64,
+    /// Regions kept (the segments).
+    pub segments: u64,
+    /// Points with a normal in removed small regions.
+    pub points_in_small_regions: u64,
+    /// Points in kept segments.
+    pub points_segmented: u64,
+}
+
+/// Segments a strip whose scan image is `image` (after standstill thinning).
+pub fn segment_strip(geo: &StripGeometry<'_>, image: &ScanImage, params: &SegmentParams) -> Segmentation {
+    let grid = image.grid();
+    let normals = estimate_normals(geo, image, &grid, params);
+    let mut segment = segment(geo, image, &grid, &normals, params);
+    for (id, &c) in segment.ids.iter_mut().zip(&image.column) {
+        if c == DROPPED {
+            *id = DROPPED_SEGMENT;
+        }
+    }
+    let mut stats = SegmentStats {
+        points_in_image: image.column.iter().filter(|&&c| c != DROPPED).count() as u64,
+        points_with_normal: normals.iter().filter(|n| n.is_some()).count() as u64,
+        ..Default::default()
+    };
+    stats.points_segmented = segment.ids.iter().filter(|&&s| s < DROPPED_SEGMENT).count() as u64;
+    stats.points_in_small_regions = stats.points_with_normal - stats.points_segmented;
+    stats.regions = segment.regions;
+    stats.segments = segment.segments;
+    Segmentation { normals, segment: segment.ids, stats }
+}
+
+struct Regions {
+    ids: Vec<u32>,
+    regions: u64,
+    segments: u64,
+}
+
+/// Homogeneity of two neighbouring pixels: `None` where C0 or C1 continuity is broken outright,
+/// else the edge weight (0 = same plane).
+#[inline]
+pub fn edge_weight(
+    p: [f64; 3],
+    q: [f64; 3],
+    np: &PixelNormal,
+    nq: &PixelNormal,
+    params: &SegmentParams,
+    cos_noise: f64,
+) -> Option<f32> {
+    let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+    let gap = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    if gap > np.edge_limit.max(nq.edge_limit) as f64 {
+        return None;
+    }
+    let (a, b) = (np.normal.map(f64::from), nq.normal.map(f64::from));
+    let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
+    // Cheap cosine tests first: most neighbours are within the noise.
+    let angle = if cos >= cos_noise { 0.0 } else { cos.acos().to_degrees() };
+    if angle > params.c1_break_deg {
+        return None;
+    }
+    let m = [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
+    let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt().max(1e-12);
+    let step = ((m[0] * d[0] + m[1] * d[1] + m[2] * d[2]) / len).abs();
+    let tol = np.tolerance.max(nq.tolerance) as f64;
+    if step > params.c0_break * tol {
+        return None;
+    }
+    let c0 = (step / tol - 1.0).max(0.0);
+    let c1 = (angle - params.c1_noise_deg).max(0.0) / params.c1_scale_deg;
+    Some((c0 + c1) as f32)
+}
+
+fn segment(
+    geo: &StripGeometry<'_>,
+    image: &ScanImage,
+    grid: &[u32],
+    normals: &[Option<PixelNormal>],
+    params: &SegmentParams,
+) -> Regions {
+    let n = geo.len();
+    let rows = image.rows as usize;
+    let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(2 * n);
+    let cos_noise = params.c1_noise_deg.to_radians().cos();
+    for (pixel, &k) in grid.iter().enumerate() {
+        if k == NO_POINT {
+            continue;
+        }
+        let Some(nk) = &normals[k as usize] else { continue };
+        let (c, r) = (pixel / rows, pixel % rows);
+        let mut link = |j: u32| {
+            if j == NO_POINT {
+                return;
+            }
+            if let Some(nj) = &normals[j as usize] {
+                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params, cos_noise) {
+                    edges.push((w, k, j));
+                }
+            }
+        };
+        // Rows wrap around (the revolution is a circle).
+        if rows > 2 {
+            link(grid[if r + 1 < rows { pixel + 1 } else { pixel + 1 - rows }]);
+        }
+        if c + 1 < image.columns as usize {
+            link(grid[pixel + rows]);
+        }
+    }
+    let mut uf = felzenszwalb_huttenlocher(n, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
+    let mut ids = vec![NO_SEGMENT; n];
+    let mut label: Vec<u32> = vec![NO_SEGMENT; n];
+    let (mut regions, mut segments) = (0u64, 0u64);
+    for k in 0..n {
+        if normals[k].is_none() {
+            continue;
+        }
+        let root = uf.find(k as u32) as usize;
+        if label[root] == NO_SEGMENT {
+            regions += 1;
+            if uf.size(root as u32) >= params.min_region_points {
+                label[root] = segments as u32;
+                segments += 1;
+            } else {
+                label[root] = NO_SEGMENT - 1;
+            }
+        }
+        if label[root] != NO_SEGMENT - 1 {
+            ids[k] = label[root];
+        }
+    }
+    Regions { ids, regions, segments }
+}
+
+#[cfg(test)]
+mod tests;
