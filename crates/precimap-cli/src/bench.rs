@@ -27,6 +27,26 @@ pub enum BenchCommand {
     /// Strip pre-processing (LAZ decoding, geometry, scan image, RANSAC normals, segmentation,
     /// tiling and chunk encoding) on a simulated LAZ campaign: per-core throughput on all cores,
     /// cost per point for growing strip counts, peak memory, and the segmentation against truth.
+    /// Queue throughput (claim + complete cycles with 1, 4, 16 claimers on SQLite and PostgreSQL)
+    /// and the job framework's overhead against the in-process driver on a simulated campaign.
+    Queue {
+        /// PostgreSQL server to benchmark on (a fresh database is created and dropped).
+        #[arg(long, env = "PRECIMAP_TEST_POSTGRES", default_value = "postgres://postgres@127.0.0.1:5432/postgres")]
+        postgres: String,
+        /// Claim + complete cycles per measurement.
+        #[arg(long, default_value_t = 3000)]
+        tasks: usize,
+        /// Campaign for the overhead measurement (a full run in-process and through the framework).
+        #[arg(long, default_value = "small")]
+        overhead_scale: precimap_sim::Scale,
+        /// Skip the overhead measurement.
+        #[arg(long)]
+        no_overhead: bool,
+        #[arg(long, default_value = "target/bench")]
+        cache: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
     Preprocess {
         #[arg(long, default_value = "small")]
         scale: precimap_sim::Scale,
@@ -50,6 +70,9 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
+        BenchCommand::Queue { postgres, tasks, overhead_scale, no_overhead, cache, json } => {
+            bench_queue(&postgres, tasks, (!no_overhead).then_some(overhead_scale), &cache, json)
+        }
         BenchCommand::Preprocess { scale, seed, cache, json } => bench_preprocess(scale, seed, &cache, json),
         BenchCommand::Solve { anchors, json } => {
             let rate = precimap_solve::bench_solve(anchors, 5);
@@ -330,4 +353,110 @@ fn peak_rss_bytes() -> u64 {
                 .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()).map(|kb| kb * 1024))
         })
         .unwrap_or(0)
+}
+
+#[derive(Serialize)]
+struct QueueBench {
+    sqlite: Vec<precimap_jobs::bench::QueueBenchFigures>,
+    postgres: Vec<precimap_jobs::bench::QueueBenchFigures>,
+    postgres_16_cycles_per_s: f64,
+    postgres_16_claim_p99_ms: f64,
+    overhead: Option<FrameworkOverhead>,
+}
+
+#[derive(Serialize)]
+struct FrameworkOverhead {
+    scale: String,
+    points: u64,
+    in_process_s: f64,
+    framework_s: f64,
+    /// (framework − in-process) / in-process wall time.
+    overhead_ratio: f64,
+}
+
+fn bench_queue(
+    postgres: &str,
+    tasks: usize,
+    overhead_scale: Option<precimap_sim::Scale>,
+    cache: &Path,
+    json: bool,
+) -> Result<()> {
+    let rt = tokio::runtime::Runtime::new()?;
+    let mut sqlite = Vec::new();
+    let mut pg = Vec::new();
+    for claimers in [1, 4, 16] {
+        let f = rt.block_on(precimap_jobs::bench::queue_bench("sqlite://", claimers, tasks))?;
+        if !json {
+            eprintln!(
+                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
+                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+            );
+        }
+        sqlite.push(f);
+        let f = rt
+            .block_on(precimap_jobs::bench::queue_bench(postgres, claimers, tasks))
+            .with_context(|| format!("PostgreSQL at {postgres}"))?;
+        if !json {
+            eprintln!(
+                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
+                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+            );
+        }
+        pg.push(f);
+    }
+    let overhead = match overhead_scale {
+        None => None,
+        Some(scale) => {
+            let dir = cache.join(format!("{}-1", format!("{scale:?}").to_lowercase()));
+            let campaign = dir.join("campaign");
+            if !campaign.join("manifest.json").exists() {
+                precimap_sim::simulate(&precimap_sim::SimConfig::for_scale(scale, 1), &campaign, false)?;
+            }
+            let manifest = campaign.join("manifest.json");
+            let started = Instant::now();
+            let report = precimap_pipeline::run_campaign(
+                &manifest,
+                &precimap_pipeline::RunOptions { out_dir: dir.join("out-in-process"), keep_work: false },
+                &|_| {},
+            )?;
+            let in_process_s = started.elapsed().as_secs_f64();
+            let started = Instant::now();
+            let options = precimap_framework::EmbeddedOptions {
+                out_dir: dir.join("out-framework"),
+                concurrency: rayon::current_num_threads(),
+                keep_state: false,
+            };
+            rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {}))?;
+            let framework_s = started.elapsed().as_secs_f64();
+            let o = FrameworkOverhead {
+                scale: format!("{scale:?}").to_lowercase(),
+                points: report.points_total,
+                in_process_s,
+                framework_s,
+                overhead_ratio: (framework_s - in_process_s) / in_process_s,
+            };
+            if !json {
+                eprintln!(
+                    "framework overhead on {}: in-process {:.1} s, framework {:.1} s → {:+.1} %",
+                    o.scale,
+                    o.in_process_s,
+                    o.framework_s,
+                    100.0 * o.overhead_ratio
+                );
+            }
+            Some(o)
+        }
+    };
+    let last = pg.last().cloned();
+    let result = QueueBench {
+        postgres_16_cycles_per_s: last.as_ref().map_or(0.0, |f| f.cycles_per_s),
+        postgres_16_claim_p99_ms: last.as_ref().map_or(0.0, |f| f.claim_p99_ms),
+        sqlite,
+        postgres: pg,
+        overhead,
+    };
+    if json {
+        println!("{}", serde_json::to_string_pretty(&result)?);
+    }
+    Ok(())
 }

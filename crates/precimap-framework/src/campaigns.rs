@@ -64,7 +64,7 @@ impl Framework {
             return Err(SubmitError::Invalid { problems });
         }
         let prefix = format!("c/{}", Uuid::new_v4().simple());
-        let (campaign, first) = new_campaign(manifest, &prefix, self.queue.clone());
+        let (campaign, first) = new_campaign(manifest, &prefix, self.queue);
         Ok(self.jobs.create_campaign(campaign, first).await.map_err(FrameworkError::from)?)
     }
 

@@ -421,7 +421,7 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
-    let step = state.params.schedule[state.step_index].clone();
+    let step = state.params.schedule[state.step_index];
     let tasks = state
         .tiles
         .iter()
@@ -433,7 +433,7 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 prefix: state.prefix.clone(),
                 iteration: state.iteration,
                 tile: *tile,
-                step: step.clone(),
+                step,
                 params: state.params.clone(),
                 trajectories: state.trajectories.len() as u32,
                 chunks: chunks.clone(),
@@ -473,7 +473,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
-    let step = state.params.schedule[state.step_index].clone();
+    let step = state.params.schedule[state.step_index];
     let with_sigma = state.step_index + 1 == state.params.schedule.len();
     let tasks = state
         .trajectories
@@ -483,7 +483,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
                 prefix: state.prefix.clone(),
                 iteration: state.iteration,
                 trajectory: traj.clone(),
-                step: step.clone(),
+                step,
                 params: state.params.clone(),
                 with_sigma,
                 current: corrections_ref(state, traj.index),
