@@ -84,6 +84,12 @@ pub struct Parameters {
     /// An anchor's own observations are trusted only in directions carrying at least this share
     /// of its strongest direction's information (rotations compared as displacements at 10 m).
     pub weak_information_ratio: f64,
+    /// Steps with pixels finer than this evaluate the latent surface exactly at the points (the
+    /// limit of an infinitely fine raster) instead of rasterising every triangle into pixels:
+    /// same heights up to the raster's discretisation, at a cost independent of the pixel count.
+    /// Coarser steps keep the raster, whose pixels smooth the latent surface while strips are
+    /// still far apart. 0 rasterises every step.
+    pub point_latent_below_grid_m: f64,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,
     /// Converged when no anchor moves a point at 10 m range by more than this between iterations.
@@ -108,6 +114,7 @@ impl Default for Parameters {
             sigma_curvature_position_m: 0.0001,
             sigma_curvature_rotation_deg: 0.0001,
             weak_information_ratio: 0.01,
+            point_latent_below_grid_m: 0.03,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
         }
@@ -204,6 +211,12 @@ impl Parameters {
                     });
                 }
             }
+        }
+        if !(self.point_latent_below_grid_m.is_finite() && self.point_latent_below_grid_m >= 0.0) {
+            out.push(ParameterProblem {
+                field: "point_latent_below_grid_m".into(),
+                problem: "must be zero (always rasterise) or positive".into(),
+            });
         }
         if !(self.min_revolution_advance_m.is_finite() && self.min_revolution_advance_m >= 0.0) {
             out.push(ParameterProblem {
