@@ -151,9 +151,14 @@ pub fn run_campaign(
     let mut converged = false;
     let mut solutions = Vec::new();
     let mut step_index = 0;
+    let mut robust_sigma: Option<f64> = None;
     while step_index < schedule.len() {
         let iteration_started = Instant::now();
-        let step = &schedule[step_index];
+        let mut step = schedule[step_index];
+        if let Some(sigma) = robust_sigma {
+            step.threshold_m = step.threshold_m.max(campaign.params.threshold_floor_sigmas * sigma);
+        }
+        let step = &step;
         let last = step_index + 1 == schedule.len();
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
@@ -162,6 +167,7 @@ pub fn run_campaign(
         corrections = sol.iter().map(|s| s.corrections.clone()).collect();
         solutions = sol;
         histogram = stats.histogram.clone();
+        robust_sigma = histogram.robust_sigma_m();
         let report = IterationReport {
             iteration: iterations.len() + 1,
             grid_m: step.grid_m,
