@@ -83,6 +83,8 @@ pub struct TileStats {
     pub residual_sum_m: f64,
     pub residual_sum2_m2: f64,
     pub surface_models: u64,
+    /// Raster pixels; in point-sampled steps the sampled core points, so that `pixels_shared` and
+    /// `pixel_std_sum_m` describe the latent surface under the points.
     pub pixels: u64,
     pub pixels_shared: u64,
     /// Sum over shared pixels of the standard deviation of the strips' heights.
