@@ -98,6 +98,9 @@ struct EstimateBench {
     estimate_points_per_s_per_core: f64,
     /// The same on one thread.
     estimate_points_per_s_single_thread: f64,
+    /// estimate_tile per CPU-second actually spent on a core (thread CPU time, Linux), all
+    /// threads: robust when other processes share the machine; NaN where unavailable.
+    estimate_points_per_cpu_s: f64,
     /// Including reading and decoding the tile chunks, all cores, per core.
     iteration_points_per_s_per_core: f64,
     parallel_efficiency: f64,
@@ -125,18 +128,23 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
     let threads = rayon::current_num_threads();
 
     // One pass over all tiles: returns (compute seconds summed over tiles, wall seconds, points).
-    let pass = |pool: &rayon::ThreadPool| -> Result<(f64, f64, u64, u64, u64)> {
+    let pass = |pool: &rayon::ThreadPool| -> Result<(f64, f64, u64, u64, u64, f64)> {
         let started = Instant::now();
         let per_tile = pool.install(|| {
             tiles
                 .par_iter()
-                .map(|(tile, strips)| -> Result<(f64, u64, u64)> {
+                .map(|(tile, strips)| -> Result<(f64, u64, u64, f64)> {
                     let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
                     let chunks = tasks::load_tile(&work, **tile, &ids)?;
                     let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
                     let t = Instant::now();
+                    let cpu = thread_cpu_s();
                     let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, &campaign.params, &step)?;
-                    Ok((t.elapsed().as_secs_f64(), est.stats.points, copies))
+                    let cpu = match (cpu, thread_cpu_s()) {
+                        (Some(a), Some(b)) => b - a,
+                        _ => f64::NAN,
+                    };
+                    Ok((t.elapsed().as_secs_f64(), est.stats.points, copies, cpu))
                 })
                 .collect::<Result<Vec<_>>>()
         })?;
@@ -145,15 +153,16 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         let points: u64 = per_tile.iter().map(|r| r.1).sum();
         let copies: u64 = per_tile.iter().map(|r| r.2).sum();
         let largest = per_tile.iter().map(|r| r.2).max().unwrap_or(0);
-        Ok((compute, wall, points, copies, largest))
+        let cpu: f64 = per_tile.iter().map(|r| r.3).sum();
+        Ok((compute, wall, points, copies, largest, cpu))
     };
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     eprintln!("one 2 cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len());
-    let (c1, _w1, points, copies, largest) = pass(&single)?;
-    let (_cn, wn, _, _, _) = pass(&all)?;
-    let (cn2, wn2, _, _, _) = pass(&all)?;
+    let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
+    let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
+    let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
     let wall_all = wn.min(wn2);
     let compute_all = cn2;
     let result = EstimateBench {
@@ -166,6 +175,7 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         // Compute seconds are summed over tiles, i.e. core-seconds.
         estimate_points_per_s_per_core: points as f64 / compute_all,
         estimate_points_per_s_single_thread: points as f64 / c1,
+        estimate_points_per_cpu_s: points as f64 / cpu1.min(cpu2).min(cpu3),
         iteration_points_per_s_per_core: points as f64 / (wall_all * threads as f64),
         parallel_efficiency: (points as f64 / wall_all) / (points as f64 / c1) / threads as f64,
         peak_rss_bytes: peak_rss_bytes(),
@@ -176,12 +186,13 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
     } else {
         println!(
             "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
-             single thread: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
+             single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
              peak RSS {:.0} MiB (largest tile {} point copies)",
             result.points_in_tiles,
             result.tiles,
             result.point_copies,
             result.estimate_points_per_s_single_thread / 1e6,
+            result.estimate_points_per_cpu_s / 1e6,
             threads,
             result.estimate_points_per_s_per_core / 1e6,
             result.iteration_points_per_s_per_core / 1e6,
@@ -342,6 +353,13 @@ fn cpu_seconds() -> f64 {
 /// Resets the kernel's peak-RSS mark so it covers only what follows (Linux; a no-op elsewhere).
 fn reset_peak_rss() {
     let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+/// CPU time the calling thread has spent on a core (first field of
+/// `/proc/thread-self/schedstat`, nanoseconds), `None` where unavailable.
+fn thread_cpu_s() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    s.split_whitespace().next()?.parse::<u64>().ok().map(|ns| ns as f64 * 1e-9)
 }
 
 fn peak_rss_bytes() -> u64 {

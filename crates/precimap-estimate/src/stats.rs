@@ -40,6 +40,32 @@ impl ResidualHistogram {
         self.above += other.above;
     }
 
+    /// Robust σ of the distances: 1.4826 × the median of |e| (linear within a bin). `None` when
+    /// the histogram is empty or the median lies beyond its range.
+    pub fn robust_sigma_m(&self) -> Option<f64> {
+        let total = self.total();
+        if total == 0 {
+            return None;
+        }
+        let zero = -self.min_m / self.bin_m;
+        // Bins are symmetric about zero: |e| in [j·b, (j+1)·b) gathers bins zero + j and zero − 1 − j.
+        let centre = zero.round() as usize;
+        if (zero - centre as f64).abs() > 1e-9 || centre == 0 || centre >= self.counts.len() {
+            return None;
+        }
+        let half = total as f64 / 2.0;
+        let mut below = 0.0;
+        for j in 0..centre.min(self.counts.len() - centre) {
+            let n = (self.counts[centre + j] + self.counts[centre - 1 - j]) as f64;
+            if below + n >= half && n > 0.0 {
+                let median = (j as f64 + (half - below) / n) * self.bin_m;
+                return Some(1.4826 * median);
+            }
+            below += n;
+        }
+        None
+    }
+
     pub fn total(&self) -> u64 {
         self.counts.iter().sum::<u64>() + self.below + self.above
     }
@@ -57,6 +83,8 @@ pub struct TileStats {
     pub residual_sum_m: f64,
     pub residual_sum2_m2: f64,
     pub surface_models: u64,
+    /// Raster pixels; in point-sampled steps the sampled core points, so that `pixels_shared` and
+    /// `pixel_std_sum_m` describe the latent surface under the points.
     pub pixels: u64,
     pub pixels_shared: u64,
     /// Sum over shared pixels of the standard deviation of the strips' heights.
@@ -109,5 +137,38 @@ impl TileStats {
         let n = self.points_used as f64;
         let mean = self.residual_sum_m / n;
         ((self.residual_sum2_m2 / n - mean * mean).max(0.0) * n / (n - 1.0)).sqrt()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The robust σ of Gaussian samples is their σ, unmoved by a few gross outliers.
+    #[test]
+    fn robust_sigma_of_gaussian_with_outliers() {
+        let mut h = ResidualHistogram::default();
+        assert_eq!(h.robust_sigma_m(), None);
+        let mut seed = 5u64;
+        let mut uniform = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        for _ in 0..200_000 {
+            // Box–Muller, σ 4 mm.
+            let (a, b) = (uniform(), uniform());
+            h.add(0.004 * (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos());
+        }
+        for k in 0..2_000 {
+            h.add(if k % 2 == 0 { 0.5 } else { -0.03 });
+        }
+        let sigma = h.robust_sigma_m().unwrap();
+        assert!((sigma - 0.004).abs() < 0.0001, "{sigma}");
+        // A median beyond the histogram's range is not guessed.
+        let mut wide = ResidualHistogram::default();
+        for _ in 0..10 {
+            wide.add(1.0);
+        }
+        assert_eq!(wide.robust_sigma_m(), None);
     }
 }

@@ -19,7 +19,10 @@ mod stats;
 mod trajectory;
 
 pub use segments::{SegmentEvaluation, SegmentTally};
-pub use stats::{signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, TileStripMeans};
+pub use stats::{
+    signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, SurfaceStripMeans,
+    TileStripMeans,
+};
 pub use trajectory::{trajectory_errors, TrajectoryErrors};
 
 use precimap_core::TileKey;
@@ -84,6 +87,12 @@ pub struct Evaluation {
     /// RMS over tile–strip pairs of a strip's mean signed normal error in a 15 m tile minus the
     /// tile's mean over its strips: how well strips agree, independent of the absolute datum.
     pub strip_offset_spread_m: Metric,
+    /// The same, but strips are compared only on the same true surface within a tile (groups of
+    /// (tile, surface id)). A shift shared by all strips — an absolute error the strips cannot
+    /// reveal — cancels here, whereas `strip_offset_spread_m` picks it up wherever strips see
+    /// differently oriented surfaces of a tile (a building corner: one head sees one face, the
+    /// other head the other face). The gap between the two is datum error, not disagreement.
+    pub same_surface_spread_m: Metric,
     /// RMS of the signed normal error `(p − p_true)·n_true` over all surface points.
     pub surface_error_rms_m: Metric,
     /// Mean signed normal error over all surface points: a common (datum) shift.
@@ -221,6 +230,8 @@ struct StripOutcome {
     tiles_before: TileStripMeans,
     tiles_after: TileStripMeans,
     segments: Option<SegmentTally>,
+    surfaces_before: SurfaceStripMeans,
+    surfaces_after: SurfaceStripMeans,
 }
 
 fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
@@ -281,6 +292,8 @@ fn evaluate_strip(
         tiles_before: TileStripMeans::new(),
         tiles_after: TileStripMeans::new(),
         segments: None,
+        surfaces_before: SurfaceStripMeans::new(),
+        surfaces_after: SurfaceStripMeans::new(),
     };
     let segment_path = result_dir.join("segments").join(format!("{id}.seg"));
     let segment_ids = if segment_path.is_file() {
@@ -321,6 +334,8 @@ fn evaluate_strip(
         let tile = TileKey::of(t.position[0], t.position[1], SPREAD_TILE_M);
         out.tiles_before.add(tile, index, eb);
         out.tiles_after.add(tile, index, ea);
+        out.surfaces_before.add((tile, t.surface_id), index, eb);
+        out.surfaces_after.add((tile, t.surface_id), index, ea);
     }
     out.segments = segment_ids.map(|_| tally);
     Ok(out)
@@ -369,6 +384,7 @@ fn assemble(
 ) -> Evaluation {
     let (mut before, mut after) = (ErrorStats::new(), ErrorStats::new());
     let (mut tiles_before, mut tiles_after) = (TileStripMeans::new(), TileStripMeans::new());
+    let (mut surfaces_before, mut surfaces_after) = (SurfaceStripMeans::new(), SurfaceStripMeans::new());
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
@@ -387,6 +403,8 @@ fn assemble(
         }
         tiles_before.merge(s.tiles_before);
         tiles_after.merge(s.tiles_after);
+        surfaces_before.merge(s.surfaces_before);
+        surfaces_after.merge(s.surfaces_after);
         per_strip.push(StripEvaluation {
             id: id.clone(),
             points: s.points,
@@ -397,6 +415,8 @@ fn assemble(
     }
     let (spread_before, pairs) = tiles_before.spread(SPREAD_MIN_POINTS);
     let (spread_after, _) = tiles_after.spread(SPREAD_MIN_POINTS);
+    let (surface_spread_before, _) = surfaces_before.spread(SPREAD_MIN_POINTS);
+    let (surface_spread_after, _) = surfaces_after.spread(SPREAD_MIN_POINTS);
     let worst_tiles_after = tiles_after
         .worst_tiles(SPREAD_MIN_POINTS, 8)
         .into_iter()
@@ -451,6 +471,7 @@ fn assemble(
         foliage_points_removed: segmentation.as_ref().map(|s| s.foliage_points_removed),
         segmentation,
         strip_offset_spread_m: metric(spread_before, spread_after),
+        same_surface_spread_m: metric(surface_spread_before, surface_spread_after),
         surface_error_rms_m: metric(before.rms(), after.rms()),
         surface_error_mean_m: metric(before.mean(), after.mean()),
         surface_error_p95_abs_m: metric(before.abs_quantile(0.95), after.abs_quantile(0.95)),
@@ -479,6 +500,7 @@ impl Evaluation {
             let _ = writeln!(s, "{name:<34} {:>12.3} {:>12.3} {unit:<5}{ratio}", m.before * scale, m.after * scale);
         };
         row("strip offset spread", &self.strip_offset_spread_m, 1e3, "mm");
+        row("  same-surface spread", &self.same_surface_spread_m, 1e3, "mm");
         row("surface error RMS", &self.surface_error_rms_m, 1e3, "mm");
         row("surface error mean", &self.surface_error_mean_m, 1e3, "mm");
         row("surface |error| 95th percentile", &self.surface_error_p95_abs_m, 1e3, "mm");

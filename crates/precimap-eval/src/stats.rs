@@ -129,18 +129,32 @@ impl ErrorStats {
     }
 }
 
-/// Per (tile, strip): number of samples and sum of signed errors.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct TileStripMeans {
-    cells: HashMap<(TileKey, u32), (u64, f64)>,
+/// Per (group, strip): number of samples and sum of signed errors. Groups are tiles
+/// ([`TileStripMeans`]) or (tile, true surface) pairs ([`SurfaceStripMeans`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GroupStripMeans<K: Eq + std::hash::Hash> {
+    cells: HashMap<(K, u32), (u64, f64)>,
 }
 
-impl TileStripMeans {
+/// Strip means per 15 m tile.
+pub type TileStripMeans = GroupStripMeans<TileKey>;
+/// Strip means per (tile, true surface id): strips compared only where they measured the same
+/// surface, so a shift shared by all strips cancels even where strips see differently oriented
+/// surfaces (e.g. the two faces of a building corner).
+pub type SurfaceStripMeans = GroupStripMeans<(TileKey, u32)>;
+
+impl<K: Eq + std::hash::Hash> Default for GroupStripMeans<K> {
+    fn default() -> Self {
+        Self { cells: HashMap::new() }
+    }
+}
+
+impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
     pub fn new() -> Self {
         Self::default()
     }
 
-    pub fn add(&mut self, tile: TileKey, strip: u32, e: f64) {
+    pub fn add(&mut self, tile: K, strip: u32, e: f64) {
         let c = self.cells.entry((tile, strip)).or_insert((0, 0.0));
         c.0 += 1;
         c.1 += e;
@@ -159,7 +173,7 @@ impl TileStripMeans {
     /// carry no inter-strip information and are skipped); RMS over all remaining pairs. Returns
     /// `(spread, pairs)`, spread NaN when no pair counts. Deterministic (summed in key order).
     pub fn spread(&self, min_points: usize) -> (f64, usize) {
-        let mut tiles: BTreeMap<TileKey, Vec<(u32, f64)>> = BTreeMap::new();
+        let mut tiles: BTreeMap<K, Vec<(u32, f64)>> = BTreeMap::new();
         for (&(tile, strip), &(n, sum)) in &self.cells {
             if n >= min_points as u64 && n > 0 {
                 tiles.entry(tile).or_default().push((strip, sum / n as f64));
@@ -185,7 +199,7 @@ impl TileStripMeans {
 /// A tile, the RMS of its strips' offsets, and each strip's offset from the tile's mean.
 pub type TileOffsets = (TileKey, f64, Vec<(u32, f64)>);
 
-impl TileStripMeans {
+impl GroupStripMeans<TileKey> {
     /// The `count` tiles whose strips disagree most (RMS of the strips' mean errors minus the
     /// tile's mean), each with every qualifying strip's offset: `(tile, rms, [(strip, offset)])`,
     /// worst first. Where all strips of one scan head agree and the heads disagree, the error is a
@@ -269,6 +283,28 @@ mod tests {
             .chain(repeat(T1, 0, -0.3, 200))
             .chain(repeat(T1, 1, -0.3, 200));
         assert_eq!(strip_offset_spread(samples, 200), (0.0, 4));
+    }
+
+    /// A building corner: both strips are shifted alike by (+0.1, −0.1) m, but strip 0 sees mostly
+    /// the face with normal +x and strip 1 mostly the face with normal +y. The tile spread reports
+    /// the shared shift; compared on the same surface, the strips agree.
+    #[test]
+    fn shared_shift_at_a_corner_cancels_on_the_same_surface() {
+        let (face_x, face_y) = (0.1, -0.1);
+        let mut tiles = TileStripMeans::new();
+        let mut surfaces = SurfaceStripMeans::new();
+        for (strip, on_x, on_y) in [(0u32, 900, 300), (1, 300, 900)] {
+            for (surface, e, n) in [(1u32, face_x, on_x), (2, face_y, on_y)] {
+                for _ in 0..n {
+                    tiles.add(T0, strip, e);
+                    surfaces.add((T0, surface), strip, e);
+                }
+            }
+        }
+        let (tile_spread, _) = tiles.spread(200);
+        let (surface_spread, pairs) = surfaces.spread(200);
+        assert!(close(tile_spread, 0.05), "{tile_spread}");
+        assert!(close(surface_spread, 0.0) && pairs == 4, "{surface_spread} {pairs}");
     }
 
     #[test]

@@ -17,7 +17,7 @@ use precimap_jobs::{
     StagePlanner, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
 };
 use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
-use precimap_pipeline::{after_iteration, iteration_report, AfterIteration};
+use precimap_pipeline::{after_iteration, effective_step, iteration_report, AfterIteration};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -189,6 +189,8 @@ pub struct PlanState {
     /// Schedule step of the current (or next) iteration and the iteration count so far.
     pub step_index: usize,
     pub iteration: u32,
+    /// Robust σ of the last iteration's distances (the outlier threshold's floor).
+    pub robust_sigma: Option<f64>,
     /// Latest recorded corrections per trajectory.
     pub corrections: Vec<Option<String>>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
@@ -253,6 +255,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         points_total: 0,
         step_index: 0,
         iteration: 0,
+        robust_sigma: None,
         corrections: vec![None; trajectories.len()],
         pending_stats: None,
         pending_seconds: 0.0,
@@ -421,7 +424,7 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
-    let step = state.params.schedule[state.step_index];
+    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let tasks = state
         .tiles
         .iter()
@@ -473,7 +476,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
-    let step = state.params.schedule[state.step_index];
+    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let with_sigma = state.step_index + 1 == state.params.schedule.len();
     let tasks = state
         .trajectories
@@ -517,9 +520,10 @@ fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Iterati
     }
     state.trajectory_reports = reports.into_iter().flatten().collect();
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
-    let step = &state.params.schedule[state.step_index];
-    let report = iteration_report(state.iteration as usize, step, &stats, max_change, seconds);
+    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
+    let report = iteration_report(state.iteration as usize, &step, &stats, max_change, seconds);
     state.histogram = stats.histogram.clone();
+    state.robust_sigma = stats.histogram.robust_sigma_m();
     state.estimate_s += seconds;
     state.iterations.push(report.clone());
     let record = IterationRecord {

@@ -151,9 +151,10 @@ pub fn run_campaign(
     let converged;
     let mut solutions;
     let mut step_index = 0;
+    let mut robust_sigma: Option<f64> = None;
     loop {
         let iteration_started = Instant::now();
-        let step = &schedule[step_index];
+        let step = &effective_step(&campaign.params, step_index, robust_sigma);
         let last = step_index + 1 == schedule.len();
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
@@ -162,6 +163,7 @@ pub fn run_campaign(
         corrections = sol.iter().map(|s| s.corrections.clone()).collect();
         solutions = sol;
         histogram = stats.histogram.clone();
+        robust_sigma = histogram.robust_sigma_m();
         let report =
             iteration_report(iterations.len() + 1, step, &stats, max_change, iteration_started.elapsed().as_secs_f64());
         progress(Progress::Iteration(report.clone(), schedule.len()));
@@ -300,4 +302,19 @@ pub fn after_iteration(step_index: usize, schedule_len: usize, max_change_m: f64
         (false, true) => AfterIteration::Step(schedule_len - 1),
         (false, false) => AfterIteration::Step(step_index + 1),
     }
+}
+
+/// Schedule step `step_index` with its outlier threshold raised to the floor of
+/// `threshold_floor_sigmas` robust σ of the previous iteration's distances (shared by the
+/// in-process driver and the framework's planner).
+pub fn effective_step(
+    params: &precimap_core::Parameters,
+    step_index: usize,
+    robust_sigma: Option<f64>,
+) -> precimap_core::IterationStep {
+    let mut step = params.schedule[step_index];
+    if let Some(sigma) = robust_sigma {
+        step.threshold_m = step.threshold_m.max(params.threshold_floor_sigmas * sigma);
+    }
+    step
 }
