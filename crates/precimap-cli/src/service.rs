@@ -11,7 +11,7 @@ use precimap_framework::{
 };
 use precimap_jobs::JobStore;
 use std::collections::HashSet;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 /// Where the job store and the object store are.
@@ -302,7 +302,7 @@ pub fn status(id: uuid::Uuid, watch: bool, json: bool, args: &ClientArgs) -> Res
     })
 }
 
-pub fn results(id: uuid::Uuid, out: &PathBuf, args: &ClientArgs) -> Result<()> {
+pub fn results(id: uuid::Uuid, out: &Path, args: &ClientArgs) -> Result<()> {
     let client = args.client();
     let names = runtime()?.block_on(client.results(id, out))?;
     eprintln!("{} files written to {}", names.len(), out.display());

@@ -281,7 +281,7 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         rng ^= rng << 13;
         rng ^= rng >> 7;
         rng ^= rng << 17;
-        if s.tasks.leased > 0 && rng % 3 == 0 && kills < 12 {
+        if s.tasks.leased > 0 && rng.is_multiple_of(3) && kills < 12 {
             let victim = (rng >> 8) as usize % workers.len();
             workers[victim].child.kill().unwrap();
             workers[victim].child.wait().unwrap();
@@ -309,6 +309,19 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         psql(&db, "SELECT count(*) FROM (SELECT task_id, name FROM task_outputs GROUP BY 1, 2 HAVING count(*) > 1) d"),
         "0"
     );
+    // The objects of killed attempts were cleaned up when the campaign finished: every object
+    // left under the campaign's prefix is a recorded output.
+    rt.block_on(async {
+        let jobs = JobStore::connect(&db).await.unwrap();
+        let objects = Objects::from_url(&store).unwrap();
+        let campaign = jobs.campaign(id).await.unwrap().unwrap();
+        let recorded: std::collections::HashSet<String> = jobs.recorded_keys(id).await.unwrap().into_iter().collect();
+        let stored = objects.list(&campaign.object_prefix).await.unwrap();
+        let orphans: Vec<_> = stored.iter().filter(|k| !recorded.contains(*k)).collect();
+        assert!(orphans.is_empty(), "{} orphaned objects, e.g. {:?}", orphans.len(), orphans.first());
+        assert_eq!(stored.len(), recorded.len());
+        jobs.close().await;
+    });
     let _ = psql(&pg, &format!("DROP DATABASE IF EXISTS {database} WITH (FORCE)"));
 }
 

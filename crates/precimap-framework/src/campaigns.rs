@@ -109,27 +109,9 @@ impl Framework {
         Ok(results.len())
     }
 
-    /// Deletes objects under the campaign's prefix that no committed task recorded and no live
-    /// attempt may still be writing (outputs of lost attempts). Returns how many.
+    /// Deletes the outputs of lost attempts (see [`clean_orphans`]).
     pub async fn clean_orphans(&self, id: Uuid) -> Result<usize, FrameworkError> {
-        let Some(campaign) = self.jobs.campaign(id).await? else { return Ok(0) };
-        let recorded: HashSet<String> = self.jobs.recorded_keys(id).await?.into_iter().collect();
-        let live: Vec<String> = self
-            .jobs
-            .live_lease_tokens(id)
-            .await?
-            .into_iter()
-            .map(|t| t.simple().to_string()[..12].to_string())
-            .collect();
-        let mut removed = 0;
-        for key in self.objects.list(&campaign.object_prefix).await? {
-            if recorded.contains(&key) || live.iter().any(|tag| key.contains(tag.as_str())) {
-                continue;
-            }
-            self.objects.delete(&key).await?;
-            removed += 1;
-        }
-        Ok(removed)
+        clean_orphans(&self.jobs, &self.objects, id).await
     }
 
     /// Removes a campaign's rows and every object under its prefix.
@@ -142,6 +124,26 @@ impl Framework {
             }
         }
     }
+}
+
+/// Deletes objects under a campaign's prefix that no committed task recorded and no live attempt
+/// may still be writing (outputs of attempts whose lease was lost). Returns how many. Executors
+/// call it when a campaign finishes; an attempt cancelled by a failure may still write afterwards,
+/// and deleting the campaign removes those.
+pub async fn clean_orphans(jobs: &JobStore, objects: &Objects, id: Uuid) -> Result<usize, FrameworkError> {
+    let Some(campaign) = jobs.campaign(id).await? else { return Ok(0) };
+    let recorded: HashSet<String> = jobs.recorded_keys(id).await?.into_iter().collect();
+    let live: Vec<String> =
+        jobs.live_lease_tokens(id).await?.into_iter().map(|t| t.simple().to_string()[..12].to_string()).collect();
+    let mut removed = 0;
+    for key in objects.list(&campaign.object_prefix).await? {
+        if recorded.contains(&key) || live.iter().any(|tag| key.contains(tag.as_str())) {
+            continue;
+        }
+        objects.delete(&key).await?;
+        removed += 1;
+    }
+    Ok(removed)
 }
 
 /// Copies (hard-links where possible) the files a local manifest names into the store under
@@ -245,7 +247,6 @@ pub async fn run_embedded(
             error: campaign.error.clone().unwrap_or_default(),
         });
     }
-    framework.clean_orphans(id).await?;
     framework.download_results(id, &options.out_dir).await?;
     if !options.keep_state {
         drop(framework);

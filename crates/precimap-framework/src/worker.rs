@@ -2,10 +2,11 @@
 //! through the job store (the commit point), repeat. `work --once` is one round of this loop; the
 //! embedded default and `serve` run the loop in-process.
 
+use crate::campaigns::clean_orphans;
 use crate::error::{FrameworkError, TaskError};
 use crate::exec::{execute, TaskContext};
 use crate::plan::{CampaignPlanner, TaskInput};
-use precimap_jobs::{ClaimedTask, JobError, JobStore};
+use precimap_jobs::{CampaignState, ClaimedTask, FailOutcome, JobError, JobStore};
 use std::future::Future;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -151,8 +152,11 @@ impl Executor {
             Ok(outcome) => {
                 let planner = CampaignPlanner;
                 match retry_transient(patience, || self.jobs.complete(&task, outcome.clone(), &planner)).await {
-                    Ok(_) => {
+                    Ok(completion) => {
                         self.wake.notify_waiters();
+                        if completion.campaign_state != CampaignState::Running {
+                            self.clean_up(task.campaign).await;
+                        }
                         Ok(WorkOutcome::Done { kind, key })
                     }
                     Err(JobError::LeaseLost) => Ok(WorkOutcome::LeaseLost { kind, key }),
@@ -169,12 +173,24 @@ impl Executor {
         match retry_transient(self.config.database_patience, || self.jobs.fail(task, &error.message, error.permanent))
             .await
         {
-            Ok(_) => {
+            Ok(outcome) => {
                 self.wake.notify_waiters();
+                if outcome == FailOutcome::Dead {
+                    self.clean_up(task.campaign).await;
+                }
                 Ok(WorkOutcome::Failed { kind, key, error: error.message })
             }
             Err(JobError::LeaseLost) => Ok(WorkOutcome::LeaseLost { kind, key }),
             Err(e) => Err(e.into()),
+        }
+    }
+
+    /// Removes a finished campaign's orphaned objects; a failure here only costs storage.
+    async fn clean_up(&self, campaign: uuid::Uuid) {
+        match clean_orphans(&self.jobs, &self.ctx.objects, campaign).await {
+            Ok(0) => {}
+            Ok(n) => info!(%campaign, removed = n, "removed objects of lost attempts"),
+            Err(e) => warn!(%campaign, error = %e, "orphan clean-up failed"),
         }
     }
 
