@@ -47,6 +47,7 @@ pub fn app(state: ApiState) -> Router {
     let state = Arc::new(state);
     Router::new()
         .route("/healthz", get(healthz))
+        .route("/v1/token", get(check_token))
         .route("/v1/campaigns", get(list_campaigns).post(submit_campaign).layer(DefaultBodyLimit::max(manifest_limit)))
         .route("/v1/campaigns/{id}", get(campaign_status).delete(delete_campaign))
         .route("/v1/campaigns/{id}/cancel", post(cancel_campaign))
@@ -140,6 +141,13 @@ fn parse_id(id: &str) -> Result<Uuid, ApiError> {
 async fn healthz(State(state): State<Arc<ApiState>>) -> Result<Json<serde_json::Value>, ApiError> {
     state.framework.jobs.list_campaigns(1).await?;
     Ok(Json(serde_json::json!({ "status": "ok", "store": state.framework.objects.url() })))
+}
+
+/// Lets a client check its token before it streams gigabytes of input (a server that rejects an
+/// upload mid-stream can only reset the connection).
+async fn check_token(State(state): State<Arc<ApiState>>, headers: HeaderMap) -> Result<StatusCode, ApiError> {
+    authorize(&state, &headers)?;
+    Ok(StatusCode::NO_CONTENT)
 }
 
 #[derive(Debug, Deserialize)]

@@ -67,12 +67,16 @@ async fn health_and_reads_need_no_token() {
 async fn writes_need_the_bearer_token() {
     let dir = tempfile::tempdir().unwrap();
     let s = state(dir.path()).await;
+    let (status, _) = call(&s, request(Method::GET, "/v1/token", Some(TOKEN), Body::empty())).await;
+    assert_eq!(status, StatusCode::NO_CONTENT);
     let m = manifest("inputs/a/s.las", "inputs/a/t.csv");
     for token in [None, Some("wrong")] {
         let response = app(s.clone()).oneshot(request(Method::POST, "/v1/campaigns", token, m.clone())).await.unwrap();
         assert_eq!(response.status(), StatusCode::UNAUTHORIZED);
         assert_eq!(response.headers()[header::WWW_AUTHENTICATE], "Bearer");
         let (status, _) = call(&s, request(Method::PUT, "/v1/objects/inputs/a/s.las", token, "x")).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED);
+        let (status, _) = call(&s, request(Method::GET, "/v1/token", token, Body::empty())).await;
         assert_eq!(status, StatusCode::UNAUTHORIZED);
         let id = uuid::Uuid::new_v4();
         let (status, _) = call(&s, request(Method::POST, &format!("/v1/campaigns/{id}/cancel"), token, "")).await;
