@@ -97,25 +97,28 @@ impl Client {
         self.json(self.send(rb, &url).await?, &url).await
     }
 
+    /// Checks that the server accepts this client's token for writes.
+    pub async fn check_token(&self) -> Result<(), ClientError> {
+        let url = self.url("/v1/token");
+        self.send(self.authed(self.http.get(&url)), &url).await.map(|_| ())
+    }
+
     /// Uploads every file a local manifest names under `inputs/{upload id}/`, then submits the
-    /// manifest with its URIs pointing there.
+    /// manifest with its URIs pointing there. The manifest and the token are checked first, so a
+    /// wrong token is reported before any upload starts.
     pub async fn submit_local(
         &self,
         manifest_path: &Path,
         mut on_upload: impl FnMut(&str, u64),
     ) -> Result<Submitted, ClientError> {
-        let mut manifest = precimap_formats::load_manifest(manifest_path)?;
-        let dir = manifest_path.parent().unwrap_or(Path::new(".")).to_path_buf();
-        let base = format!("inputs/{}", Uuid::new_v4().simple());
-        let mut uris: Vec<&mut String> = manifest.trajectories.iter_mut().map(|t| &mut t.uri).collect();
-        uris.extend(manifest.strips.iter_mut().map(|s| &mut s.uri));
-        for uri in uris {
-            let src = precimap_formats::resolve_uri(&dir, uri).map_err(ClientError::Invalid)?;
-            let relative = src.strip_prefix(&dir).unwrap_or(&src).to_string_lossy().replace('\\', "/");
-            let key = format!("{base}/{relative}");
-            let bytes = self.upload(&key, &src).await?;
-            on_upload(uri, bytes);
-            *uri = key;
+        let (manifest, files) = precimap_framework::plan_local_upload(manifest_path).map_err(|e| match e {
+            precimap_framework::FrameworkError::Manifest(m) => ClientError::Manifest(m),
+            other => ClientError::Invalid(other.to_string()),
+        })?;
+        self.check_token().await?;
+        for (src, key) in &files {
+            let bytes = self.upload(key, src).await?;
+            on_upload(key, bytes);
         }
         self.submit_manifest(&manifest).await
     }

@@ -146,18 +146,30 @@ pub async fn clean_orphans(jobs: &JobStore, objects: &Objects, id: Uuid) -> Resu
     Ok(removed)
 }
 
-/// Copies (hard-links where possible) the files a local manifest names into the store under
-/// `inputs/{upload id}/` and returns the manifest with its URIs rewritten to those keys.
-pub async fn upload_local_inputs(objects: &Objects, manifest_path: &Path) -> Result<Manifest, FrameworkError> {
+/// Plans the upload of the files a local manifest names: the manifest with its URIs rewritten
+/// to keys under `inputs/{upload id}/`, and the `(local file, key)` pairs to upload.
+pub fn plan_local_upload(manifest_path: &Path) -> Result<(Manifest, Vec<(PathBuf, String)>), FrameworkError> {
     let mut manifest = precimap_formats::load_manifest(manifest_path)?;
     let dir = manifest_path.parent().unwrap_or(Path::new(".")).to_path_buf();
     let base = format!("inputs/{}", Uuid::new_v4().simple());
     let mut uris: Vec<&mut String> = manifest.trajectories.iter_mut().map(|t| &mut t.uri).collect();
     uris.extend(manifest.strips.iter_mut().map(|s| &mut s.uri));
+    let mut files = Vec::with_capacity(uris.len());
     for uri in uris {
         let src = precimap_formats::resolve_uri(&dir, uri).map_err(FrameworkError::Invalid)?;
-        let clean = src.strip_prefix(&dir).unwrap_or(&src).to_string_lossy().replace('\\', "/");
-        let key = format!("{base}/{clean}");
+        let relative = src.strip_prefix(&dir).unwrap_or(&src).to_string_lossy().replace('\\', "/");
+        let key = format!("{base}/{relative}");
+        files.push((src, key.clone()));
+        *uri = key;
+    }
+    Ok((manifest, files))
+}
+
+/// Copies (hard-links where possible) the files a local manifest names into the store (see
+/// [`plan_local_upload`]) and returns the manifest with its URIs rewritten to their keys.
+pub async fn upload_local_inputs(objects: &Objects, manifest_path: &Path) -> Result<Manifest, FrameworkError> {
+    let (manifest, files) = plan_local_upload(manifest_path)?;
+    for (src, key) in files {
         match objects.local_path(&key) {
             Some(dst) => {
                 if let Some(parent) = dst.parent() {
@@ -171,7 +183,6 @@ pub async fn upload_local_inputs(objects: &Objects, manifest_path: &Path) -> Res
                 objects.put_file(&key, &src).await?;
             }
         }
-        *uri = key;
     }
     Ok(manifest)
 }

@@ -12,7 +12,8 @@ pub mod plan;
 pub mod worker;
 
 pub use campaigns::{
-    default_queue, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus, SubmitError,
+    default_queue, plan_local_upload, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus,
+    SubmitError,
 };
 pub use error::{FrameworkError, TaskError};
 pub use exec::TaskContext;
