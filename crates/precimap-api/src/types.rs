@@ -23,17 +23,11 @@ pub struct Submitted {
     pub href: String,
 }
 
-/// `GET /v1/campaigns/{id}`.
+/// `GET /v1/campaigns/{id}`: the summary's fields, then progress (one flat JSON object).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct CampaignStatus {
-    pub id: Uuid,
-    pub name: String,
-    pub state: String,
-    pub stage: String,
-    pub iteration: i32,
-    pub iterations_planned: i32,
-    pub error: Option<String>,
-    pub created_at_ms: i64,
+    #[serde(flatten)]
+    pub campaign: CampaignSummary,
     pub updated_at_ms: i64,
     pub finished_at_ms: Option<i64>,
     pub tasks: TaskCounts,
@@ -44,14 +38,7 @@ pub struct CampaignStatus {
 impl CampaignStatus {
     pub fn new(c: &CampaignRecord, tasks: TaskCounts, iterations: &[IterationRecord]) -> Self {
         Self {
-            id: c.id,
-            name: c.name.clone(),
-            state: c.state.as_str().to_string(),
-            stage: c.stage.clone(),
-            iteration: c.iteration,
-            iterations_planned: c.iterations_planned,
-            error: c.error.clone(),
-            created_at_ms: c.created_at_ms,
+            campaign: CampaignSummary::from(c),
             updated_at_ms: c.updated_at_ms,
             finished_at_ms: c.finished_at_ms,
             tasks,

@@ -278,21 +278,21 @@ pub fn status(id: uuid::Uuid, watch: bool, json: bool, args: &ClientArgs) -> Res
                 }
                 println!(
                     "{} {}: {} stage {} (iteration {}/{}) — tasks: {} queued, {} running, {} done, {} dead{}",
-                    s.id,
-                    s.name,
-                    s.state,
-                    s.stage,
-                    s.iteration,
-                    s.iterations_planned,
+                    s.campaign.id,
+                    s.campaign.name,
+                    s.campaign.state,
+                    s.campaign.stage,
+                    s.campaign.iteration,
+                    s.campaign.iterations_planned,
                     s.tasks.queued,
                     s.tasks.leased,
                     s.tasks.done,
                     s.tasks.dead,
-                    s.error.as_ref().map(|e| format!("\nerror: {e}")).unwrap_or_default()
+                    s.campaign.error.as_ref().map(|e| format!("\nerror: {e}")).unwrap_or_default()
                 );
             }
-            if !watch || s.state != "running" {
-                return Ok(match s.state.as_str() {
+            if !watch || s.campaign.state != "running" {
+                return Ok(match s.campaign.state.as_str() {
                     "succeeded" | "running" => 0,
                     _ => 1,
                 });

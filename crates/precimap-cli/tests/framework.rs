@@ -113,7 +113,7 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         let finished = wait_finished(&jobs, submitted.id, Duration::from_secs(600)).await;
         assert_eq!(finished.state, CampaignState::Succeeded, "{:?}", finished.error);
         let status = client.status(submitted.id).await.unwrap();
-        assert_eq!(status.state, "succeeded");
+        assert_eq!(status.campaign.state, "succeeded");
         assert!(!status.iterations.is_empty());
         assert_eq!(status.tasks.dead, 0);
         client.results(submitted.id, &via_http).await.unwrap();
@@ -273,7 +273,7 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
             Ok(s) => s,
             Err(_) => continue, // the database is restarting
         };
-        if s.state != "running" {
+        if s.campaign.state != "running" {
             break s;
         }
         assert!(started.elapsed() < Duration::from_secs(900), "campaign stuck: {s:?}");
@@ -288,7 +288,7 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
             workers[victim] = spawn_worker(&db, &store);
             kills += 1;
         }
-        if !restarted && s.iteration >= 2 {
+        if !restarted && s.campaign.iteration >= 2 {
             restart_postgres();
             restarted = true;
         }
@@ -298,7 +298,7 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         "chaos: {kills} executors killed, database restarted: {restarted}, {:.0} s",
         started.elapsed().as_secs_f64()
     );
-    assert_eq!(status.state, "succeeded", "{:?}", status.error);
+    assert_eq!(status.campaign.state, "succeeded", "{:?}", status.campaign.error);
     assert!(restarted && kills > 0);
     let out = dir.path().join("results");
     rt.block_on(client.results(id, &out)).unwrap();

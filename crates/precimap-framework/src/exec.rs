@@ -117,6 +117,16 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
     })
 }
 
+/// The pipeline's view of a strip whose file is at `path`.
+fn strip_entry(s: &StripInput, path: &Path) -> StripEntry {
+    StripEntry {
+        id: s.id.clone(),
+        path: path.to_path_buf(),
+        trajectory: s.trajectory,
+        lever_arm: Vec3::from(s.lever_arm),
+    }
+}
+
 fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
     TrajectoryInput {
         index: s.trajectory,
@@ -146,12 +156,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::SegmentStrip { prefix, strip, params } => {
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
-            let entry = StripEntry {
-                id: strip.id.clone(),
-                path: local.path.clone(),
-                trajectory: strip.trajectory,
-                lever_arm: Vec3::from(strip.lever_arm),
-            };
+            let entry = strip_entry(&strip, &local.path);
             let index = strip.index;
             let prepared = blocking(move || {
                 prepare_strip_chunks(&entry, index, &traj, &params, &SegmentParams::default()).map(|p| {
@@ -248,12 +253,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let corrections = read_corrections(ctx, &corrections).await?;
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
-            let entry = StripEntry {
-                id: strip.id.clone(),
-                path: local.path.clone(),
-                trajectory: strip.trajectory,
-                lever_arm: Vec3::from(strip.lever_arm),
-            };
+            let entry = strip_entry(&strip, &local.path);
             let name = format!("strips/{}", precimap_pipeline::tasks::export_strip_name(&entry));
             let key = format!("{prefix}/out/{tag}/{name}");
             let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
