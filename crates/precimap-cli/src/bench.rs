@@ -110,13 +110,7 @@ struct EstimateBench {
 }
 
 fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
-    let dir = cache.join(format!("{scale:?}-{seed}").to_lowercase());
-    let manifest = dir.join("campaign").join("manifest.json");
-    if !manifest.exists() {
-        eprintln!("simulating the {scale:?} campaign into {} (cached for later runs)", dir.display());
-        let config = precimap_sim::SimConfig::for_scale(scale, seed);
-        precimap_sim::simulate(&config, &dir.join("campaign"), false).context("simulating")?;
-    }
+    let (dir, manifest) = cached_campaign(cache, scale, seed, false)?;
     let campaign = Campaign::load(&manifest)?;
     let work = dir.join("work");
     eprintln!("preparing tile chunks in {}", work.display());
@@ -234,13 +228,7 @@ struct PreprocessBench {
 type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>);
 
 fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
-    let dir = cache.join(format!("{scale:?}-{seed}-laz").to_lowercase());
-    let manifest = dir.join("campaign").join("manifest.json");
-    if !manifest.exists() {
-        eprintln!("simulating the {scale:?} LAZ campaign into {} (cached for later runs)", dir.display());
-        let config = precimap_sim::SimConfig::for_scale(scale, seed);
-        precimap_sim::simulate(&config, &dir.join("campaign"), true).context("simulating")?;
-    }
+    let (dir, manifest) = cached_campaign(cache, scale, seed, true)?;
     let campaign = Campaign::load(&manifest)?;
     let threads = rayon::current_num_threads();
     let params = precimap_estimate::SegmentParams::default();
@@ -425,12 +413,7 @@ fn bench_queue(
     let overhead = match overhead_scale {
         None => None,
         Some(scale) => {
-            let dir = cache.join(format!("{}-1", format!("{scale:?}").to_lowercase()));
-            let campaign = dir.join("campaign");
-            if !campaign.join("manifest.json").exists() {
-                precimap_sim::simulate(&precimap_sim::SimConfig::for_scale(scale, 1), &campaign, false)?;
-            }
-            let manifest = campaign.join("manifest.json");
+            let (dir, manifest) = cached_campaign(cache, scale, 1, false)?;
             let started = Instant::now();
             let report = precimap_pipeline::run_campaign(
                 &manifest,
@@ -477,4 +460,18 @@ fn bench_queue(
         println!("{}", serde_json::to_string_pretty(&result)?);
     }
     Ok(())
+}
+
+/// A simulated benchmark campaign, written once into `cache` and reused by later runs; returns its
+/// folder and its manifest.
+fn cached_campaign(cache: &Path, scale: precimap_sim::Scale, seed: u64, laz: bool) -> Result<(PathBuf, PathBuf)> {
+    let suffix = if laz { "-laz" } else { "" };
+    let dir = cache.join(format!("{scale:?}-{seed}{suffix}").to_lowercase());
+    let manifest = dir.join("campaign").join("manifest.json");
+    if !manifest.exists() {
+        eprintln!("simulating the {scale:?} campaign into {} (cached for later runs)", dir.display());
+        let config = precimap_sim::SimConfig::for_scale(scale, seed);
+        precimap_sim::simulate(&config, &dir.join("campaign"), laz).context("simulating")?;
+    }
+    Ok((dir, manifest))
 }

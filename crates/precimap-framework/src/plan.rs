@@ -383,15 +383,7 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<Ti
         }
         points_total += r.stats.points;
         seconds += r.seconds;
-        reports.push(StripReport {
-            id: strip.id.clone(),
-            points: r.stats.points,
-            points_with_normal: r.stats.points_with_normal,
-            points_emitted: r.stats.points_emitted,
-            revolutions: r.stats.revolutions,
-            rows_per_revolution: r.stats.rows_per_revolution,
-            tiles: r.tiles.len(),
-        });
+        reports.push(StripReport::new(&strip.id, &r.stats, r.tiles.len()));
     }
     for r in &mut ranges {
         if r.0 == u32::MAX {

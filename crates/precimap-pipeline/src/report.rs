@@ -30,6 +30,21 @@ pub struct StripReport {
     pub tiles: usize,
 }
 
+impl StripReport {
+    /// A strip's line of `report.json` from what its preparation measured.
+    pub fn new(id: &str, stats: &precimap_estimate::PrepareStats, tiles: usize) -> Self {
+        Self {
+            id: id.to_string(),
+            points: stats.points,
+            points_with_normal: stats.points_with_normal,
+            points_emitted: stats.points_emitted,
+            revolutions: stats.revolutions,
+            rows_per_revolution: stats.rows_per_revolution,
+            tiles,
+        }
+    }
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct IterationReport {
     pub iteration: usize,

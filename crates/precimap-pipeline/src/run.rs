@@ -71,15 +71,7 @@ pub fn prepare_all(
             tiles.entry(*t).or_default().push(s);
         }
         points_total += outcome.stats.points;
-        strips.push(StripReport {
-            id: entry.id.clone(),
-            points: outcome.stats.points,
-            points_with_normal: outcome.stats.points_with_normal,
-            points_emitted: outcome.stats.points_emitted,
-            revolutions: outcome.stats.revolutions,
-            rows_per_revolution: outcome.stats.rows_per_revolution,
-            tiles: outcome.tiles.len(),
-        });
+        strips.push(StripReport::new(&entry.id, &outcome.stats, outcome.tiles.len()));
     }
     // A trajectory without strips keeps one zero anchor (it is exported unchanged).
     for r in &mut anchor_ranges {
