@@ -77,9 +77,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Solve { anchors, json } => {
             let rate = precimap_solve::bench_solve(anchors, 5);
             if json {
-                println!("{}", serde_json::json!({ "solve_anchors_per_s_per_core": rate, "anchors": anchors }));
+                outln!("{}", serde_json::json!({ "solve_anchors_per_s_per_core": rate, "anchors": anchors }));
             } else {
-                println!("block-tridiagonal solve: {:.2} M anchors/s per core ({anchors} anchors)", rate / 1e6);
+                outln!("block-tridiagonal solve: {:.2} M anchors/s per core ({anchors} anchors)", rate / 1e6);
             }
             Ok(())
         }
@@ -176,9 +176,9 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         largest_tile_points: largest,
     };
     if json {
-        println!("{}", serde_json::to_string_pretty(&result)?);
+        outln!("{}", serde_json::to_string_pretty(&result)?);
     } else {
-        println!(
+        outln!(
             "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
              peak RSS {:.0} MiB (largest tile {} point copies)",
@@ -302,9 +302,9 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         segmentation,
     };
     if json {
-        println!("{}", serde_json::to_string_pretty(&result)?);
+        outln!("{}", serde_json::to_string_pretty(&result)?);
     } else {
-        println!(
+        outln!(
             "preprocess (LAZ → tile chunks), {} points in {} strips\n  {:.2} M points/s per core on {threads} threads, \
              peak RSS {:.0} MiB (largest strip {} points)\n  {:.1} chunk bytes per point copy, border overhead {:.1} %\n  \
              segment purity {:.2} %, surface points removed {:.2} %, foliage points removed {:.1} %",
@@ -457,7 +457,7 @@ fn bench_queue(
         overhead,
     };
     if json {
-        println!("{}", serde_json::to_string_pretty(&result)?);
+        outln!("{}", serde_json::to_string_pretty(&result)?);
     }
     Ok(())
 }

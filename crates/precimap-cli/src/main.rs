@@ -1,5 +1,13 @@
 //! `precimap`: simulate campaigns, adjust them, evaluate against truth, benchmark.
 
+/// `println!` that ends the process quietly when stdout is a closed pipe (`precimap evaluate |
+/// head`): Rust ignores SIGPIPE, so `println!` would panic there.
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::write_stdout_line(format_args!($($arg)*))
+    };
+}
+
 mod bench;
 mod progress;
 mod segments;
@@ -118,6 +126,18 @@ enum Command {
     },
 }
 
+pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
+    use std::io::Write as _;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_fmt(args).and_then(|()| out.write_all(b"\n")) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("error: writing to stdout: {e}");
+        std::process::exit(1);
+    }
+}
+
 fn main() {
     if let Err(e) = real_main() {
         eprintln!("error: {e:#}");
@@ -210,9 +230,9 @@ fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Re
     let evaluation = precimap_eval::evaluate(truth, result)
         .with_context(|| format!("evaluating {} against {}", result.display(), truth.display()))?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&evaluation)?);
+        outln!("{}", serde_json::to_string_pretty(&evaluation)?);
     } else {
-        println!("{}", evaluation.summary());
+        outln!("{}", evaluation.summary());
     }
     Ok(())
 }

@@ -72,7 +72,7 @@ pub fn run(args: SegmentsArgs) -> Result<()> {
     let seconds = started.elapsed().as_secs_f64();
     let stats = &prepared.stats;
     if args.json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({ "strip": campaign.strips[index].id, "seconds": seconds, "params": params, "stats": stats })
         );

@@ -258,7 +258,7 @@ pub fn submit(manifest: &Path, args: &ClientArgs) -> Result<()> {
         .block_on(client.submit_local(manifest, |uri, bytes| eprintln!("uploaded {uri} ({bytes} bytes)")))
         .with_context(|| format!("submitting {}", manifest.display()))?;
     eprintln!("submitted: {}{}", args.server.trim_end_matches('/'), submitted.href);
-    println!("{}", submitted.id);
+    outln!("{}", submitted.id);
     Ok(())
 }
 
@@ -269,14 +269,14 @@ pub fn status(id: uuid::Uuid, watch: bool, json: bool, args: &ClientArgs) -> Res
         loop {
             let s = client.status(id).await?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&s)?);
+                outln!("{}", serde_json::to_string_pretty(&s)?);
             } else {
                 for (i, it) in s.iterations.iter().enumerate() {
                     if printed.insert(i) {
-                        println!("iteration {:>2}: {it}", i + 1);
+                        outln!("iteration {:>2}: {it}", i + 1);
                     }
                 }
-                println!(
+                outln!(
                     "{} {}: {} stage {} (iteration {}/{}) — tasks: {} queued, {} running, {} done, {} dead{}",
                     s.campaign.id,
                     s.campaign.name,

@@ -235,10 +235,12 @@ fn weights(params: &Parameters) -> (Vec6, Vec6) {
 }
 
 /// One Gauss–Newton step for one trajectory. `blocks` are the summed tile blocks (any order,
-/// duplicates of an anchor are added); `current` fixes the anchor range.
+/// duplicates of an anchor are added); `current` fixes the anchor range. With `previous` (the
+/// corrections before `current`) the step adds `params.momentum × (current − previous)`.
 pub fn solve_trajectory<'a>(
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
+    previous: Option<&TrajectoryCorrections>,
     params: &Parameters,
     estimate_rotation: bool,
     with_sigma: bool,
@@ -306,8 +308,21 @@ pub fn solve_trajectory<'a>(
         }
     };
     let sigma = sigma.map(|cov| cov.iter().map(|c| std::array::from_fn(|a| c[(a, a)].max(0.0).sqrt())).collect());
-    let values: Vec<[f64; 6]> =
-        current.values.iter().zip(&delta).map(|(x, d)| std::array::from_fn(|a| x[a] + d[a])).collect();
+    let beta = if previous.is_some() { params.momentum } else { 0.0 };
+    let values: Vec<[f64; 6]> = current
+        .values
+        .iter()
+        .zip(&delta)
+        .enumerate()
+        .map(|(k, (x, d))| {
+            let before = previous.map_or(*x, |p| *p.anchor(first + k as u32));
+            // Rotations stay frozen in translation-only steps, momentum included.
+            std::array::from_fn(|a| {
+                let carried = if a >= 3 && !estimate_rotation { 0.0 } else { beta * (x[a] - before[a]) };
+                x[a] + d[a] + carried
+            })
+        })
+        .collect();
     let corrections = TrajectoryCorrections { first_anchor: first, values };
     let max_change_m = corrections.max_change_m(current, CHANGE_RANGE_M);
     Ok(TrajectorySolution {
@@ -382,6 +397,30 @@ mod tests {
         }
     }
 
+    /// Momentum adds β × the previous step to the Gauss–Newton step, except to rotations a
+    /// translation-only step holds fixed; without `previous` the step is plain.
+    #[test]
+    fn momentum_adds_beta_times_the_previous_step() {
+        let n = 5;
+        let params = Parameters { momentum: 0.5, weak_information_ratio: 0.0, ..Default::default() };
+        let current =
+            TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
+        let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
+        let plain = solve_trajectory(std::iter::empty(), &current, None, &params, true, false).unwrap();
+        let carried = solve_trajectory(std::iter::empty(), &current, Some(&previous), &params, true, false).unwrap();
+        for k in 0..n {
+            for a in 0..6 {
+                let expected = plain.corrections.values[k][a] + 0.5 * (current.values[k][a] - previous.values[k][a]);
+                assert!((carried.corrections.values[k][a] - expected).abs() < 1e-15, "anchor {k}, unknown {a}");
+            }
+        }
+        let frozen = solve_trajectory(std::iter::empty(), &current, Some(&previous), &params, false, false).unwrap();
+        for k in 0..n {
+            assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
+            assert!((frozen.corrections.values[k][0] - plain.corrections.values[k][0] - 0.005).abs() < 1e-9);
+        }
+    }
+
     /// Without observations, the curvature term removes a kink from a correction profile.
     #[test]
     fn curvature_removes_a_kink() {
@@ -392,7 +431,7 @@ mod tests {
         let mut kinked = straight;
         kinked[4][0] += 0.05;
         let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
-        let sol_kinked = solve_trajectory(std::iter::empty(), &current_kinked, &params, true, false).unwrap();
+        let sol_kinked = solve_trajectory(std::iter::empty(), &current_kinked, None, &params, true, false).unwrap();
         let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
         assert!(second(&current_kinked.values, 4).abs() > 0.09);
         assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");

@@ -20,8 +20,8 @@ mod trajectory;
 
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
-    signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, SurfaceStripMeans,
-    TileStripMeans,
+    signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, ShiftFreeMeans,
+    SurfaceStripMeans, TileStripMeans,
 };
 pub use trajectory::{trajectory_errors, TrajectoryErrors};
 
@@ -93,6 +93,13 @@ pub struct Evaluation {
     /// differently oriented surfaces of a tile (a building corner: one head sees one face, the
     /// other head the other face). The gap between the two is datum error, not disagreement.
     pub same_surface_spread_m: Metric,
+    /// `strip_offset_spread_m` after removing from every point the one translation that best
+    /// explains all surface errors of the campaign (its absolute datum error).
+    pub spread_without_campaign_shift_m: Metric,
+    /// `strip_offset_spread_m` after removing, per tile, the translation shared by all its
+    /// points: the disagreement between strips that no common motion at a place explains. The
+    /// gap to `strip_offset_spread_m` is error shared by all passes at a place.
+    pub spread_without_tile_shift_m: Metric,
     /// RMS of the signed normal error `(p − p_true)·n_true` over all surface points.
     pub surface_error_rms_m: Metric,
     /// Mean signed normal error over all surface points: a common (datum) shift.
@@ -232,6 +239,8 @@ struct StripOutcome {
     segments: Option<SegmentTally>,
     surfaces_before: SurfaceStripMeans,
     surfaces_after: SurfaceStripMeans,
+    shift_free_before: ShiftFreeMeans,
+    shift_free_after: ShiftFreeMeans,
 }
 
 fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
@@ -294,6 +303,8 @@ fn evaluate_strip(
         segments: None,
         surfaces_before: SurfaceStripMeans::new(),
         surfaces_after: SurfaceStripMeans::new(),
+        shift_free_before: ShiftFreeMeans::new(),
+        shift_free_after: ShiftFreeMeans::new(),
     };
     let segment_path = result_dir.join("segments").join(format!("{id}.seg"));
     let segment_ids = if segment_path.is_file() {
@@ -336,6 +347,10 @@ fn evaluate_strip(
         out.tiles_after.add(tile, index, ea);
         out.surfaces_before.add((tile, t.surface_id), index, eb);
         out.surfaces_after.add((tile, t.surface_id), index, ea);
+        let len = t.normal.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt();
+        let unit = t.normal.map(|c| c as f64 / len);
+        out.shift_free_before.add(tile, index, eb, unit);
+        out.shift_free_after.add(tile, index, ea, unit);
     }
     out.segments = segment_ids.map(|_| tally);
     Ok(out)
@@ -385,6 +400,7 @@ fn assemble(
     let (mut before, mut after) = (ErrorStats::new(), ErrorStats::new());
     let (mut tiles_before, mut tiles_after) = (TileStripMeans::new(), TileStripMeans::new());
     let (mut surfaces_before, mut surfaces_after) = (SurfaceStripMeans::new(), SurfaceStripMeans::new());
+    let (mut shift_free_before, mut shift_free_after) = (ShiftFreeMeans::new(), ShiftFreeMeans::new());
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
@@ -405,6 +421,8 @@ fn assemble(
         tiles_after.merge(s.tiles_after);
         surfaces_before.merge(s.surfaces_before);
         surfaces_after.merge(s.surfaces_after);
+        shift_free_before.merge(s.shift_free_before);
+        shift_free_after.merge(s.shift_free_after);
         per_strip.push(StripEvaluation {
             id: id.clone(),
             points: s.points,
@@ -472,6 +490,14 @@ fn assemble(
         segmentation,
         strip_offset_spread_m: metric(spread_before, spread_after),
         same_surface_spread_m: metric(surface_spread_before, surface_spread_after),
+        spread_without_campaign_shift_m: metric(
+            shift_free_before.spread_without_campaign_shift(SPREAD_MIN_POINTS).0,
+            shift_free_after.spread_without_campaign_shift(SPREAD_MIN_POINTS).0,
+        ),
+        spread_without_tile_shift_m: metric(
+            shift_free_before.spread_without_tile_shift(SPREAD_MIN_POINTS).0,
+            shift_free_after.spread_without_tile_shift(SPREAD_MIN_POINTS).0,
+        ),
         surface_error_rms_m: metric(before.rms(), after.rms()),
         surface_error_mean_m: metric(before.mean(), after.mean()),
         surface_error_p95_abs_m: metric(before.abs_quantile(0.95), after.abs_quantile(0.95)),
@@ -501,6 +527,8 @@ impl Evaluation {
         };
         row("strip offset spread", &self.strip_offset_spread_m, 1e3, "mm");
         row("  same-surface spread", &self.same_surface_spread_m, 1e3, "mm");
+        row("  without the campaign's shift", &self.spread_without_campaign_shift_m, 1e3, "mm");
+        row("  without each tile's shift", &self.spread_without_tile_shift_m, 1e3, "mm");
         row("surface error RMS", &self.surface_error_rms_m, 1e3, "mm");
         row("surface error mean", &self.surface_error_mean_m, 1e3, "mm");
         row("surface |error| 95th percentile", &self.surface_error_p95_abs_m, 1e3, "mm");

@@ -228,6 +228,118 @@ impl GroupStripMeans<TileKey> {
     }
 }
 
+/// Sums that let the strip offset spread be recomputed after removing a translation shared by
+/// every strip: per (tile, strip) the count, Σe and Σn; per tile Σnnᵀ and Σne (n the true unit
+/// normal, e the signed normal error). A shared translation d shifts a strip's mean error by
+/// d·n̄, so where strips see differently oriented surfaces it shows in the spread although the
+/// strips agree; these figures tell how much of the spread such a shift explains.
+#[derive(Clone, Debug, Default)]
+pub struct ShiftFreeMeans {
+    pairs: HashMap<(TileKey, u32), (u64, f64, [f64; 3])>,
+    tiles: HashMap<TileKey, ([[f64; 3]; 3], [f64; 3])>,
+}
+
+impl ShiftFreeMeans {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// `normal` must be a unit vector.
+    pub fn add(&mut self, tile: TileKey, strip: u32, e: f64, normal: [f64; 3]) {
+        let p = self.pairs.entry((tile, strip)).or_insert((0, 0.0, [0.0; 3]));
+        p.0 += 1;
+        p.1 += e;
+        let t = self.tiles.entry(tile).or_insert(([[0.0; 3]; 3], [0.0; 3]));
+        for a in 0..3 {
+            p.2[a] += normal[a];
+            t.1[a] += normal[a] * e;
+            for b in 0..3 {
+                t.0[a][b] += normal[a] * normal[b];
+            }
+        }
+    }
+
+    pub fn merge(&mut self, other: Self) {
+        for (k, (n, e, sn)) in other.pairs {
+            let p = self.pairs.entry(k).or_insert((0, 0.0, [0.0; 3]));
+            p.0 += n;
+            p.1 += e;
+            (0..3).for_each(|a| p.2[a] += sn[a]);
+        }
+        for (k, (nn, ne)) in other.tiles {
+            let t = self.tiles.entry(k).or_insert(([[0.0; 3]; 3], [0.0; 3]));
+            for a in 0..3 {
+                t.1[a] += ne[a];
+                (0..3).for_each(|b| t.0[a][b] += nn[a][b]);
+            }
+        }
+    }
+
+    /// The least-squares translation of all points of the campaign (minimum norm in directions
+    /// no normal constrains).
+    pub fn campaign_shift(&self) -> [f64; 3] {
+        let mut keys: Vec<&TileKey> = self.tiles.keys().collect();
+        keys.sort();
+        let (mut nn, mut ne) = ([[0.0; 3]; 3], [0.0; 3]);
+        for k in keys {
+            let t = &self.tiles[k];
+            for a in 0..3 {
+                ne[a] += t.1[a];
+                (0..3).for_each(|b| nn[a][b] += t.0[a][b]);
+            }
+        }
+        least_squares_shift(&nn, &ne)
+    }
+
+    /// Spread after removing one translation from every point of the campaign.
+    pub fn spread_without_campaign_shift(&self, min_points: usize) -> (f64, usize) {
+        let d = self.campaign_shift();
+        self.spread_without(|_| d, min_points)
+    }
+
+    /// Spread after removing, in every tile, the translation shared by all its points: what is
+    /// left is disagreement between strips that no common motion explains.
+    pub fn spread_without_tile_shift(&self, min_points: usize) -> (f64, usize) {
+        self.spread_without(
+            |tile| self.tiles.get(&tile).map_or([0.0; 3], |t| least_squares_shift(&t.0, &t.1)),
+            min_points,
+        )
+    }
+
+    fn spread_without(&self, shift: impl Fn(TileKey) -> [f64; 3], min_points: usize) -> (f64, usize) {
+        let mut acc = TileStripMeans::new();
+        let mut shifts: HashMap<TileKey, [f64; 3]> = HashMap::new();
+        for (&(tile, strip), &(n, e, sn)) in &self.pairs {
+            let d = *shifts.entry(tile).or_insert_with(|| shift(tile));
+            let sum = e - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]);
+            let c = acc.cells.entry((tile, strip)).or_insert((0, 0.0));
+            c.0 += n;
+            c.1 += sum;
+        }
+        acc.spread(min_points)
+    }
+}
+
+/// Minimum-norm solution of the 3×3 normal equations `nn·d = ne` (directions carrying less
+/// than 10⁻⁶ of the strongest direction's information are left at zero).
+fn least_squares_shift(nn: &[[f64; 3]; 3], ne: &[f64; 3]) -> [f64; 3] {
+    let m = nalgebra::Matrix3::from_fn(|a, b| nn[a][b]);
+    let eig = nalgebra::SymmetricEigen::new(m);
+    let max = eig.eigenvalues.max();
+    let mut d = nalgebra::Vector3::zeros();
+    if max <= 0.0 {
+        return [0.0; 3];
+    }
+    let rhs = nalgebra::Vector3::new(ne[0], ne[1], ne[2]);
+    for (j, &lambda) in eig.eigenvalues.iter().enumerate() {
+        if lambda > 1e-6 * max {
+            let v = eig.eigenvectors.column(j);
+            d += v * (v.dot(&rhs) / lambda);
+        }
+    }
+    [d[0], d[1], d[2]]
+}
+
 /// [`TileStripMeans::spread`] of `(tile of the true position, strip, signed normal error)` samples.
 pub fn strip_offset_spread(samples: impl Iterator<Item = (TileKey, u32, f64)>, min_points: usize) -> (f64, usize) {
     let mut acc = TileStripMeans::new();
@@ -314,6 +426,40 @@ mod tests {
         let samples = samples.chain((0..400).map(|i| (T0, 1, -0.01 + if i % 2 == 0 { 0.02 } else { -0.02 })));
         let (s, pairs) = strip_offset_spread(samples, 200);
         assert!(close(s, 0.01) && pairs == 2);
+    }
+
+    /// A translation shared by all strips at a corner shows in the plain spread; removing the
+    /// campaign's shift (or the tile's) leaves only the real disagreement.
+    #[test]
+    fn shared_shift_at_a_corner_is_removed_by_the_shift_free_spreads() {
+        let d = [0.10, -0.13, 0.02];
+        let faces = [[0.78f64, 0.22, 0.0], [0.26, 0.74, 0.0], [0.0, 0.0, 1.0]];
+        let unit = |n: [f64; 3]| {
+            let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            [n[0] / l, n[1] / l, n[2] / l]
+        };
+        let mut acc = ShiftFreeMeans::new();
+        let mut plain = TileStripMeans::new();
+        // Strip 0 sees face 0 and the road, strip 1 face 1 and the road; strip 2 is 4 mm off on the road.
+        for (strip, face, extra) in [(0u32, 0usize, 0.0), (1, 1, 0.0), (2, 2, 0.004)] {
+            for k in 0..400 {
+                let n = unit(if k % 2 == 0 { faces[face] } else { faces[2] });
+                let e = d[0] * n[0] + d[1] * n[1] + d[2] * n[2] + extra;
+                acc.add(T0, strip, e, n);
+                plain.add(T0, strip, e);
+                // A second tile with another shift, seen by all strips alike.
+                acc.add(T1, strip, 0.05 * n[2], n);
+            }
+        }
+        assert!(plain.spread(200).0 > 0.03);
+        let (tile_free, pairs) = acc.spread_without_tile_shift(200);
+        assert_eq!(pairs, 6);
+        // Only strip 2's 4 mm remain in tile 0: the tile's fit takes 2 mm of it into its vertical
+        // shift (800 road points, 400 of them 4 mm off), leaving offsets −1, −1, +2 mm; tile 1
+        // adds three zero offsets.
+        assert!((tile_free - 0.001).abs() < 1e-6, "{tile_free}");
+        let campaign = acc.spread_without_campaign_shift(200).0;
+        assert!(campaign < plain.spread(200).0 && campaign > tile_free, "{campaign}");
     }
 
     #[test]

@@ -217,8 +217,22 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
-        TaskInput::SolveTrajectory { prefix, iteration, trajectory, step, params, with_sigma, current, blocks } => {
+        TaskInput::SolveTrajectory {
+            prefix,
+            iteration,
+            trajectory,
+            step,
+            params,
+            with_sigma,
+            current,
+            previous,
+            blocks,
+        } => {
             let current = read_corrections(ctx, &current).await?;
+            let previous = match &previous {
+                Some(p) => Some(read_corrections(ctx, p).await?),
+                None => None,
+            };
             let mut all = Vec::new();
             for key in &blocks {
                 let bytes = ctx.get(key).await?;
@@ -228,7 +242,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             }
             let id = trajectory.id.clone();
             let solution = blocking(move || {
-                precimap_estimate::solve_trajectory(all.iter(), &current, &params, step.rotation, with_sigma)
+                precimap_estimate::solve_trajectory(all.iter(), &current, previous.as_ref(), &params, step.rotation, with_sigma)
             })
             .await?
             .map_err(|e| {

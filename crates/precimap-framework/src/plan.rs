@@ -102,6 +102,9 @@ pub enum TaskInput {
         params: Parameters,
         with_sigma: bool,
         current: CorrectionsRef,
+        /// The corrections before `current`, when momentum carries the last step on.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        previous: Option<CorrectionsRef>,
         /// Blocks object keys in tile order (the in-process driver's summation order).
         blocks: Vec<String>,
     },
@@ -193,6 +196,11 @@ pub struct PlanState {
     pub robust_sigma: Option<f64>,
     /// Latest recorded corrections per trajectory.
     pub corrections: Vec<Option<String>>,
+    /// The corrections before the last iteration and that iteration's step (for momentum).
+    #[serde(default)]
+    pub previous_corrections: Vec<Option<String>>,
+    #[serde(default)]
+    pub previous_step: Option<IterationStep>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
     pub pending_seconds: f64,
@@ -257,6 +265,8 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         iteration: 0,
         robust_sigma: None,
         corrections: vec![None; trajectories.len()],
+        previous_corrections: vec![None; trajectories.len()],
+        previous_step: None,
         pending_stats: None,
         pending_seconds: 0.0,
         iterations: Vec::new(),
@@ -470,6 +480,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     state.pending_seconds = seconds;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let with_sigma = state.step_index + 1 == state.params.schedule.len();
+    let momentum = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
     let tasks = state
         .trajectories
         .iter()
@@ -482,6 +493,11 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
                 params: state.params.clone(),
                 with_sigma,
                 current: corrections_ref(state, traj.index),
+                previous: momentum.then(|| CorrectionsRef {
+                    trajectory: traj.index,
+                    anchors: state.anchor_ranges[traj.index as usize],
+                    key: state.previous_corrections.get(traj.index as usize).cloned().flatten(),
+                }),
                 blocks: std::mem::take(&mut blocks[traj.index as usize]),
             }
             .task(traj.id.clone())
@@ -493,6 +509,8 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
 fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(IterationRecord, Next), String> {
     let mut max_change = 0.0f64;
     let mut reports = vec![None; state.trajectories.len()];
+    state.previous_corrections = state.corrections.clone();
+    state.previous_step = Some(effective_step(&state.params, state.step_index, state.robust_sigma));
     let mut seconds = state.pending_seconds;
     for task in tasks {
         let r: SolveResult = parse(task)?;

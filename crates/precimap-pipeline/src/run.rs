@@ -88,6 +88,7 @@ pub fn iterate(
     work: &Path,
     prepared: &Prepared,
     corrections: &[TrajectoryCorrections],
+    previous: Option<&[TrajectoryCorrections]>,
     step: &precimap_core::IterationStep,
     with_sigma: bool,
 ) -> Result<(Vec<precimap_estimate::TrajectorySolution>, TileStats), PipelineError> {
@@ -111,7 +112,8 @@ pub fn iterate(
         .par_iter()
         .enumerate()
         .map(|(t, blocks)| {
-            solve_trajectory_task(campaign, t, blocks.iter().copied(), &corrections[t], step, with_sigma)
+            let before = previous.map(|p| &p[t]);
+            solve_trajectory_task(campaign, t, blocks.iter().copied(), &corrections[t], before, step, with_sigma)
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok((solutions, stats))
@@ -144,15 +146,20 @@ pub fn run_campaign(
     let mut solutions;
     let mut step_index = 0;
     let mut robust_sigma: Option<f64> = None;
+    // The corrections before the last iteration and that iteration's step (for momentum).
+    let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     loop {
         let iteration_started = Instant::now();
         let step = &effective_step(&campaign.params, step_index, robust_sigma);
         let last = step_index + 1 == schedule.len();
+        let before =
+            previous.as_ref().filter(|(_, s)| step.momentum_continues(s, &campaign.params)).map(|(c, _)| c.as_slice());
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
-        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, step, last)?;
+        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
-        corrections = sol.iter().map(|s| s.corrections.clone()).collect();
+        let next = sol.iter().map(|s| s.corrections.clone()).collect();
+        previous = Some((std::mem::replace(&mut corrections, next), *step));
         solutions = sol;
         histogram = stats.histogram.clone();
         robust_sigma = histogram.robust_sigma_m();

@@ -151,10 +151,11 @@ pub fn solve_trajectory_task<'a>(
     trajectory: usize,
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
+    previous: Option<&TrajectoryCorrections>,
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory(blocks, current, &campaign.params, step.rotation, with_sigma)
+    precimap_estimate::solve_trajectory(blocks, current, previous, &campaign.params, step.rotation, with_sigma)
         .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
 }
 
