@@ -89,11 +89,22 @@ impl Executor {
         &self.jobs
     }
 
-    /// Rescues expired leases (any executor may; it is idempotent).
+    /// Rescues expired leases and advances stages whose last completer stopped before the
+    /// barrier (any executor may; it is idempotent).
     pub async fn reconcile(&self) -> Result<(), FrameworkError> {
-        let report = retry_transient(self.config.database_patience, || self.jobs.reconcile()).await?;
-        if report.requeued + report.dead > 0 {
-            info!(requeued = report.requeued, dead = report.dead, "rescued expired leases");
+        let planner = CampaignPlanner;
+        let report = retry_transient(self.config.database_patience, || self.jobs.reconcile(&planner)).await?;
+        if report.requeued + report.dead + report.advanced > 0 {
+            info!(
+                requeued = report.requeued,
+                dead = report.dead,
+                advanced = report.advanced,
+                "rescued expired leases and stuck stages"
+            );
+            if report.advanced > 0 {
+                // A stage opened (or a campaign finished): idle loops may have work.
+                self.wake.notify_waiters();
+            }
         }
         Ok(())
     }
