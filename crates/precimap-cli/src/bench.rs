@@ -36,6 +36,10 @@ pub enum BenchCommand {
         /// Claim + complete cycles per measurement.
         #[arg(long, default_value_t = 3000)]
         tasks: usize,
+        /// PostgreSQL: claims commit without waiting for the WAL flush (`StoreOptions::durable_claims`
+        /// off; completions stay durable).
+        #[arg(long)]
+        async_claims: bool,
         /// Campaign for the overhead measurement (a full run in-process and through the framework).
         #[arg(long, default_value = "small")]
         overhead_scale: precimap_sim::Scale,
@@ -70,8 +74,8 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
-        BenchCommand::Queue { postgres, tasks, overhead_scale, no_overhead, cache, json } => {
-            bench_queue(&postgres, tasks, (!no_overhead).then_some(overhead_scale), &cache, json)
+        BenchCommand::Queue { postgres, tasks, async_claims, overhead_scale, no_overhead, cache, json } => {
+            bench_queue(&postgres, tasks, async_claims, (!no_overhead).then_some(overhead_scale), &cache, json)
         }
         BenchCommand::Preprocess { scale, seed, cache, json } => bench_preprocess(scale, seed, &cache, json),
         BenchCommand::Solve { anchors, json } => {
@@ -383,6 +387,7 @@ struct FrameworkOverhead {
 fn bench_queue(
     postgres: &str,
     tasks: usize,
+    async_claims: bool,
     overhead_scale: Option<precimap_sim::Scale>,
     cache: &Path,
     json: bool,
@@ -400,7 +405,7 @@ fn bench_queue(
         }
         sqlite.push(f);
         let f = rt
-            .block_on(precimap_jobs::bench::queue_bench(postgres, claimers, tasks))
+            .block_on(precimap_jobs::bench::queue_bench_with(postgres, claimers, tasks, true, !async_claims))
             .with_context(|| format!("PostgreSQL at {postgres}"))?;
         if !json {
             eprintln!(

@@ -19,6 +19,8 @@ pub struct QueueBenchFigures {
     pub claimers: usize,
     pub tasks: usize,
     pub durable_commits: bool,
+    /// Claims too wait for their WAL flush ([`StoreOptions::durable_claims`]).
+    pub durable_claims: bool,
     pub seconds: f64,
     /// Claim + complete cycles per second (all claimers together).
     pub cycles_per_s: f64,
@@ -46,19 +48,22 @@ impl StagePlanner for OneStage {
 /// a fresh database: for `postgres://…` a new database on that server (dropped afterwards), for
 /// `sqlite:…` a new file in the temporary directory (removed afterwards).
 pub async fn queue_bench(url: &str, claimers: usize, tasks: usize) -> Result<QueueBenchFigures, JobError> {
-    queue_bench_with(url, claimers, tasks, true).await
+    queue_bench_with(url, claimers, tasks, true, true).await
 }
 
-/// [`queue_bench`] with a choice of [`StoreOptions::durable_commits`].
+/// [`queue_bench`] with a choice of [`StoreOptions::durable_commits`] and
+/// [`StoreOptions::durable_claims`].
 pub async fn queue_bench_with(
     url: &str,
     claimers: usize,
     tasks: usize,
     durable_commits: bool,
+    durable_claims: bool,
 ) -> Result<QueueBenchFigures, JobError> {
+    let durability = (durable_commits, durable_claims);
     if url.starts_with("sqlite:") {
         let path = std::env::temp_dir().join(format!("precimap_bench_{}.db", Uuid::new_v4().simple()));
-        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, durable_commits).await;
+        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, durability).await;
         for suffix in ["", "-wal", "-shm"] {
             let mut p = path.clone().into_os_string();
             p.push(suffix);
@@ -70,7 +75,7 @@ pub async fn queue_bench_with(
         let name = format!("precimap_b_{}", Uuid::new_v4().simple());
         let mut admin = sqlx::PgConnection::connect(url).await?;
         sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut admin).await?;
-        let out = run(&with_database(url, &name), claimers, tasks, durable_commits).await;
+        let out = run(&with_database(url, &name), claimers, tasks, durability).await;
         sqlx::query(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")).execute(&mut admin).await?;
         admin.close().await?;
         out
@@ -79,9 +84,19 @@ pub async fn queue_bench_with(
     }
 }
 
-async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) -> Result<QueueBenchFigures, JobError> {
+async fn run(
+    url: &str,
+    claimers: usize,
+    tasks: usize,
+    (durable_commits, durable_claims): (bool, bool),
+) -> Result<QueueBenchFigures, JobError> {
     let claimers = claimers.max(1);
-    let opts = StoreOptions { max_connections: (claimers as u32).max(2), durable_commits, ..StoreOptions::default() };
+    let opts = StoreOptions {
+        max_connections: (claimers as u32).max(2),
+        durable_commits,
+        durable_claims,
+        ..StoreOptions::default()
+    };
     let store = JobStore::connect_with(url, opts).await?;
     let campaign = NewCampaign {
         name: "queue-bench".into(),
@@ -140,6 +155,7 @@ async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) ->
         complete_ms.extend(d);
     }
     let seconds = start.elapsed().as_secs_f64();
+    let cycles = complete_ms.len() as f64;
     let backend = store.backend();
     store.close().await;
     Ok(QueueBenchFigures {
@@ -147,8 +163,9 @@ async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) ->
         claimers,
         tasks,
         durable_commits,
+        durable_claims,
         seconds,
-        cycles_per_s: complete_ms.len() as f64 / seconds,
+        cycles_per_s: cycles / seconds,
         claim_p50_ms: percentile(&mut claim_ms, 0.50),
         claim_p99_ms: percentile(&mut claim_ms, 0.99),
         complete_p50_ms: percentile(&mut complete_ms, 0.50),

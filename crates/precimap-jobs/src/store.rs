@@ -63,11 +63,23 @@ pub struct StoreOptions {
     /// are then run again: execution is at-least-once and the commit point makes re-runs
     /// harmless) and removes one fsync from every claim and completion.
     pub durable_commits: bool,
+    /// PostgreSQL, with `durable_commits`: also wait for the WAL flush when committing a claim.
+    /// Without it a claim commits asynchronously (the completions, failures and transitions that
+    /// follow still wait for theirs, and each flush covers every earlier commit). A server crash
+    /// can then forget the last claims: their tasks are queued again and their executors get
+    /// `LeaseLost` at the next heartbeat or completion, as after a rescued lease, so no completion
+    /// is lost or recorded twice; it halves the flushes per claim + complete cycle.
+    pub durable_claims: bool,
 }
 
 impl Default for StoreOptions {
     fn default() -> Self {
-        StoreOptions { max_connections: 16, acquire_timeout: Duration::from_secs(30), durable_commits: true }
+        StoreOptions {
+            max_connections: 16,
+            acquire_timeout: Duration::from_secs(30),
+            durable_commits: true,
+            durable_claims: true,
+        }
     }
 }
 
@@ -84,6 +96,8 @@ struct Barrier {
 #[derive(Debug, Clone)]
 pub struct JobStore {
     pool: Pool,
+    /// PostgreSQL: claims commit without waiting for the WAL flush (`StoreOptions::durable_claims`).
+    async_claims: bool,
 }
 
 /// Runs `$body` with `$p` bound to the backend's pool.
@@ -257,7 +271,8 @@ impl JobStore {
         } else {
             return Err(bad("expected `sqlite://PATH`, `sqlite::memory:` or `postgres://…`".into()));
         };
-        Ok(JobStore { pool })
+        let async_claims = matches!(pool, Pool::Postgres(_)) && options.durable_commits && !options.durable_claims;
+        Ok(JobStore { pool, async_claims })
     }
 
     pub fn backend(&self) -> Backend {
@@ -532,7 +547,17 @@ impl JobStore {
                        INSERT INTO events (campaign, at_ms, kind, task_id, message) \
                        SELECT campaign, NOW_MS, 'claimed', id, kind || ' ' || key || ' attempt ' || attempt || \
                          ' by ' || $3 FROM claimed) \
-                     SELECT * FROM claimed",
+                     SELECT claimed.* FROM claimed ASYNC",
+                );
+                // `set_config(…, true)` lasts until the end of the statement's own transaction, so
+                // it applies to this claim's commit and to nothing after it.
+                let q = q.replace(
+                    "ASYNC",
+                    if self.async_claims {
+                        ", (SELECT set_config('synchronous_commit', 'off', true)) AS a"
+                    } else {
+                        ""
+                    },
                 );
                 sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(p).await?
             }
@@ -1095,4 +1120,55 @@ fn finished_tasks(
         .collect();
     tasks.sort_by(|a, b| (&a.kind, &a.key).cmp(&(&b.kind, &b.key)));
     tasks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sqlx::Connection;
+
+    /// PostgreSQL: the `synchronous_commit = off` of an asynchronous claim ends with the claim's
+    /// own transaction; the completion that follows on the same connection waits for its flush.
+    #[tokio::test]
+    async fn async_claim_leaves_the_connection_durable() {
+        let admin = std::env::var("PRECIMAP_TEST_POSTGRES")
+            .unwrap_or_else(|_| "postgres://postgres@127.0.0.1:5432/postgres".into());
+        let name = format!("precimap_t_{}", Uuid::new_v4().simple());
+        let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test PostgreSQL server");
+        sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut conn).await.unwrap();
+        let url = crate::bench::with_database(&admin, &name);
+        // One connection, so every statement below runs on the claim's connection.
+        let opts = StoreOptions { max_connections: 1, durable_claims: false, ..StoreOptions::default() };
+        let store = JobStore::connect_with(&url, opts).await.unwrap();
+        assert!(store.async_claims);
+        let Pool::Postgres(pool) = &store.pool else { unreachable!() };
+        let setting = || async { sqlx::query_scalar::<_, String>("SHOW synchronous_commit").fetch_one(pool).await };
+        let campaign = NewCampaign {
+            name: "async".into(),
+            spec: Value::Null,
+            plan_state: Value::Null,
+            object_prefix: "a/".into(),
+            iterations_planned: 0,
+            strips: vec![],
+            trajectories: vec![],
+            queue: QueueConfig::default(),
+        };
+        let stage = StageSpec {
+            stage: "s".into(),
+            iteration: 0,
+            tasks: vec![NewTask { kind: "k".into(), key: "a".into(), input: Value::Null }],
+        };
+        store.create_campaign(campaign, stage).await.unwrap();
+        assert_eq!(setting().await.unwrap(), "on");
+        let task = store.claim("w", Duration::from_secs(60)).await.unwrap().expect("a task");
+        assert_eq!(setting().await.unwrap(), "on", "the claim's setting outlived its transaction");
+        assert!(store.claim("w", Duration::from_secs(60)).await.unwrap().is_none());
+        assert_eq!(setting().await.unwrap(), "on");
+        store.heartbeat(&task, Duration::from_secs(60)).await.unwrap();
+        store.close().await;
+        let durable = JobStore::connect(&url).await.unwrap();
+        assert!(!durable.async_claims, "claims are durable by default");
+        durable.close().await;
+        sqlx::query(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")).execute(&mut conn).await.unwrap();
+    }
 }
