@@ -399,8 +399,11 @@ fn bench_queue(
         let f = rt.block_on(precimap_jobs::bench::queue_bench("sqlite://", claimers, tasks))?;
         if !json {
             eprintln!(
-                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
-                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
+                f.cycles_per_s,
+                f.claim_p50_ms,
+                f.claim_p99_ms,
+                cpu_per_cycle(&f)
             );
         }
         sqlite.push(f);
@@ -409,8 +412,11 @@ fn bench_queue(
             .with_context(|| format!("PostgreSQL at {postgres}"))?;
         if !json {
             eprintln!(
-                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
-                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
+                f.cycles_per_s,
+                f.claim_p50_ms,
+                f.claim_p99_ms,
+                cpu_per_cycle(&f)
             );
         }
         pg.push(f);
@@ -465,6 +471,12 @@ fn bench_queue(
         println!("{}", serde_json::to_string_pretty(&result)?);
     }
     Ok(())
+}
+
+/// "CPU per cycle: client … ms, server … ms" with what the bench could measure.
+fn cpu_per_cycle(f: &precimap_jobs::bench::QueueBenchFigures) -> String {
+    let ms = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.3} ms"));
+    format!("CPU per cycle: client {}, server {}", ms(f.client_cpu_ms_per_cycle), ms(f.server_cpu_ms_per_cycle))
 }
 
 /// A simulated benchmark campaign, written once into `cache` and reused by later runs; returns its

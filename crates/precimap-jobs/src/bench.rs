@@ -28,6 +28,11 @@ pub struct QueueBenchFigures {
     pub claim_p99_ms: f64,
     pub complete_p50_ms: f64,
     pub complete_p99_ms: f64,
+    /// CPU time of this process (claimers, driver, and SQLite itself) per cycle, in ms (Linux).
+    pub client_cpu_ms_per_cycle: Option<f64>,
+    /// CPU time of the PostgreSQL backends serving the claimers per cycle, in ms: a server on
+    /// this machine only, and without background workers (WAL writer, autovacuum).
+    pub server_cpu_ms_per_cycle: Option<f64>,
 }
 
 /// One stage, then success.
@@ -116,6 +121,16 @@ async fn run(
             .collect(),
     };
     let id = store.create_campaign(campaign, stage).await?;
+    // Another connection, to find the backends serving the claimers (not counted itself).
+    let mut observer = match store.backend() {
+        Backend::Postgres => Some(sqlx::PgConnection::connect(url).await?),
+        Backend::Sqlite => None,
+    };
+    let server_before = match &mut observer {
+        Some(conn) => backends_cpu_ms(conn).await?,
+        None => None,
+    };
+    let client_before = process_cpu_ms("self");
     let start = Instant::now();
     let mut handles = Vec::with_capacity(claimers);
     for w in 0..claimers {
@@ -156,6 +171,18 @@ async fn run(
     }
     let seconds = start.elapsed().as_secs_f64();
     let cycles = complete_ms.len() as f64;
+    let client_cpu_ms_per_cycle = process_cpu_ms("self").zip(client_before).map(|(b, a)| (b - a) / cycles);
+    let server_cpu_ms_per_cycle = match observer {
+        Some(mut conn) => {
+            let after = backends_cpu_ms(&mut conn).await?;
+            conn.close().await?;
+            // A backend that connected during the run counts from zero.
+            after.zip(server_before).map(|(after, before)| {
+                after.iter().map(|(pid, ms)| ms - before.get(pid).copied().unwrap_or(0.0)).sum::<f64>() / cycles
+            })
+        }
+        None => None,
+    };
     let backend = store.backend();
     store.close().await;
     Ok(QueueBenchFigures {
@@ -170,7 +197,33 @@ async fn run(
         claim_p99_ms: percentile(&mut claim_ms, 0.99),
         complete_p50_ms: percentile(&mut complete_ms, 0.50),
         complete_p99_ms: percentile(&mut complete_ms, 0.99),
+        client_cpu_ms_per_cycle,
+        server_cpu_ms_per_cycle,
     })
+}
+
+/// CPU time (user + system) of process `pid` (`self` for this one) in ms, from `/proc`; `None`
+/// where there is no such file (another OS, a server on another machine).
+fn process_cpu_ms(pid: &str) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the parenthesised command name start at field 3 (state); utime and stime are
+    // fields 14 and 15, in clock ticks of 10 ms (USER_HZ is 100 on Linux).
+    let fields: Vec<&str> = stat.get(stat.rfind(')')? + 1..)?.split_whitespace().collect();
+    let ticks = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 * 10.0)
+}
+
+/// CPU time in ms of every other backend connected to the observer's database, by pid; `None`
+/// unless all of them can be read (a server on this machine).
+async fn backends_cpu_ms(
+    observer: &mut sqlx::PgConnection,
+) -> Result<Option<std::collections::HashMap<i32, f64>>, JobError> {
+    let pids: Vec<i32> = sqlx::query_scalar(
+        "SELECT pid FROM pg_stat_activity WHERE datname = current_database() AND pid <> pg_backend_pid()",
+    )
+    .fetch_all(&mut *observer)
+    .await?;
+    Ok(pids.into_iter().map(|pid| process_cpu_ms(&pid.to_string()).map(|ms| (pid, ms))).collect())
 }
 
 fn percentile(v: &mut [f64], q: f64) -> f64 {
@@ -207,6 +260,21 @@ mod tests {
         assert_eq!(with_database("postgres://u@h:5432/postgres", "x"), "postgres://u@h:5432/x");
         assert_eq!(with_database("postgres://u@h/postgres?sslmode=disable", "x"), "postgres://u@h/x?sslmode=disable");
         assert_eq!(with_database("postgres://u@h", "x"), "postgres://u@h/x");
+    }
+
+    #[test]
+    fn own_cpu_time_is_read() {
+        let before = process_cpu_ms("self").expect("/proc/self/stat");
+        let mut x = 0u64;
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_millis(100) {
+            x = x.wrapping_add(std::hint::black_box(1));
+        }
+        assert!(x > 0);
+        let spent = process_cpu_ms("self").unwrap() - before;
+        // 100 ms of spinning; the tick is 10 ms and a busy machine may take CPU away from us.
+        assert!((10.0..=1000.0).contains(&spent), "{spent} ms");
+        assert_eq!(process_cpu_ms("0"), None);
     }
 
     #[test]
