@@ -36,6 +36,10 @@ pub enum BenchCommand {
         /// Claim + complete cycles per measurement.
         #[arg(long, default_value_t = 3000)]
         tasks: usize,
+        /// PostgreSQL: claims commit without waiting for the WAL flush (`StoreOptions::durable_claims`
+        /// off; completions stay durable).
+        #[arg(long)]
+        async_claims: bool,
         /// Campaign for the overhead measurement (a full run in-process and through the framework).
         #[arg(long, default_value = "small")]
         overhead_scale: precimap_sim::Scale,
@@ -70,8 +74,8 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
-        BenchCommand::Queue { postgres, tasks, overhead_scale, no_overhead, cache, json } => {
-            bench_queue(&postgres, tasks, (!no_overhead).then_some(overhead_scale), &cache, json)
+        BenchCommand::Queue { postgres, tasks, async_claims, overhead_scale, no_overhead, cache, json } => {
+            bench_queue(&postgres, tasks, async_claims, (!no_overhead).then_some(overhead_scale), &cache, json)
         }
         BenchCommand::Preprocess { scale, seed, cache, json } => bench_preprocess(scale, seed, &cache, json),
         BenchCommand::Solve { anchors, json } => {
@@ -383,6 +387,7 @@ struct FrameworkOverhead {
 fn bench_queue(
     postgres: &str,
     tasks: usize,
+    async_claims: bool,
     overhead_scale: Option<precimap_sim::Scale>,
     cache: &Path,
     json: bool,
@@ -394,18 +399,24 @@ fn bench_queue(
         let f = rt.block_on(precimap_jobs::bench::queue_bench("sqlite://", claimers, tasks))?;
         if !json {
             eprintln!(
-                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
-                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
+                f.cycles_per_s,
+                f.claim_p50_ms,
+                f.claim_p99_ms,
+                cpu_per_cycle(&f)
             );
         }
         sqlite.push(f);
         let f = rt
-            .block_on(precimap_jobs::bench::queue_bench(postgres, claimers, tasks))
+            .block_on(precimap_jobs::bench::queue_bench_with(postgres, claimers, tasks, true, !async_claims))
             .with_context(|| format!("PostgreSQL at {postgres}"))?;
         if !json {
             eprintln!(
-                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms",
-                f.cycles_per_s, f.claim_p50_ms, f.claim_p99_ms
+                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
+                f.cycles_per_s,
+                f.claim_p50_ms,
+                f.claim_p99_ms,
+                cpu_per_cycle(&f)
             );
         }
         pg.push(f);
@@ -460,6 +471,12 @@ fn bench_queue(
         outln!("{}", serde_json::to_string_pretty(&result)?);
     }
     Ok(())
+}
+
+/// "CPU per cycle: client … ms, server … ms" with what the bench could measure.
+fn cpu_per_cycle(f: &precimap_jobs::bench::QueueBenchFigures) -> String {
+    let ms = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.3} ms"));
+    format!("CPU per cycle: client {}, server {}", ms(f.client_cpu_ms_per_cycle), ms(f.server_cpu_ms_per_cycle))
 }
 
 /// A simulated benchmark campaign, written once into `cache` and reused by later runs; returns its

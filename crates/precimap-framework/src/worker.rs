@@ -8,6 +8,7 @@ use crate::exec::{execute, TaskContext};
 use crate::plan::{CampaignPlanner, TaskInput};
 use precimap_jobs::{CampaignState, ClaimedTask, FailOutcome, JobError, JobStore};
 use std::future::Future;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{watch, Notify};
@@ -89,11 +90,22 @@ impl Executor {
         &self.jobs
     }
 
-    /// Rescues expired leases (any executor may; it is idempotent).
+    /// Rescues expired leases and advances stages whose last completer stopped before the
+    /// barrier (any executor may; it is idempotent).
     pub async fn reconcile(&self) -> Result<(), FrameworkError> {
-        let report = retry_transient(self.config.database_patience, || self.jobs.reconcile()).await?;
-        if report.requeued + report.dead > 0 {
-            info!(requeued = report.requeued, dead = report.dead, "rescued expired leases");
+        let planner = CampaignPlanner;
+        let report = retry_transient(self.config.database_patience, || self.jobs.reconcile(&planner)).await?;
+        if report.requeued + report.dead + report.advanced > 0 {
+            info!(
+                requeued = report.requeued,
+                dead = report.dead,
+                advanced = report.advanced,
+                "rescued expired leases and stuck stages"
+            );
+            if report.advanced > 0 {
+                // A stage opened (or a campaign finished): idle loops may have work.
+                self.wake.notify_waiters();
+            }
         }
         Ok(())
     }
@@ -151,7 +163,12 @@ impl Executor {
         match result {
             Ok(outcome) => {
                 let planner = CampaignPlanner;
-                match retry_transient(patience, || self.jobs.complete(&task, outcome.clone(), &planner)).await {
+                let tries = AtomicU32::new(0);
+                let complete = || {
+                    tries.fetch_add(1, Ordering::Relaxed);
+                    self.jobs.complete(&task, outcome.clone(), &planner)
+                };
+                match retry_transient(patience, complete).await {
                     Ok(completion) => {
                         self.wake.notify_waiters();
                         if completion.campaign_state != CampaignState::Running {
@@ -159,7 +176,18 @@ impl Executor {
                         }
                         Ok(WorkOutcome::Done { kind, key })
                     }
-                    Err(JobError::LeaseLost) => Ok(WorkOutcome::LeaseLost { kind, key }),
+                    Err(JobError::LeaseLost) => {
+                        if tries.load(Ordering::Relaxed) > 1 {
+                            // A try that failed with a transient error may have committed the task
+                            // before its barrier check failed; the retry then finds the task done.
+                            // Its stage may be closed but not advanced: advance it now rather than
+                            // at the next reconcile.
+                            if let Err(e) = self.reconcile().await {
+                                warn!(error = %e, "reconcile after a retried completion failed");
+                            }
+                        }
+                        Ok(WorkOutcome::LeaseLost { kind, key })
+                    }
                     Err(e) => Err(e.into()),
                 }
             }

@@ -1,6 +1,7 @@
 //! `cargo run --release -p precimap-jobs --example queue_bench -- URL [TASKS] [CLAIMERS...]`
 //! prints one JSON line of figures per claimer count. `PRECIMAP_BENCH_ASYNC_COMMIT=1` turns off
-//! PostgreSQL's `synchronous_commit` (see `StoreOptions::durable_commits`).
+//! PostgreSQL's `synchronous_commit` (see `StoreOptions::durable_commits`);
+//! `PRECIMAP_BENCH_ASYNC_CLAIMS=1` only for claims (`StoreOptions::durable_claims`).
 
 use precimap_jobs::bench::queue_bench_with;
 
@@ -14,8 +15,9 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         claimers = vec![1, 4, 16];
     }
     let durable = std::env::var("PRECIMAP_BENCH_ASYNC_COMMIT").map_or(true, |v| v != "1");
+    let durable_claims = std::env::var("PRECIMAP_BENCH_ASYNC_CLAIMS").map_or(true, |v| v != "1");
     for n in claimers {
-        let figures = queue_bench_with(&url, n, tasks, durable).await?;
+        let figures = queue_bench_with(&url, n, tasks, durable, durable_claims).await?;
         println!("{}", serde_json::to_string(&figures)?);
     }
     Ok(())

@@ -19,6 +19,8 @@ pub struct QueueBenchFigures {
     pub claimers: usize,
     pub tasks: usize,
     pub durable_commits: bool,
+    /// Claims too wait for their WAL flush ([`StoreOptions::durable_claims`]).
+    pub durable_claims: bool,
     pub seconds: f64,
     /// Claim + complete cycles per second (all claimers together).
     pub cycles_per_s: f64,
@@ -26,6 +28,11 @@ pub struct QueueBenchFigures {
     pub claim_p99_ms: f64,
     pub complete_p50_ms: f64,
     pub complete_p99_ms: f64,
+    /// CPU time of this process (claimers, driver, and SQLite itself) per cycle, in ms (Linux).
+    pub client_cpu_ms_per_cycle: Option<f64>,
+    /// CPU time of the PostgreSQL backends serving the claimers per cycle, in ms: a server on
+    /// this machine only, and without background workers (WAL writer, autovacuum).
+    pub server_cpu_ms_per_cycle: Option<f64>,
 }
 
 /// One stage, then success.
@@ -46,19 +53,22 @@ impl StagePlanner for OneStage {
 /// a fresh database: for `postgres://…` a new database on that server (dropped afterwards), for
 /// `sqlite:…` a new file in the temporary directory (removed afterwards).
 pub async fn queue_bench(url: &str, claimers: usize, tasks: usize) -> Result<QueueBenchFigures, JobError> {
-    queue_bench_with(url, claimers, tasks, true).await
+    queue_bench_with(url, claimers, tasks, true, true).await
 }
 
-/// [`queue_bench`] with a choice of [`StoreOptions::durable_commits`].
+/// [`queue_bench`] with a choice of [`StoreOptions::durable_commits`] and
+/// [`StoreOptions::durable_claims`].
 pub async fn queue_bench_with(
     url: &str,
     claimers: usize,
     tasks: usize,
     durable_commits: bool,
+    durable_claims: bool,
 ) -> Result<QueueBenchFigures, JobError> {
+    let durability = (durable_commits, durable_claims);
     if url.starts_with("sqlite:") {
         let path = std::env::temp_dir().join(format!("precimap_bench_{}.db", Uuid::new_v4().simple()));
-        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, durable_commits).await;
+        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, durability).await;
         for suffix in ["", "-wal", "-shm"] {
             let mut p = path.clone().into_os_string();
             p.push(suffix);
@@ -70,7 +80,7 @@ pub async fn queue_bench_with(
         let name = format!("precimap_b_{}", Uuid::new_v4().simple());
         let mut admin = sqlx::PgConnection::connect(url).await?;
         sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut admin).await?;
-        let out = run(&with_database(url, &name), claimers, tasks, durable_commits).await;
+        let out = run(&with_database(url, &name), claimers, tasks, durability).await;
         sqlx::query(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")).execute(&mut admin).await?;
         admin.close().await?;
         out
@@ -79,9 +89,19 @@ pub async fn queue_bench_with(
     }
 }
 
-async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) -> Result<QueueBenchFigures, JobError> {
+async fn run(
+    url: &str,
+    claimers: usize,
+    tasks: usize,
+    (durable_commits, durable_claims): (bool, bool),
+) -> Result<QueueBenchFigures, JobError> {
     let claimers = claimers.max(1);
-    let opts = StoreOptions { max_connections: (claimers as u32).max(2), durable_commits, ..StoreOptions::default() };
+    let opts = StoreOptions {
+        max_connections: (claimers as u32).max(2),
+        durable_commits,
+        durable_claims,
+        ..StoreOptions::default()
+    };
     let store = JobStore::connect_with(url, opts).await?;
     let campaign = NewCampaign {
         name: "queue-bench".into(),
@@ -101,6 +121,16 @@ async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) ->
             .collect(),
     };
     let id = store.create_campaign(campaign, stage).await?;
+    // Another connection, to find the backends serving the claimers (not counted itself).
+    let mut observer = match store.backend() {
+        Backend::Postgres => Some(sqlx::PgConnection::connect(url).await?),
+        Backend::Sqlite => None,
+    };
+    let server_before = match &mut observer {
+        Some(conn) => backends_cpu_ms(conn).await?,
+        None => None,
+    };
+    let client_before = process_cpu_ms("self");
     let start = Instant::now();
     let mut handles = Vec::with_capacity(claimers);
     for w in 0..claimers {
@@ -140,6 +170,19 @@ async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) ->
         complete_ms.extend(d);
     }
     let seconds = start.elapsed().as_secs_f64();
+    let cycles = complete_ms.len() as f64;
+    let client_cpu_ms_per_cycle = process_cpu_ms("self").zip(client_before).map(|(b, a)| (b - a) / cycles);
+    let server_cpu_ms_per_cycle = match observer {
+        Some(mut conn) => {
+            let after = backends_cpu_ms(&mut conn).await?;
+            conn.close().await?;
+            // A backend that connected during the run counts from zero.
+            after.zip(server_before).map(|(after, before)| {
+                after.iter().map(|(pid, ms)| ms - before.get(pid).copied().unwrap_or(0.0)).sum::<f64>() / cycles
+            })
+        }
+        None => None,
+    };
     let backend = store.backend();
     store.close().await;
     Ok(QueueBenchFigures {
@@ -147,13 +190,40 @@ async fn run(url: &str, claimers: usize, tasks: usize, durable_commits: bool) ->
         claimers,
         tasks,
         durable_commits,
+        durable_claims,
         seconds,
-        cycles_per_s: complete_ms.len() as f64 / seconds,
+        cycles_per_s: cycles / seconds,
         claim_p50_ms: percentile(&mut claim_ms, 0.50),
         claim_p99_ms: percentile(&mut claim_ms, 0.99),
         complete_p50_ms: percentile(&mut complete_ms, 0.50),
         complete_p99_ms: percentile(&mut complete_ms, 0.99),
+        client_cpu_ms_per_cycle,
+        server_cpu_ms_per_cycle,
     })
+}
+
+/// CPU time (user + system) of process `pid` (`self` for this one) in ms, from `/proc`; `None`
+/// where there is no such file (another OS, a server on another machine).
+fn process_cpu_ms(pid: &str) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the parenthesised command name start at field 3 (state); utime and stime are
+    // fields 14 and 15, in clock ticks of 10 ms (USER_HZ is 100 on Linux).
+    let fields: Vec<&str> = stat.get(stat.rfind(')')? + 1..)?.split_whitespace().collect();
+    let ticks = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 * 10.0)
+}
+
+/// CPU time in ms of every other backend connected to the observer's database, by pid; `None`
+/// unless all of them can be read (a server on this machine).
+async fn backends_cpu_ms(
+    observer: &mut sqlx::PgConnection,
+) -> Result<Option<std::collections::HashMap<i32, f64>>, JobError> {
+    let pids: Vec<i32> = sqlx::query_scalar(
+        "SELECT pid FROM pg_stat_activity WHERE datname = current_database() AND pid <> pg_backend_pid()",
+    )
+    .fetch_all(&mut *observer)
+    .await?;
+    Ok(pids.into_iter().map(|pid| process_cpu_ms(&pid.to_string()).map(|ms| (pid, ms))).collect())
 }
 
 fn percentile(v: &mut [f64], q: f64) -> f64 {
@@ -190,6 +260,21 @@ mod tests {
         assert_eq!(with_database("postgres://u@h:5432/postgres", "x"), "postgres://u@h:5432/x");
         assert_eq!(with_database("postgres://u@h/postgres?sslmode=disable", "x"), "postgres://u@h/x?sslmode=disable");
         assert_eq!(with_database("postgres://u@h", "x"), "postgres://u@h/x");
+    }
+
+    #[test]
+    fn own_cpu_time_is_read() {
+        let before = process_cpu_ms("self").expect("/proc/self/stat");
+        let mut x = 0u64;
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_millis(100) {
+            x = x.wrapping_add(std::hint::black_box(1));
+        }
+        assert!(x > 0);
+        let spent = process_cpu_ms("self").unwrap() - before;
+        // 100 ms of spinning; the tick is 10 ms and a busy machine may take CPU away from us.
+        assert!((10.0..=1000.0).contains(&spent), "{spent} ms");
+        assert_eq!(process_cpu_ms("0"), None);
     }
 
     #[test]

@@ -5,9 +5,11 @@
 //!
 //! Locking discipline (PostgreSQL): every transaction that changes more than one row of a
 //! campaign first locks the campaign row (`FOR NO KEY UPDATE`, which does not block the foreign-key
-//! checks of concurrent inserts), then touches tasks. `claim` and `heartbeat` touch one task row
-//! only and never wait for a campaign lock, so no cycle of waits can form. SQLite serialises all
-//! writers with `BEGIN IMMEDIATE`.
+//! checks of concurrent inserts), then touches tasks. `claim`, `heartbeat` and the commit of
+//! `complete` touch one task row only (plus rows they insert) and never wait for a campaign lock,
+//! so no cycle of waits can form, and completions of one campaign do not queue behind each other;
+//! only the completion that finds its stage closed takes the campaign lock, to advance it. SQLite
+//! serialises all writers with `BEGIN IMMEDIATE`.
 
 use std::collections::HashMap;
 use std::str::FromStr;
@@ -32,6 +34,14 @@ const MAX_EMPTY_STAGES: usize = 64;
 const SQLITE_NOW: &str = "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)";
 const PG_NOW: &str = "(extract(epoch from clock_timestamp()) * 1000)::bigint";
 
+/// An open (queued or leased) task of a stage, if any: `$1` campaign, `$2` stage, `$3` iteration.
+/// Served by the partial index `tasks_open` whatever the statistics say (a sequential or primary-key
+/// scan would have to sort or wade through the stage's done tasks, which planners underestimate),
+/// newest first: completions happen roughly in id order, so the index entries of tasks that are
+/// done (dead until vacuumed) pile up at the low end.
+const STAGE_OPEN: &str = "SELECT id FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
+     AND state IN ('queued', 'leased') ORDER BY id DESC LIMIT 1";
+
 const CAMPAIGN_COLS: &str = "id, name, state, stage, iteration, iterations_planned, spec, plan_state, \
      object_prefix, error, max_attempts, backoff_base_ms, backoff_max_ms, created_at_ms, updated_at_ms, finished_at_ms";
 
@@ -53,18 +63,41 @@ pub struct StoreOptions {
     /// are then run again: execution is at-least-once and the commit point makes re-runs
     /// harmless) and removes one fsync from every claim and completion.
     pub durable_commits: bool,
+    /// PostgreSQL, with `durable_commits`: also wait for the WAL flush when committing a claim.
+    /// Without it a claim commits asynchronously (the completions, failures and transitions that
+    /// follow still wait for theirs, and each flush covers every earlier commit). A server crash
+    /// can then forget the last claims: their tasks are queued again and their executors get
+    /// `LeaseLost` at the next heartbeat or completion, as after a rescued lease, so no completion
+    /// is lost or recorded twice; it halves the flushes per claim + complete cycle.
+    pub durable_claims: bool,
 }
 
 impl Default for StoreOptions {
     fn default() -> Self {
-        StoreOptions { max_connections: 16, acquire_timeout: Duration::from_secs(30), durable_commits: true }
+        StoreOptions {
+            max_connections: 16,
+            acquire_timeout: Duration::from_secs(30),
+            durable_commits: true,
+            durable_claims: true,
+        }
     }
+}
+
+/// What [`JobStore::advance_stage`] did.
+#[derive(Debug, Clone, Copy)]
+struct Barrier {
+    /// This call closed the stage and applied the planner's transition.
+    advanced: bool,
+    /// The campaign's state afterwards.
+    state: CampaignState,
 }
 
 /// Handle to the job store (cheap to clone: it shares one connection pool).
 #[derive(Debug, Clone)]
 pub struct JobStore {
     pool: Pool,
+    /// PostgreSQL: claims commit without waiting for the WAL flush (`StoreOptions::durable_claims`).
+    async_claims: bool,
 }
 
 /// Runs `$body` with `$p` bound to the backend's pool.
@@ -238,7 +271,8 @@ impl JobStore {
         } else {
             return Err(bad("expected `sqlite://PATH`, `sqlite::memory:` or `postgres://…`".into()));
         };
-        Ok(JobStore { pool })
+        let async_claims = matches!(pool, Pool::Postgres(_)) && options.durable_commits && !options.durable_claims;
+        Ok(JobStore { pool, async_claims })
     }
 
     pub fn backend(&self) -> Backend {
@@ -286,8 +320,8 @@ impl JobStore {
         check_unique_tasks(&first).map_err(JobError::Invalid)?;
         let id = Uuid::new_v4();
         let q = self.sql(&format!(
-            "INSERT INTO campaigns ({CAMPAIGN_COLS}, open_tasks) VALUES ($1, $2, 'running', $3, $4, $5, $6, $7, $8, NULL, \
-             $9, $10, $11, NOW_MS, NOW_MS, NULL, $12)"
+            "INSERT INTO campaigns ({CAMPAIGN_COLS}) VALUES ($1, $2, 'running', $3, $4, $5, $6, $7, $8, NULL, \
+             $9, $10, $11, NOW_MS, NOW_MS, NULL)"
         ));
         with_tx!(self, tx => {
             sqlx::query(&q)
@@ -302,7 +336,6 @@ impl JobStore {
                 .bind(c.queue.max_attempts)
                 .bind(duration_ms(c.queue.backoff_base))
                 .bind(duration_ms(c.queue.backoff_max))
-                .bind(first.tasks.len() as i64)
                 .execute(&mut *tx)
                 .await?;
             for chunk in c.strips.chunks(INSERT_CHUNK) {
@@ -514,7 +547,17 @@ impl JobStore {
                        INSERT INTO events (campaign, at_ms, kind, task_id, message) \
                        SELECT campaign, NOW_MS, 'claimed', id, kind || ' ' || key || ' attempt ' || attempt || \
                          ' by ' || $3 FROM claimed) \
-                     SELECT * FROM claimed",
+                     SELECT claimed.* FROM claimed ASYNC",
+                );
+                // `set_config(…, true)` lasts until the end of the statement's own transaction, so
+                // it applies to this claim's commit and to nothing after it.
+                let q = q.replace(
+                    "ASYNC",
+                    if self.async_claims {
+                        ", (SELECT set_config('synchronous_commit', 'off', true)) AS a"
+                    } else {
+                        ""
+                    },
                 );
                 sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(p).await?
             }
@@ -577,7 +620,16 @@ impl JobStore {
     }
 
     /// Records the outputs and result and marks the task done, in one transaction guarded by the
-    /// lease token; the completion that closes a stage runs the planner and applies its transition.
+    /// lease token (and by its campaign running with the task in its current stage); then, if the
+    /// stage has no open task left, closes it: [`JobStore::advance_stage`] runs the planner and
+    /// applies its transition exactly once.
+    ///
+    /// The first transaction does not touch the campaign row, so completions of one campaign do not
+    /// queue behind each other's commits. The barrier is found by looking for open tasks of the
+    /// stage *after* the commit: of two completions that commit concurrently at least the later one
+    /// sees the other's, so some completion always finds the stage closed (several may; the guard
+    /// in `advance_stage` lets one through). A completer dying between the two transactions leaves
+    /// the stage closed but not advanced, which [`JobStore::reconcile`] repairs.
     pub async fn complete(
         &self,
         task: &ClaimedTask,
@@ -589,19 +641,17 @@ impl JobStore {
         if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
             return Err(JobError::Invalid(format!("output name `{}` given twice", w[0])));
         }
-        // Locks the campaign row and counts this task off its stage: the completion that reaches 0
-        // is the barrier. A lost lease rolls the decrement back.
-        let lock = self.sql(
-            "UPDATE campaigns SET open_tasks = open_tasks - 1 WHERE id = $1 AND state = 'running' \
-             AND stage = $2 AND iteration = $3 RETURNING open_tasks",
-        );
-        let full = format!("SELECT {CAMPAIGN_COLS} FROM campaigns WHERE id = $1");
-        // PostgreSQL: the guarded update, the outputs (a JSON array) and the event in one round trip,
-        // to keep the campaign lock short; SQLite runs them one by one.
+        // PostgreSQL: the guarded update, the outputs (a JSON array) and the event in one statement,
+        // committed on its own (one round trip). The campaign row is read, not locked: the task row
+        // is where this races with cancelling, failing or rescuing, since each of those changes
+        // every open task of the campaign (and a stage advances only once none is open).
         let pg_done = self.sql(
             "WITH d AS ( \
-               UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
-               WHERE id = $1 AND lease_token = $2 AND state = 'leased' RETURNING id, campaign, kind, key, attempt), \
+               UPDATE tasks t SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+               FROM campaigns c \
+               WHERE t.id = $1 AND t.lease_token = $2 AND t.state = 'leased' AND c.id = t.campaign \
+                 AND c.state = 'running' AND c.stage = t.stage AND c.iteration = t.iteration \
+               RETURNING t.id, t.campaign, t.kind, t.key, t.attempt), \
              outs AS ( \
                INSERT INTO task_outputs (task_id, campaign, name, object_key) \
                SELECT d.id, d.campaign, o.name, o.object_key \
@@ -613,30 +663,33 @@ impl JobStore {
         );
         let lite_done = self.sql(
             "UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
-             WHERE id = $1 AND lease_token = $2 AND state = 'leased'",
+             WHERE id = $1 AND lease_token = $2 AND state = 'leased' AND EXISTS (SELECT 1 FROM campaigns c \
+               WHERE c.id = tasks.campaign AND c.state = 'running' AND c.stage = tasks.stage \
+               AND c.iteration = tasks.iteration)",
         );
-        let is_pg = self.is_pg();
-        let completion = with_tx!(self, tx => {
-            // No row: the campaign finished (its open tasks were cancelled) or is gone, or the task
-            // is not of the current stage; in every case this attempt no longer holds it.
-            let Some(open) = sqlx::query_scalar::<_, i64>(&lock)
-                .bind(task.campaign)
-                .bind(&task.stage)
-                .bind(task.iteration)
-                .fetch_optional(&mut *tx)
-                .await?
-            else {
-                return Err(JobError::LeaseLost);
-            };
-            let updated: i64 = if is_pg {
-                sqlx::query_scalar(&pg_done)
+        let stage_open = match &self.pool {
+            Pool::Postgres(p) => {
+                let updated: i64 = sqlx::query_scalar(&pg_done)
                     .bind(task.id)
                     .bind(task.lease_token)
                     .bind(Json(&outcome.result))
                     .bind(Json(&outcome.outputs))
-                    .fetch_one(&mut *tx)
+                    .fetch_one(p)
+                    .await?;
+                if updated == 0 {
+                    return Err(JobError::LeaseLost);
+                }
+                // A new statement, so a new snapshot that includes this commit.
+                sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+                    .bind(task.campaign)
+                    .bind(&task.stage)
+                    .bind(task.iteration)
+                    .fetch_optional(p)
                     .await?
-            } else {
+                    .is_some()
+            }
+            Pool::Sqlite(p) => {
+                let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
                 let n = sqlx::query(&lite_done)
                     .bind(task.id)
                     .bind(task.lease_token)
@@ -644,71 +697,121 @@ impl JobStore {
                     .execute(&mut *tx)
                     .await?
                     .rows_affected();
-                if n > 0 {
-                    let msg = format!("{} {} done (attempt {})", task.kind, task.key, task.attempt);
-                    event!(self, tx, task.campaign, "done", Some(task.id), &msg);
+                if n == 0 {
+                    return Err(JobError::LeaseLost);
                 }
-                n as i64
+                let msg = format!("{} {} done (attempt {})", task.kind, task.key, task.attempt);
+                event!(self, tx, task.campaign, "done", Some(task.id), &msg);
+                if !outcome.outputs.is_empty() {
+                    let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
+                    qb.push_values(&outcome.outputs, |mut b, o| {
+                        b.push_bind(task.id)
+                            .push_bind(task.campaign)
+                            .push_bind(o.name.as_str())
+                            .push_bind(o.object_key.as_str());
+                    });
+                    qb.build().execute(&mut *tx).await?;
+                }
+                // Writers are serialised, so this count under the write lock is exact.
+                let open = sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+                    .bind(task.campaign)
+                    .bind(&task.stage)
+                    .bind(task.iteration)
+                    .fetch_optional(&mut *tx)
+                    .await?
+                    .is_some();
+                tx.commit().await?;
+                open
+            }
+        };
+        if stage_open {
+            return Ok(Completion { stage_finished: false, campaign_state: CampaignState::Running });
+        }
+        match self.advance_stage(task.campaign, &task.stage, task.iteration, planner, false).await? {
+            // The campaign was deleted after this task's commit: nothing of it is left.
+            None => Err(JobError::LeaseLost),
+            Some(barrier) => Ok(Completion { stage_finished: barrier.advanced, campaign_state: barrier.state }),
+        }
+    }
+
+    /// The stage barrier: if the campaign is running at `stage`/`iteration` and that stage has no
+    /// open (queued or leased) task left, runs the planner on the stage's results and applies its
+    /// transition (next stage, success or failure), all under the campaign row lock. The guard on
+    /// the campaign's stage makes it happen once whoever calls it (racing last completers, the
+    /// reconciler). `None` if there is no such campaign.
+    /// `rescue` (the reconciler) records a `stage_rescued` event before the transition's own.
+    async fn advance_stage(
+        &self,
+        id: Uuid,
+        stage: &str,
+        iteration: i32,
+        planner: &dyn StagePlanner,
+        rescue: bool,
+    ) -> Result<Option<Barrier>, JobError> {
+        let lock = self.sql(&format!("SELECT {CAMPAIGN_COLS} FROM campaigns WHERE id = $1 FOR_LOCK"));
+        let barrier = with_tx!(self, tx => {
+            let Some(row) = sqlx::query(&lock).bind(id).fetch_optional(&mut *tx).await? else {
+                return Ok(None);
             };
-            if updated == 0 {
-                return Err(JobError::LeaseLost);
-            }
-            if !is_pg && !outcome.outputs.is_empty() {
-                let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
-                qb.push_values(&outcome.outputs, |mut b, o| {
-                    b.push_bind(task.id).push_bind(task.campaign).push_bind(o.name.as_str())
-                        .push_bind(o.object_key.as_str());
-                });
-                qb.build().execute(&mut *tx).await?;
-            }
-            // The lock statement matched a running campaign, so the barrier plans for a running one.
-            if open > 0 {
-                Completion { stage_finished: false, campaign_state: CampaignState::Running }
+            let mut campaign = campaign_from_row!(row);
+            let current = campaign.state == CampaignState::Running && campaign.stage == stage
+                && campaign.iteration == iteration;
+            // Under the lock no task of this stage can be added or reopened: a stage's tasks are
+            // inserted by the transition into it, and only a leased task can be queued again.
+            let open = current
+                && sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+                    .bind(id)
+                    .bind(stage)
+                    .bind(iteration)
+                    .fetch_optional(&mut *tx)
+                    .await?
+                    .is_some();
+            if !current || open {
+                Barrier { advanced: false, state: campaign.state }
             } else {
-                let row = sqlx::query(&full).bind(task.campaign).fetch_one(&mut *tx).await?;
-                let mut campaign = campaign_from_row!(row);
-                // The barrier: this was the stage's last open task. Gather the stage's results.
                 let rows: Vec<(i64, String, String, Option<Json<Value>>)> = sqlx::query_as(
                     "SELECT id, kind, key, result FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
                      AND state = 'done'",
                 )
-                .bind(task.campaign)
-                .bind(&task.stage)
-                .bind(task.iteration)
+                .bind(id)
+                .bind(stage)
+                .bind(iteration)
                 .fetch_all(&mut *tx)
                 .await?;
                 let outs: Vec<(i64, String, String)> = sqlx::query_as(
                     "SELECT o.task_id, o.name, o.object_key FROM task_outputs o JOIN tasks t ON t.id = o.task_id \
                      WHERE t.campaign = $1 AND t.stage = $2 AND t.iteration = $3 AND t.state = 'done'",
                 )
-                .bind(task.campaign)
-                .bind(&task.stage)
-                .bind(task.iteration)
+                .bind(id)
+                .bind(stage)
+                .bind(iteration)
                 .fetch_all(&mut *tx)
                 .await?;
-                let mut finished = FinishedStage {
-                    stage: task.stage.clone(),
-                    iteration: task.iteration,
-                    tasks: finished_tasks(rows, outs),
-                };
+                let mut finished =
+                    FinishedStage { stage: stage.to_string(), iteration, tasks: finished_tasks(rows, outs) };
+                if rescue {
+                    let msg = format!("stage {stage} iteration {iteration}: all {} tasks done but the stage was not \
+                        advanced (its last completer stopped before the barrier); advancing it", finished.tasks.len());
+                    event!(self, tx, id, "stage_rescued", None::<i64>, &msg);
+                }
                 let mut planned = planner.plan(&campaign, &finished);
                 let mut empty_stages = 0;
                 let state = loop {
                     let tr = match planned {
                         Err(msg) => {
-                            fail_campaign!(self, tx, task.campaign, &msg);
+                            fail_campaign!(self, tx, id, &msg);
                             break CampaignState::Failed;
                         }
                         Ok(tr) => tr,
                     };
                     let set_plan = self.sql("UPDATE campaigns SET plan_state = $2, updated_at_ms = NOW_MS WHERE id = $1");
-                    sqlx::query(&set_plan).bind(task.campaign).bind(Json(&tr.plan_state)).execute(&mut *tx).await?;
+                    sqlx::query(&set_plan).bind(id).bind(Json(&tr.plan_state)).execute(&mut *tx).await?;
                     for t in &tr.tiles {
                         sqlx::query(
                             "INSERT INTO tiles (campaign, key, strips, points) VALUES ($1, $2, $3, $4) \
                              ON CONFLICT (campaign, key) DO UPDATE SET strips = excluded.strips, points = excluded.points",
                         )
-                        .bind(task.campaign)
+                        .bind(id)
                         .bind(&t.key)
                         .bind(Json(&t.strips))
                         .bind(t.points)
@@ -721,7 +824,7 @@ impl JobStore {
                              ON CONFLICT (campaign, iteration) DO UPDATE SET stats = excluded.stats, \
                              recorded_at_ms = excluded.recorded_at_ms",
                         );
-                        sqlx::query(&q).bind(task.campaign).bind(it.iteration).bind(Json(&it.stats)).execute(&mut *tx).await?;
+                        sqlx::query(&q).bind(id).bind(it.iteration).bind(Json(&it.stats)).execute(&mut *tx).await?;
                     }
                     campaign.plan_state = tr.plan_state;
                     match tr.next {
@@ -730,57 +833,50 @@ impl JobStore {
                                 "UPDATE campaigns SET state = 'succeeded', updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
                                  WHERE id = $1",
                             );
-                            sqlx::query(&q).bind(task.campaign).execute(&mut *tx).await?;
-                            event!(self, tx, task.campaign, "succeeded", None::<i64>, "campaign succeeded");
-                            info!(campaign = %task.campaign, "campaign succeeded");
+                            sqlx::query(&q).bind(id).execute(&mut *tx).await?;
+                            event!(self, tx, id, "succeeded", None::<i64>, "campaign succeeded");
+                            info!(campaign = %id, "campaign succeeded");
                             break CampaignState::Succeeded;
                         }
                         Next::Fail(msg) => {
-                            fail_campaign!(self, tx, task.campaign, &msg);
+                            fail_campaign!(self, tx, id, &msg);
                             break CampaignState::Failed;
                         }
                         Next::Stage(spec) => {
                             if let Err(msg) = check_unique_tasks(&spec) {
-                                fail_campaign!(self, tx, task.campaign, &format!("planner: {msg}"));
+                                fail_campaign!(self, tx, id, &format!("planner: {msg}"));
                                 break CampaignState::Failed;
                             }
                             let existing: i64 = sqlx::query_scalar(
                                 "SELECT count(*) FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3",
                             )
-                            .bind(task.campaign)
+                            .bind(id)
                             .bind(&spec.stage)
                             .bind(spec.iteration)
                             .fetch_one(&mut *tx)
                             .await?;
                             if existing > 0 {
                                 let msg = format!("planner: stage {} iteration {} was already run", spec.stage, spec.iteration);
-                                fail_campaign!(self, tx, task.campaign, &msg);
+                                fail_campaign!(self, tx, id, &msg);
                                 break CampaignState::Failed;
                             }
                             let q = self.sql(
-                                "UPDATE campaigns SET stage = $2, iteration = $3, open_tasks = $4, updated_at_ms = NOW_MS \
-                                 WHERE id = $1",
+                                "UPDATE campaigns SET stage = $2, iteration = $3, updated_at_ms = NOW_MS WHERE id = $1",
                             );
-                            sqlx::query(&q)
-                                .bind(task.campaign)
-                                .bind(&spec.stage)
-                                .bind(spec.iteration)
-                                .bind(spec.tasks.len() as i64)
-                                .execute(&mut *tx)
-                                .await?;
+                            sqlx::query(&q).bind(id).bind(&spec.stage).bind(spec.iteration).execute(&mut *tx).await?;
                             let msg = format!("stage {} iteration {}: {} tasks", spec.stage, spec.iteration, spec.tasks.len());
-                            event!(self, tx, task.campaign, "stage", None::<i64>, &msg);
-                            info!(campaign = %task.campaign, stage = %spec.stage, iteration = spec.iteration,
+                            event!(self, tx, id, "stage", None::<i64>, &msg);
+                            info!(campaign = %id, stage = %spec.stage, iteration = spec.iteration,
                                 tasks = spec.tasks.len(), "stage enqueued");
                             if !spec.tasks.is_empty() {
-                                insert_tasks!(self, tx, task.campaign, &spec);
+                                insert_tasks!(self, tx, id, &spec);
                                 break CampaignState::Running;
                             }
                             // A stage without tasks is finished at once: plan again from it.
                             empty_stages += 1;
                             if empty_stages > MAX_EMPTY_STAGES {
                                 let msg = format!("planner produced {MAX_EMPTY_STAGES} stages without tasks in a row");
-                                fail_campaign!(self, tx, task.campaign, &msg);
+                                fail_campaign!(self, tx, id, &msg);
                                 break CampaignState::Failed;
                             }
                             campaign.stage = spec.stage.clone();
@@ -790,10 +886,10 @@ impl JobStore {
                         }
                     }
                 };
-                Completion { stage_finished: true, campaign_state: state }
+                Barrier { advanced: true, state }
             }
         });
-        Ok(completion)
+        Ok(Some(barrier))
     }
 
     /// Records a failed attempt, guarded by the lease token. A `permanent` error or the last
@@ -849,9 +945,12 @@ impl JobStore {
         Ok(outcome)
     }
 
-    /// Rescues expired leases: queued again after a back-off, or dead (campaign failed) when the
-    /// attempts are used up. Safe to run from every executor concurrently.
-    pub async fn reconcile(&self) -> Result<ReconcileReport, JobError> {
+    /// Rescues expired leases (queued again after a back-off, or dead, failing the campaign, when
+    /// the attempts are used up), then advances stuck barriers: running campaigns whose current
+    /// stage has no open task left but which were not advanced, because the completer of the
+    /// stage's last task died between its commit and the barrier. `planner` must be the one the
+    /// completers use. Safe to run from every executor concurrently, also while tasks complete.
+    pub async fn reconcile(&self, planner: &dyn StagePlanner) -> Result<ReconcileReport, JobError> {
         let q = self.sql("SELECT DISTINCT campaign FROM tasks WHERE state = 'leased' AND lease_expires_at_ms < NOW_MS");
         let campaigns: Vec<Uuid> = with_pool!(self, p => sqlx::query_scalar(&q).fetch_all(p).await?);
         let mut report = ReconcileReport::default();
@@ -862,6 +961,30 @@ impl JobStore {
         }
         if report.requeued + report.dead > 0 {
             info!(requeued = report.requeued, dead = report.dead, "expired leases rescued");
+        }
+        let running = "SELECT id, stage, iteration FROM campaigns WHERE state = 'running'";
+        let running: Vec<(Uuid, String, i32)> = with_pool!(self, p => sqlx::query_as(running).fetch_all(p).await?);
+        let mut stuck = Vec::new();
+        for (campaign, stage, iteration) in running {
+            let open: Option<i64> = with_pool!(self, p => sqlx::query_scalar(STAGE_OPEN)
+                .bind(campaign)
+                .bind(&stage)
+                .bind(iteration)
+                .fetch_optional(p)
+                .await?);
+            if open.is_none() {
+                stuck.push((campaign, stage, iteration));
+            }
+        }
+        for (campaign, stage, iteration) in stuck {
+            // Usually a completer that is about to advance the stage itself: whichever of the two
+            // comes second finds the stage moved on and does nothing.
+            if let Some(Barrier { advanced: true, state }) =
+                self.advance_stage(campaign, &stage, iteration, planner, true).await?
+            {
+                report.advanced += 1;
+                warn!(%campaign, %stage, iteration, %state, "advanced a stage whose tasks were all done");
+            }
         }
         Ok(report)
     }
@@ -997,4 +1120,55 @@ fn finished_tasks(
         .collect();
     tasks.sort_by(|a, b| (&a.kind, &a.key).cmp(&(&b.kind, &b.key)));
     tasks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sqlx::Connection;
+
+    /// PostgreSQL: the `synchronous_commit = off` of an asynchronous claim ends with the claim's
+    /// own transaction; the completion that follows on the same connection waits for its flush.
+    #[tokio::test]
+    async fn async_claim_leaves_the_connection_durable() {
+        let admin = std::env::var("PRECIMAP_TEST_POSTGRES")
+            .unwrap_or_else(|_| "postgres://postgres@127.0.0.1:5432/postgres".into());
+        let name = format!("precimap_t_{}", Uuid::new_v4().simple());
+        let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test PostgreSQL server");
+        sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut conn).await.unwrap();
+        let url = crate::bench::with_database(&admin, &name);
+        // One connection, so every statement below runs on the claim's connection.
+        let opts = StoreOptions { max_connections: 1, durable_claims: false, ..StoreOptions::default() };
+        let store = JobStore::connect_with(&url, opts).await.unwrap();
+        assert!(store.async_claims);
+        let Pool::Postgres(pool) = &store.pool else { unreachable!() };
+        let setting = || async { sqlx::query_scalar::<_, String>("SHOW synchronous_commit").fetch_one(pool).await };
+        let campaign = NewCampaign {
+            name: "async".into(),
+            spec: Value::Null,
+            plan_state: Value::Null,
+            object_prefix: "a/".into(),
+            iterations_planned: 0,
+            strips: vec![],
+            trajectories: vec![],
+            queue: QueueConfig::default(),
+        };
+        let stage = StageSpec {
+            stage: "s".into(),
+            iteration: 0,
+            tasks: vec![NewTask { kind: "k".into(), key: "a".into(), input: Value::Null }],
+        };
+        store.create_campaign(campaign, stage).await.unwrap();
+        assert_eq!(setting().await.unwrap(), "on");
+        let task = store.claim("w", Duration::from_secs(60)).await.unwrap().expect("a task");
+        assert_eq!(setting().await.unwrap(), "on", "the claim's setting outlived its transaction");
+        assert!(store.claim("w", Duration::from_secs(60)).await.unwrap().is_none());
+        assert_eq!(setting().await.unwrap(), "on");
+        store.heartbeat(&task, Duration::from_secs(60)).await.unwrap();
+        store.close().await;
+        let durable = JobStore::connect(&url).await.unwrap();
+        assert!(!durable.async_claims, "claims are durable by default");
+        durable.close().await;
+        sqlx::query(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")).execute(&mut conn).await.unwrap();
+    }
 }

@@ -239,7 +239,7 @@ pub enum Next {
     Fail(String),
 }
 
-/// The planner's decision at a stage barrier, applied in the completing transaction.
+/// The planner's decision at a stage barrier, applied in the barrier's transaction.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Transition {
     pub plan_state: serde_json::Value,
@@ -250,15 +250,16 @@ pub struct Transition {
     pub next: Next,
 }
 
-/// Plans the next stage from a finished one. Pure and synchronous: it runs inside the completing
-/// transaction, so it must not do I/O.
+/// Plans the next stage from a finished one. Pure and synchronous: it runs inside the barrier's
+/// transaction, under the campaign row lock, so it must not do I/O.
 pub trait StagePlanner: Send + Sync {
     fn plan(&self, campaign: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String>;
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Completion {
-    /// True if this completion closed the stage (and the planner ran).
+    /// True if this completion closed the stage (and the planner ran). Of last completions racing
+    /// each other (and the reconciler), exactly one closes it.
     pub stage_finished: bool,
     pub campaign_state: CampaignState,
 }
@@ -273,8 +274,13 @@ pub enum FailOutcome {
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ReconcileReport {
+    /// Expired leases queued again.
     pub requeued: u64,
+    /// Expired leases on their last attempt (their campaigns failed).
     pub dead: u64,
+    /// Stages whose tasks were all done but whose campaign had not advanced (their last
+    /// completer died between its commit and the barrier), advanced now.
+    pub advanced: u64,
 }
 
 /// Task counts by state.
@@ -310,8 +316,8 @@ pub struct EventRecord {
     pub id: i64,
     pub campaign: Uuid,
     pub at_ms: i64,
-    /// `campaign_created`, `claimed`, `done`, `retry`, `dead`, `lease_expired`, `stage`,
-    /// `succeeded`, `failed`, `cancelled`.
+    /// `campaign_created`, `claimed`, `done`, `retry`, `dead`, `lease_expired`, `stage_rescued`,
+    /// `stage`, `succeeded`, `failed`, `cancelled`.
     pub kind: String,
     pub task_id: Option<i64>,
     pub message: String,

@@ -27,6 +27,9 @@ both_backends!(
     planner_error_fails_campaign,
     records_round_trip,
     empty_stage_is_planned_through,
+    racing_last_completions,
+    cancel_races_completions,
+    stuck_barrier_is_advanced_by_reconcile,
 );
 
 async fn lease_guard(store: JobStore, _url: String) {
@@ -138,12 +141,12 @@ async fn killed_worker(store: JobStore, _url: String) {
     let planner = ChainPlanner::new(&[1]);
     let id = store.create_campaign(new_campaign("killed", quick_retries(3)), planner.first()).await.unwrap();
     let dead_worker = store.claim("w-dead", Duration::from_millis(200)).await.unwrap().unwrap();
-    assert_eq!(store.reconcile().await.unwrap(), ReconcileReport::default(), "lease still valid");
+    assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default(), "lease still valid");
     assert!(store.claim("w2", LONG).await.unwrap().is_none(), "a leased task is not claimable");
 
     tokio::time::sleep(Duration::from_millis(300)).await;
     // Several executors reconcile at once: the task is rescued exactly once.
-    let (a, b) = tokio::join!(store.reconcile(), store.reconcile());
+    let (a, b) = tokio::join!(store.reconcile(&planner), store.reconcile(&planner));
     let (a, b) = (a.unwrap(), b.unwrap());
     assert_eq!(a.requeued + b.requeued, 1);
     assert_eq!(a.dead + b.dead, 0);
@@ -239,7 +242,7 @@ async fn permanent_failure_and_expired_last_attempt(store: JobStore, _url: Strin
     let t = store.claim("w-crash", Duration::from_millis(100)).await.unwrap().unwrap();
     assert_eq!(t.campaign, b);
     tokio::time::sleep(Duration::from_millis(250)).await;
-    assert_eq!(store.reconcile().await.unwrap(), ReconcileReport { requeued: 0, dead: 1 });
+    assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport { requeued: 0, dead: 1, advanced: 0 });
     let c = store.campaign(b).await.unwrap().unwrap();
     assert_eq!(c.state, CampaignState::Failed);
     assert!(c.error.as_deref().unwrap_or("").starts_with("`work s00000`: lease expired"), "{:?}", c.error);
@@ -403,4 +406,221 @@ async fn in_memory_sqlite_works() {
     let c = store.complete(&t, outcome(&t), &ChainPlanner::new(&[1])).await.unwrap();
     assert_eq!(c.campaign_state, CampaignState::Succeeded);
     assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
+}
+
+/// Leases a whole stage of `n` tasks (nothing of it stays claimable).
+async fn lease_stage(store: &JobStore, stage: &str, n: usize) -> Vec<ClaimedTask> {
+    let mut tasks = Vec::with_capacity(n);
+    for _ in 0..n {
+        let t = store.claim("w", LONG).await.unwrap().expect("a task of the stage");
+        assert_eq!(t.stage, stage);
+        tasks.push(t);
+    }
+    assert!(store.claim("w", LONG).await.unwrap().is_none(), "the whole stage is leased");
+    tasks
+}
+
+/// All tasks of a stage complete at once, from two pools (two executor processes), each task
+/// twice (a duplicated delivery, with an object key of its own), in the second stage while two
+/// reconcilers run: every task is committed exactly once with the outputs of the copy that won,
+/// and the barrier fires exactly once per stage, whoever sees the stage closed (and without the
+/// reconcilers, it does fire).
+async fn racing_last_completions(store: JobStore, url: String) {
+    const N: usize = 40;
+    let planner = Arc::new(ChainPlanner::new(&[N, N, N, 1]));
+    let id = store.create_campaign(new_campaign("race", QueueConfig::default()), planner.first()).await.unwrap();
+    let other = JobStore::connect(&url).await.unwrap();
+    for round in 0..3i32 {
+        let stage_name = format!("s{round}");
+        let tasks = lease_stage(&store, &stage_name, N).await;
+        let reconcilers = if round == 1 { 2 } else { 0 };
+        let start = Arc::new(tokio::sync::Barrier::new(2 * N + reconcilers));
+        let mut completers = Vec::new();
+        for (i, task) in tasks.into_iter().enumerate() {
+            for copy in 0..2 {
+                let store = if (i + copy) % 2 == 0 { store.clone() } else { other.clone() };
+                let (planner, start, task) = (planner.clone(), start.clone(), task.clone());
+                completers.push(tokio::spawn(async move {
+                    let mut out = outcome(&task);
+                    out.outputs[0].object_key.push_str(&format!(".copy{copy}"));
+                    let key = out.outputs[0].object_key.clone();
+                    start.wait().await;
+                    (task.id, key, store.complete(&task, out, planner.as_ref()).await)
+                }));
+            }
+        }
+        let reconcilers: Vec<_> = (0..reconcilers)
+            .map(|r| {
+                let store = if r == 0 { store.clone() } else { other.clone() };
+                let (planner, start) = (planner.clone(), start.clone());
+                tokio::spawn(async move {
+                    start.wait().await;
+                    let mut advanced = 0;
+                    for _ in 0..5 {
+                        let report = store.reconcile(planner.as_ref()).await.unwrap();
+                        assert_eq!((report.requeued, report.dead), (0, 0));
+                        advanced += report.advanced;
+                        tokio::task::yield_now().await;
+                    }
+                    advanced
+                })
+            })
+            .collect();
+        let mut committed: HashMap<i64, String> = HashMap::new();
+        let mut barriers = 0;
+        for c in completers {
+            let (task_id, key, result) = c.await.unwrap();
+            match result {
+                Ok(c) => {
+                    assert_eq!(c.campaign_state, CampaignState::Running);
+                    barriers += u64::from(c.stage_finished);
+                    assert!(committed.insert(task_id, key).is_none(), "task {task_id} committed twice");
+                }
+                Err(JobError::LeaseLost) => {}
+                Err(e) => panic!("completion failed: {e}"),
+            }
+        }
+        for r in reconcilers {
+            barriers += r.await.unwrap();
+        }
+        assert_eq!(committed.len(), N, "every task committed once");
+        assert_eq!(barriers, 1, "stage {stage_name}: the barrier fired once");
+        let c = store.campaign(id).await.unwrap().unwrap();
+        assert_eq!((c.state, c.stage, c.iteration), (CampaignState::Running, format!("s{}", round + 1), round + 1));
+        let mut recorded: Vec<String> =
+            store.outputs(id, &stage_name, round).await.unwrap().into_iter().map(|o| o.object_key).collect();
+        let mut winners: Vec<String> = committed.into_values().collect();
+        recorded.sort();
+        winners.sort();
+        assert_eq!(recorded, winners, "the recorded objects are those of the committed copies");
+    }
+    assert_eq!(
+        planner.calls(),
+        vec![("s0".to_string(), 0, N), ("s1".to_string(), 1, N), ("s2".to_string(), 2, N)],
+        "the planner ran once per stage, with all of the stage's tasks"
+    );
+    let events = store.events(id, 0, 100_000).await.unwrap();
+    assert_eq!(events.iter().filter(|e| e.kind == "stage").count(), 3, "one transition per stage");
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased, counts.stage.queued), (3 * N as i64, 1, 0, 1));
+    let t = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t, outcome(&t), planner.as_ref()).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Succeeded });
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 3 * N + 1);
+    other.close().await;
+}
+
+/// Cancelling while a stage's tasks complete (the cancel landing at different points): every
+/// completion is either committed before the cancel or refused, a cancelled campaign is never
+/// advanced, and nothing of it stays claimable or leased.
+async fn cancel_races_completions(store: JobStore, url: String) {
+    const N: usize = 24;
+    let other = JobStore::connect(&url).await.unwrap();
+    for (run, yields) in [0usize, 3, 10, 40].into_iter().enumerate() {
+        let planner = Arc::new(ChainPlanner::new(&[N, 5]));
+        let name = format!("cancel{run}");
+        let id = store.create_campaign(new_campaign(&name, QueueConfig::default()), planner.first()).await.unwrap();
+        let tasks = lease_stage(&store, "s0", N).await;
+        let start = Arc::new(tokio::sync::Barrier::new(N + 1));
+        let mut completers = Vec::new();
+        for (i, task) in tasks.into_iter().enumerate() {
+            let store = if i % 2 == 0 { store.clone() } else { other.clone() };
+            let (planner, start) = (planner.clone(), start.clone());
+            completers.push(tokio::spawn(async move {
+                start.wait().await;
+                store.complete(&task, outcome(&task), planner.as_ref()).await
+            }));
+        }
+        let canceller = {
+            let store = other.clone();
+            tokio::spawn(async move {
+                start.wait().await;
+                for _ in 0..yields {
+                    tokio::task::yield_now().await;
+                }
+                store.cancel_campaign(id).await.unwrap()
+            })
+        };
+        let (mut committed, mut refused, mut barrier) = (0, 0, false);
+        for c in completers {
+            match c.await.unwrap() {
+                Ok(c) => {
+                    committed += 1;
+                    barrier |= c.stage_finished;
+                }
+                Err(JobError::LeaseLost) => refused += 1,
+                Err(e) => panic!("completion failed: {e}"),
+            }
+        }
+        assert!(canceller.await.unwrap(), "the campaign was running when cancelled");
+        assert_eq!(committed + refused, N);
+        let c = store.campaign(id).await.unwrap().unwrap();
+        assert_eq!(c.state, CampaignState::Cancelled);
+        let counts = store.task_counts(id).await.unwrap();
+        assert_eq!((counts.done, counts.queued, counts.leased), (committed as i64, 0, 0));
+        if barrier {
+            // Every completion came before the cancel, which then cancelled the next stage.
+            assert_eq!(committed, N);
+            assert_eq!(planner.calls(), vec![("s0".to_string(), 0, N)]);
+            assert_eq!(counts.cancelled, 5);
+        } else {
+            assert!(planner.calls().is_empty(), "a cancelled campaign is not advanced");
+            assert_eq!((c.stage.as_str(), counts.cancelled), ("s0", (N - committed) as i64));
+        }
+        assert_eq!(store.recorded_keys(id).await.unwrap().len(), committed, "refused completions record nothing");
+        assert!(store.live_lease_tokens(id).await.unwrap().is_empty());
+        assert!(store.claim("w", LONG).await.unwrap().is_none(), "nothing of a cancelled campaign is claimable");
+        assert_eq!(store.reconcile(planner.as_ref()).await.unwrap(), ReconcileReport::default());
+        assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Cancelled);
+    }
+    other.close().await;
+}
+
+/// A planner that panics: the completer dies between its commit and the barrier.
+struct DyingPlanner;
+
+impl StagePlanner for DyingPlanner {
+    fn plan(&self, _: &CampaignRecord, _: &FinishedStage) -> Result<Transition, String> {
+        panic!("executor killed at the barrier");
+    }
+}
+
+async fn stuck_barrier_is_advanced_by_reconcile(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[2, 1]);
+    let id = store.create_campaign(new_campaign("stuck", QueueConfig::default()), planner.first()).await.unwrap();
+    let t1 = store.claim("w", LONG).await.unwrap().unwrap();
+    let t2 = store.claim("w", LONG).await.unwrap().unwrap();
+    let c = store.complete(&t1, outcome(&t1), &planner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: false, campaign_state: CampaignState::Running });
+    let died = {
+        let (store, t2) = (store.clone(), t2.clone());
+        tokio::spawn(async move { store.complete(&t2, outcome(&t2), &DyingPlanner).await }).await
+    };
+    assert!(died.unwrap_err().is_panic());
+
+    // The task's commit stands, but the stage was not advanced: nothing is claimable.
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((c.state, c.stage.as_str(), c.iteration), (CampaignState::Running, "s0", 0));
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased), (2, 0, 0));
+    assert!(store.claim("w", LONG).await.unwrap().is_none());
+    assert!(matches!(store.complete(&t2, outcome(&t2), &planner).await, Err(JobError::LeaseLost)));
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 2);
+    assert!(planner.calls().is_empty());
+
+    // The reconciler advances it, once.
+    let (a, b) = tokio::join!(store.reconcile(&planner), store.reconcile(&planner));
+    assert_eq!(a.unwrap().advanced + b.unwrap().advanced, 1);
+    assert_eq!(planner.calls(), vec![("s0".to_string(), 0, 2)]);
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((c.state, c.stage.as_str(), c.iteration), (CampaignState::Running, "s1", 1));
+    let kinds: Vec<String> = store.events(id, 0, 100).await.unwrap().into_iter().map(|e| e.kind).collect();
+    assert!(kinds.contains(&"stage_rescued".to_string()), "{kinds:?}");
+    assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default());
+
+    let t3 = store.claim("w", LONG).await.unwrap().expect("a task of the next stage");
+    assert_eq!((t3.stage.as_str(), t3.iteration), ("s1", 1));
+    let c = store.complete(&t3, outcome(&t3), &planner).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Succeeded });
+    assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default());
 }
