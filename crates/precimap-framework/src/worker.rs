@@ -107,6 +107,9 @@ impl Executor {
                 self.wake.notify_waiters();
             }
         }
+        for campaign in report.finished {
+            self.clean_up(campaign).await;
+        }
         Ok(())
     }
 

@@ -958,6 +958,9 @@ impl JobStore {
             let r = self.reconcile_campaign(campaign).await?;
             report.requeued += r.requeued;
             report.dead += r.dead;
+            if r.dead > 0 {
+                report.finished.push(campaign);
+            }
         }
         if report.requeued + report.dead > 0 {
             info!(requeued = report.requeued, dead = report.dead, "expired leases rescued");
@@ -983,6 +986,9 @@ impl JobStore {
                 self.advance_stage(campaign, &stage, iteration, planner, true).await?
             {
                 report.advanced += 1;
+                if state != CampaignState::Running {
+                    report.finished.push(campaign);
+                }
                 warn!(%campaign, %stage, iteration, %state, "advanced a stage whose tasks were all done");
             }
         }

@@ -272,7 +272,7 @@ pub enum FailOutcome {
     Dead,
 }
 
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ReconcileReport {
     /// Expired leases queued again.
     pub requeued: u64,
@@ -281,6 +281,10 @@ pub struct ReconcileReport {
     /// Stages whose tasks were all done but whose campaign had not advanced (their last
     /// completer died between its commit and the barrier), advanced now.
     pub advanced: u64,
+    /// Campaigns this pass ended (failed by a dead task, or finished by an advanced stage): no
+    /// executor's completion saw them end, so the caller cleans up their orphaned objects.
+    #[serde(default)]
+    pub finished: Vec<Uuid>,
 }
 
 /// Task counts by state.

@@ -242,7 +242,10 @@ async fn permanent_failure_and_expired_last_attempt(store: JobStore, _url: Strin
     let t = store.claim("w-crash", Duration::from_millis(100)).await.unwrap().unwrap();
     assert_eq!(t.campaign, b);
     tokio::time::sleep(Duration::from_millis(250)).await;
-    assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport { requeued: 0, dead: 1, advanced: 0 });
+    assert_eq!(
+        store.reconcile(&planner).await.unwrap(),
+        ReconcileReport { requeued: 0, dead: 1, advanced: 0, finished: vec![b] }
+    );
     let c = store.campaign(b).await.unwrap().unwrap();
     assert_eq!(c.state, CampaignState::Failed);
     assert!(c.error.as_deref().unwrap_or("").starts_with("`work s00000`: lease expired"), "{:?}", c.error);
@@ -618,9 +621,17 @@ async fn stuck_barrier_is_advanced_by_reconcile(store: JobStore, _url: String) {
     assert!(kinds.contains(&"stage_rescued".to_string()), "{kinds:?}");
     assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default());
 
+    // The last stage's completer dies too: the reconciler finishes the campaign and names it, so
+    // that its caller cleans up the orphaned objects no completion saw the end of.
     let t3 = store.claim("w", LONG).await.unwrap().expect("a task of the next stage");
     assert_eq!((t3.stage.as_str(), t3.iteration), ("s1", 1));
-    let c = store.complete(&t3, outcome(&t3), &planner).await.unwrap();
-    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Succeeded });
+    let died = {
+        let (store, t3) = (store.clone(), t3.clone());
+        tokio::spawn(async move { store.complete(&t3, outcome(&t3), &DyingPlanner).await }).await
+    };
+    assert!(died.unwrap_err().is_panic());
+    let report = store.reconcile(&planner).await.unwrap();
+    assert_eq!(report, ReconcileReport { requeued: 0, dead: 0, advanced: 1, finished: vec![id] });
+    assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
     assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default());
 }
