@@ -4,6 +4,7 @@ use anyhow::{Context, Result};
 use clap::Subcommand;
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::IterationStep;
+use precimap_estimate::PreparePhase;
 use precimap_pipeline::{tasks, Campaign};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -218,14 +219,31 @@ struct PreprocessBench {
     chunk_bytes_total: u64,
     /// (strips, CPU nanoseconds per point) for the first n strips.
     cost_per_point_ns: Vec<(usize, f64)>,
+    /// Where the time goes: per phase (decode, geometry, scan image, normals, segmentation,
+    /// tiling, encode), thread CPU nanoseconds per point of the full pass (Linux schedstat; NaN
+    /// elsewhere). Their sum is a little below the process figure above (which also counts the
+    /// thread pool and the allocator's returns to the kernel).
+    phase_cpu_ns_per_point: Vec<PhaseFigure>,
     segment_purity: f64,
     surface_points_removed: f64,
     foliage_points_removed: f64,
     segmentation: precimap_eval::SegmentEvaluation,
 }
 
-/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, segment ids.
-type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>);
+#[derive(Serialize)]
+struct PhaseFigure {
+    phase: &'static str,
+    cpu_ns_per_point: f64,
+    /// Share of the phases' sum.
+    share: f64,
+}
+
+/// Thread CPU seconds per [`PreparePhase`] (indexed by the enum's order).
+type PhaseSeconds = [f64; PreparePhase::ALL.len()];
+
+/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, segment ids,
+/// thread CPU seconds per phase.
+type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>, PhaseSeconds);
 
 fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
     let (dir, manifest) = cached_campaign(cache, scale, seed, true)?;
@@ -238,11 +256,20 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         let cpu_start = cpu_seconds();
         let per_strip = (0..n)
             .into_par_iter()
-            .map(|s| -> Result<(u64, u64, u64, Vec<u32>)> {
-                let prepared = tasks::prepare_strip_in_memory(&campaign, s, &params)?;
+            .map(|s| -> Result<(u64, u64, u64, Vec<u32>, PhaseSeconds)> {
+                // Each strip is prepared on one thread, so its thread CPU time splits into phases.
+                let mut phases: PhaseSeconds = [0.0; PreparePhase::ALL.len()];
+                let mut mark = thread_cpu_s().unwrap_or(f64::NAN);
+                let mut phase_done = |p: PreparePhase| {
+                    let now = thread_cpu_s().unwrap_or(f64::NAN);
+                    phases[p as usize] += now - mark;
+                    mark = now;
+                };
+                let prepared = tasks::prepare_strip_in_memory_observed(&campaign, s, &params, &mut phase_done)?;
                 let bytes: u64 = prepared.chunks.iter().map(|c| c.encode().len() as u64).sum();
+                phase_done(PreparePhase::Encode);
                 let segment = if keep { prepared.segment } else { Vec::new() };
-                Ok((prepared.stats.points, prepared.stats.points_emitted, bytes, segment))
+                Ok((prepared.stats.points, prepared.stats.points_emitted, bytes, segment, phases))
             })
             .collect::<Result<Vec<_>>>()?;
         let wall = started.elapsed().as_secs_f64();
@@ -251,13 +278,28 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         let copies = per_strip.iter().map(|r| r.1).sum();
         let bytes = per_strip.iter().map(|r| r.2).sum();
         let largest = per_strip.iter().map(|r| r.0).max().unwrap_or(0);
-        Ok((wall, cpu, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect()))
+        let mut phases: PhaseSeconds = [0.0; PreparePhase::ALL.len()];
+        for r in &per_strip {
+            for (sum, s) in phases.iter_mut().zip(&r.4) {
+                *sum += s;
+            }
+        }
+        Ok((wall, cpu, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect(), phases))
     };
     let strips = campaign.strips.len();
     reset_peak_rss();
     eprintln!("preprocessing {strips} strips on {threads} threads");
-    let (wall, cpu, points, copies, bytes, largest, segments) = pass(strips, true)?;
+    let (wall, cpu, points, copies, bytes, largest, segments, phases) = pass(strips, true)?;
     let peak = peak_rss_bytes();
+    let phase_sum: f64 = phases.iter().sum();
+    let phase_cpu_ns_per_point = PreparePhase::ALL
+        .iter()
+        .map(|&p| PhaseFigure {
+            phase: p.name(),
+            cpu_ns_per_point: phases[p as usize] / points.max(1) as f64 * 1e9,
+            share: phases[p as usize] / phase_sum,
+        })
+        .collect();
     let mut cost_per_point_ns = Vec::new();
     let mut n = 2;
     while n <= strips {
@@ -296,6 +338,7 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         chunk_bytes_per_point_copy: bytes as f64 / copies.max(1) as f64,
         chunk_bytes_total: bytes,
         cost_per_point_ns,
+        phase_cpu_ns_per_point,
         segment_purity: segmentation.purity,
         surface_points_removed: segmentation.surface_points_removed,
         foliage_points_removed: segmentation.foliage_points_removed,
@@ -318,6 +361,16 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
             result.segment_purity * 100.0,
             result.surface_points_removed * 100.0,
             result.foliage_points_removed * 100.0
+        );
+        println!("  thread CPU per point by phase (full pass):");
+        for f in &result.phase_cpu_ns_per_point {
+            println!("    {:<13} {:>7.1} ns  {:>5.1} %", f.phase, f.cpu_ns_per_point, f.share * 100.0);
+        }
+        println!(
+            "    {:<13} {:>7.1} ns  (process: {:.1} ns)",
+            "sum",
+            phase_sum / points.max(1) as f64 * 1e9,
+            cpu / points.max(1) as f64 * 1e9
         );
     }
     Ok(())

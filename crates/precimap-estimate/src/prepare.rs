@@ -127,7 +127,64 @@ pub struct StripContext<'a> {
     pub segment: &'a SegmentParams,
 }
 
+/// The phases of preparing a strip, in order, for callers that measure where the time goes
+/// ([`prepare_strip_observed`]). `Decode` (reading the LAS/LAZ file) is reported by the caller
+/// that reads the strip, `Encode` by the one that encodes the chunks; the others by
+/// [`prepare_strip_observed`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PreparePhase {
+    /// Reading and decoding the strip file.
+    Decode,
+    /// Checks and the geometry against the trajectory (scan-head position, anchor, λ).
+    Geometry,
+    /// The scan image: rows, columns, standstill thinning, the pixel grid.
+    ScanImage,
+    /// RANSAC normals.
+    Normals,
+    /// C0/C1 edge weights, Felzenszwalb–Huttenlocher, small regions.
+    Segmentation,
+    /// Image links and tile membership (the chunks in memory).
+    Tiling,
+    /// Chunk encoding to bytes.
+    Encode,
+}
+
+impl PreparePhase {
+    pub const ALL: [PreparePhase; 7] = [
+        PreparePhase::Decode,
+        PreparePhase::Geometry,
+        PreparePhase::ScanImage,
+        PreparePhase::Normals,
+        PreparePhase::Segmentation,
+        PreparePhase::Tiling,
+        PreparePhase::Encode,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PreparePhase::Decode => "decode",
+            PreparePhase::Geometry => "geometry",
+            PreparePhase::ScanImage => "scan_image",
+            PreparePhase::Normals => "normals",
+            PreparePhase::Segmentation => "segmentation",
+            PreparePhase::Tiling => "tiling",
+            PreparePhase::Encode => "encode",
+        }
+    }
+}
+
 pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<PreparedStrip, PrepareError> {
+    prepare_strip_observed(samples, ctx, &mut |_| {})
+}
+
+/// [`prepare_strip`] calling `phase_done` at the end of each of its phases (in order: geometry,
+/// scan image, normals, segmentation, tiling); the result is the same.
+pub fn prepare_strip_observed(
+    samples: &StripSamples<'_>,
+    ctx: &StripContext<'_>,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<PreparedStrip, PrepareError> {
     let n = samples.len();
     if [samples.y.len(), samples.z.len(), samples.gps_time.len(), samples.scan_angle_deg.len(), samples.channel.len()]
         .iter()
@@ -140,13 +197,21 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
     }
     let geometry = strip_geometry(samples, ctx)?;
     let head: Vec<[f64; 3]> = geometry.iter().map(|g| g.t0).collect();
+    phase_done(PreparePhase::Geometry);
     let mut image = ScanImage::build(samples.scan_angle_deg, samples.gps_time, samples.channel);
     image.thin_standstill(&head, ctx.params.min_revolution_advance_m);
+    let grid = image.grid();
+    phase_done(PreparePhase::ScanImage);
     let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head: &head };
-    let segmentation = precimap_segment::segment_strip(&geo, &image, ctx.segment);
+    let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
+    phase_done(PreparePhase::Normals);
+    let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
+    phase_done(PreparePhase::Segmentation);
     drop(head);
-    let links = Links::build(&image);
+    let links = Links::build(&image, &grid);
+    drop(grid);
     let chunks = emit_tiles(samples, ctx, &geometry, &links, &segmentation.normals, &segmentation.segment);
+    phase_done(PreparePhase::Tiling);
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.iter().map(|g| g.anchor).min().unwrap_or(0);
     let last_anchor = geometry.iter().map(|g| g.anchor).max().unwrap_or(0) + 1;
@@ -208,11 +273,10 @@ struct Links {
 }
 
 impl Links {
-    fn build(image: &ScanImage) -> Self {
+    fn build(image: &ScanImage, grid: &[u32]) -> Self {
         let n = image.row.len();
         let mut right = vec![NO_NEIGHBOUR; n];
         let mut down = vec![NO_NEIGHBOUR; n];
-        let grid = image.grid();
         let rows = image.rows as usize;
         for k in 0..n {
             let c = image.column[k];

@@ -131,7 +131,20 @@ pub struct SegmentStats {
 pub fn segment_strip(geo: &StripGeometry<'_>, image: &ScanImage, params: &SegmentParams) -> Segmentation {
     let grid = image.grid();
     let normals = estimate_normals(geo, image, &grid, params);
-    let mut segment = segment(geo, image, &grid, &normals, params);
+    segment_with_normals(geo, image, &grid, normals, params)
+}
+
+/// The second half of [`segment_strip`]: C0/C1 edge weights, Felzenszwalb–Huttenlocher and the
+/// small-region removal, given the pixel grid (`image.grid()`) and the normals
+/// ([`estimate_normals`]); separate so that callers can time the two halves.
+pub fn segment_with_normals(
+    geo: &StripGeometry<'_>,
+    image: &ScanImage,
+    grid: &[u32],
+    normals: Vec<Option<PixelNormal>>,
+    params: &SegmentParams,
+) -> Segmentation {
+    let mut segment = segment(geo, image, grid, &normals, params);
     for (id, &c) in segment.ids.iter_mut().zip(&image.column) {
         if c == DROPPED {
             *id = DROPPED_SEGMENT;
