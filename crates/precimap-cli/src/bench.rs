@@ -224,6 +224,9 @@ struct PreprocessBench {
     /// elsewhere). Their sum is a little below the process figure above (which also counts the
     /// thread pool and the allocator's returns to the kernel).
     phase_cpu_ns_per_point: Vec<PhaseFigure>,
+    /// Angle between the estimated and the true normal over surface points with a normal.
+    normal_error_deg_mean: f64,
+    normals: precimap_eval::NormalEvaluation,
     segment_purity: f64,
     surface_points_removed: f64,
     foliage_points_removed: f64,
@@ -241,9 +244,9 @@ struct PhaseFigure {
 /// Thread CPU seconds per [`PreparePhase`] (indexed by the enum's order).
 type PhaseSeconds = [f64; PreparePhase::ALL.len()];
 
-/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, segment ids,
-/// thread CPU seconds per phase.
-type PassFigures = (f64, f64, u64, u64, u64, u64, Vec<Vec<u32>>, PhaseSeconds);
+/// One preprocessing pass: wall s, CPU s, points, copies, chunk bytes, largest strip, thread CPU
+/// seconds per phase.
+type PassFigures = (f64, f64, u64, u64, u64, u64, PhaseSeconds);
 
 fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
     let (dir, manifest) = cached_campaign(cache, scale, seed, true)?;
@@ -251,12 +254,12 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
     let threads = rayon::current_num_threads();
     let params = precimap_estimate::SegmentParams::default();
     // One pass over the first n strips: (wall seconds, points, copies, chunk bytes, largest strip).
-    let pass = |n: usize, keep: bool| -> Result<PassFigures> {
+    let pass = |n: usize| -> Result<PassFigures> {
         let started = Instant::now();
         let cpu_start = cpu_seconds();
         let per_strip = (0..n)
             .into_par_iter()
-            .map(|s| -> Result<(u64, u64, u64, Vec<u32>, PhaseSeconds)> {
+            .map(|s| -> Result<(u64, u64, u64, PhaseSeconds)> {
                 // Each strip is prepared on one thread, so its thread CPU time splits into phases.
                 let mut phases: PhaseSeconds = [0.0; PreparePhase::ALL.len()];
                 let mut mark = thread_cpu_s().unwrap_or(f64::NAN);
@@ -268,8 +271,7 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
                 let prepared = tasks::prepare_strip_in_memory_observed(&campaign, s, &params, &mut phase_done)?;
                 let bytes: u64 = prepared.chunks.iter().map(|c| c.encode().len() as u64).sum();
                 phase_done(PreparePhase::Encode);
-                let segment = if keep { prepared.segment } else { Vec::new() };
-                Ok((prepared.stats.points, prepared.stats.points_emitted, bytes, segment, phases))
+                Ok((prepared.stats.points, prepared.stats.points_emitted, bytes, phases))
             })
             .collect::<Result<Vec<_>>>()?;
         let wall = started.elapsed().as_secs_f64();
@@ -280,16 +282,16 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         let largest = per_strip.iter().map(|r| r.0).max().unwrap_or(0);
         let mut phases: PhaseSeconds = [0.0; PreparePhase::ALL.len()];
         for r in &per_strip {
-            for (sum, s) in phases.iter_mut().zip(&r.4) {
+            for (sum, s) in phases.iter_mut().zip(&r.3) {
                 *sum += s;
             }
         }
-        Ok((wall, cpu, points, copies, bytes, largest, per_strip.into_iter().map(|r| r.3).collect(), phases))
+        Ok((wall, cpu, points, copies, bytes, largest, phases))
     };
     let strips = campaign.strips.len();
     reset_peak_rss();
     eprintln!("preprocessing {strips} strips on {threads} threads");
-    let (wall, cpu, points, copies, bytes, largest, segments, phases) = pass(strips, true)?;
+    let (wall, cpu, points, copies, bytes, largest, phases) = pass(strips)?;
     let peak = peak_rss_bytes();
     let phase_sum: f64 = phases.iter().sum();
     let phase_cpu_ns_per_point = PreparePhase::ALL
@@ -303,27 +305,45 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
     let mut cost_per_point_ns = Vec::new();
     let mut n = 2;
     while n <= strips {
-        let (_, c, p, ..) = pass(n, false)?;
+        let (_, c, p, ..) = pass(n)?;
         eprintln!("  {n} strips: {:.1} CPU ns per point", c / p as f64 * 1e9);
         cost_per_point_ns.push((n, c / p as f64 * 1e9));
         n *= 2;
     }
-    // The segmentation against the simulator's truth.
+    // The segmentation and the normals against the simulator's truth, in a pass of its own (untimed,
+    // so that the figures above cover pre-processing alone, memory included).
     let truth = dir.join("campaign").join("truth");
-    let mut tallies = Vec::with_capacity(strips);
-    for (s, ids) in segments.iter().enumerate() {
-        let path = truth.join(format!("{}.truth", campaign.strips[s].id));
-        let mut reader = precimap_sim::truth::TruthReader::open(&path)?;
-        let mut tally = precimap_eval::SegmentTally::default();
-        let mut k = 0usize;
-        while let Some(t) = reader.next_point()? {
-            let id = *ids.get(k).with_context(|| format!("{} has more points than the strip", path.display()))?;
-            tally.add(id, t.surface_id, t.class, t.normal, t.position);
-            k += 1;
-        }
-        tallies.push(tally);
+    let evaluated = (0..strips)
+        .into_par_iter()
+        .map(|s| -> Result<(precimap_eval::SegmentTally, precimap_eval::NormalTally)> {
+            let prepared = tasks::prepare_strip_in_memory(&campaign, s, &params)?;
+            let path = truth.join(format!("{}.truth", campaign.strips[s].id));
+            let mut reader = precimap_sim::truth::TruthReader::open(&path)?;
+            let mut tally = precimap_eval::SegmentTally::default();
+            let mut normals = precimap_eval::NormalTally::default();
+            let mut k = 0usize;
+            while let Some(t) = reader.next_point()? {
+                let id = *prepared
+                    .segment
+                    .get(k)
+                    .with_context(|| format!("{} has more points than the strip", path.display()))?;
+                tally.add(id, t.surface_id, t.class, t.normal, t.position);
+                // Points of revolutions dropped at standstill are never given a normal.
+                if id != precimap_estimate::DROPPED_SEGMENT {
+                    normals.add(t.class, prepared.normals[k].map(|n| n.normal), t.normal);
+                }
+                k += 1;
+            }
+            Ok((tally, normals))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut normal_tally = precimap_eval::NormalTally::default();
+    for (_, n) in &evaluated {
+        normal_tally.merge(n);
     }
+    let tallies: Vec<_> = evaluated.into_iter().map(|(t, _)| t).collect();
     let segmentation = precimap_eval::SegmentEvaluation::from_tallies(&tallies);
+    let normals = normal_tally.evaluate();
     let segmented: u64 = segmentation.points_segmented;
     let result = PreprocessBench {
         scale: format!("{scale:?}").to_lowercase(),
@@ -339,6 +359,8 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
         chunk_bytes_total: bytes,
         cost_per_point_ns,
         phase_cpu_ns_per_point,
+        normal_error_deg_mean: normals.surfaces.mean_deg,
+        normals,
         segment_purity: segmentation.purity,
         surface_points_removed: segmentation.surface_points_removed,
         foliage_points_removed: segmentation.foliage_points_removed,
@@ -362,6 +384,18 @@ fn bench_preprocess(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: b
             result.surface_points_removed * 100.0,
             result.foliage_points_removed * 100.0
         );
+        println!("  normals vs truth (surface points; with normal, mean / p50 / p95 angle):");
+        for (class, f) in std::iter::once(("all", &result.normals.surfaces))
+            .chain(result.normals.per_class.iter().map(|(c, f)| (c.as_str(), f)))
+        {
+            println!(
+                "    {class:<9} {:>5.1} %  {:>5.2}° / {:>5.2}° / {:>5.2}°",
+                f.with_normal_share * 100.0,
+                f.mean_deg,
+                f.p50_deg,
+                f.p95_deg
+            );
+        }
         println!("  thread CPU per point by phase (full pass):");
         for f in &result.phase_cpu_ns_per_point {
             println!("    {:<13} {:>7.1} ns  {:>5.1} %", f.phase, f.cpu_ns_per_point, f.share * 100.0);

@@ -6,8 +6,8 @@
 
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
-use precimap_segment::{PixelNormal, StripGeometry, DROPPED, NO_POINT};
-pub use precimap_segment::{ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
+pub use precimap_segment::{PixelNormal, ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
+use precimap_segment::{StripGeometry, DROPPED, NO_POINT};
 use std::collections::BTreeMap;
 
 /// A strip's points in acquisition order (struct of arrays, as read from LAS).
@@ -97,6 +97,9 @@ pub struct PreparedStrip {
     pub segment: Vec<u32>,
     /// The scan image (row and column of every point).
     pub image: ScanImage,
+    /// Per point (file order): its normal, facing the scanner, if the fit succeeded (what the
+    /// chunks carry; kept for evaluation against truth).
+    pub normals: Vec<Option<PixelNormal>>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -232,6 +235,7 @@ pub fn prepare_strip_observed(
         },
         segment: segmentation.segment,
         image,
+        normals: segmentation.normals,
     })
 }
 
