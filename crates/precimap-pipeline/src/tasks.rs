@@ -8,8 +8,8 @@ use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile, measurement_geometry, prepare_strip_observed, AnchorBlock, PreparePhase, PrepareStats,
-    PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
+    estimate_tile, prepare_strip_observed, AnchorBlock, GeometryCursor, PreparePhase, PrepareStats, PreparedStrip,
+    SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
 };
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -211,14 +211,13 @@ pub fn export_strip_file(
     dst: &Path,
 ) -> Result<u64, PipelineError> {
     let mut uncovered = None;
+    let mut cursor = GeometryCursor::new(&traj.data, &entry.lever_arm, anchor_spacing_m);
     let written =
-        precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| {
-            match measurement_geometry(&traj.data, &entry.lever_arm, anchor_spacing_m, gps_time, xyz) {
-                Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
-                None => {
-                    uncovered.get_or_insert(i);
-                    xyz
-                }
+        precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| match cursor.at(gps_time, xyz) {
+            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+            None => {
+                uncovered.get_or_insert(i);
+                xyz
             }
         })?;
     if let Some(i) = uncovered {
