@@ -11,7 +11,7 @@ mod fh;
 mod image;
 mod normals;
 
-pub use fh::{felzenszwalb_huttenlocher, UnionFind};
+pub use fh::{felzenszwalb_huttenlocher, felzenszwalb_huttenlocher_from, UnionFind};
 pub use image::{ScanImage, DROPPED, NO_POINT};
 pub use normals::{estimate_normals, NormalMethod, PixelNormal};
 
@@ -212,7 +212,10 @@ fn segment(
 ) -> Regions {
     let n = geo.len();
     let rows = image.rows as usize;
-    let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(2 * n);
+    // Edges within the noise (weight 0) are joined at once; only the weighted ones are sorted.
+    let weightless = params.fh_k > 0.0;
+    let mut uf = UnionFind::new(n);
+    let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(n / 2);
     let cos_noise = params.c1_noise_deg.to_radians().cos();
     for (pixel, &k) in grid.iter().enumerate() {
         if k == NO_POINT {
@@ -226,7 +229,11 @@ fn segment(
             }
             if let Some(nj) = &normals[j as usize] {
                 if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params, cos_noise) {
-                    edges.push((w, k, j));
+                    if w == 0.0 && weightless {
+                        uf.join_weightless(k, j);
+                    } else {
+                        edges.push((w, k, j));
+                    }
                 }
             }
         };
@@ -238,7 +245,8 @@ fn segment(
             link(grid[pixel + rows]);
         }
     }
-    let mut uf = felzenszwalb_huttenlocher(n, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
+    let mut uf =
+        felzenszwalb_huttenlocher_from(uf, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
     let mut ids = vec![NO_SEGMENT; n];
     let mut label: Vec<u32> = vec![NO_SEGMENT; n];
     let (mut regions, mut segments) = (0u64, 0u64);
