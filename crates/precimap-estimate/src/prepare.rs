@@ -181,7 +181,7 @@ impl<'a> GeometryCursor<'a> {
         }
         let arc = s.arc0 + (s.arc1 - s.arc0) * lambda;
         let u = (arc / self.anchor_spacing_m).max(0.0);
-        let anchor = u.floor();
+        let anchor = precimap_core::geom::floor(u);
         Some(MeasurementGeometry {
             t0,
             r: [p[0] - t0[0], p[1] - t0[1], p[2] - t0[2]],
