@@ -169,38 +169,56 @@ struct Regions {
 }
 
 /// Homogeneity of two neighbouring pixels: `None` where C0 or C1 continuity is broken outright,
-/// else the edge weight (0 = same plane).
+/// else the edge weight (0 = same plane). The tests compare squares and cosines, so an edge within
+/// the noise (most of them) costs no square root, division or arc cosine.
 #[inline]
-pub fn edge_weight(
-    p: [f64; 3],
-    q: [f64; 3],
-    np: &PixelNormal,
-    nq: &PixelNormal,
-    params: &SegmentParams,
-    cos_noise: f64,
-) -> Option<f32> {
+pub fn edge_weight(p: [f64; 3], q: [f64; 3], np: &PixelNormal, nq: &PixelNormal, c: &EdgeConstants) -> Option<f32> {
     let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
-    let gap = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    if gap > np.edge_limit.max(nq.edge_limit) as f64 {
+    let gap2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    let limit = np.edge_limit.max(nq.edge_limit) as f64;
+    if gap2 > limit * limit {
         return None;
     }
     let (a, b) = (np.normal.map(f64::from), nq.normal.map(f64::from));
     let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
-    // Cheap cosine tests first: most neighbours are within the noise.
-    let angle = if cos >= cos_noise { 0.0 } else { cos.acos().to_degrees() };
-    if angle > params.c1_break_deg {
+    if cos < c.cos_break {
         return None;
     }
     let m = [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
-    let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt().max(1e-12);
-    let step = ((m[0] * d[0] + m[1] * d[1] + m[2] * d[2]) / len).abs();
+    let len2 = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).max(1e-24);
+    // The step along the mean normal, squared and times |m|².
+    let along = m[0] * d[0] + m[1] * d[1] + m[2] * d[2];
+    let along2 = along * along;
     let tol = np.tolerance.max(nq.tolerance) as f64;
-    if step > params.c0_break * tol {
+    if along2 > c.c0_break2 * tol * tol * len2 {
         return None;
     }
-    let c0 = (step / tol - 1.0).max(0.0);
-    let c1 = (angle - params.c1_noise_deg).max(0.0) / params.c1_scale_deg;
+    let c0 = if along2 <= tol * tol * len2 { 0.0 } else { along.abs() / len2.sqrt() / tol - 1.0 };
+    let c1 =
+        if cos >= c.cos_noise { 0.0 } else { (cos.acos().to_degrees() - c.c1_noise_deg).max(0.0) / c.c1_scale_deg };
     Some((c0 + c1) as f32)
+}
+
+/// The [`SegmentParams`] of [`edge_weight`] in the form it uses.
+#[derive(Clone, Copy, Debug)]
+pub struct EdgeConstants {
+    cos_noise: f64,
+    cos_break: f64,
+    c0_break2: f64,
+    c1_noise_deg: f64,
+    c1_scale_deg: f64,
+}
+
+impl EdgeConstants {
+    pub fn new(params: &SegmentParams) -> Self {
+        Self {
+            cos_noise: params.c1_noise_deg.to_radians().cos(),
+            cos_break: params.c1_break_deg.to_radians().cos(),
+            c0_break2: params.c0_break * params.c0_break,
+            c1_noise_deg: params.c1_noise_deg,
+            c1_scale_deg: params.c1_scale_deg,
+        }
+    }
 }
 
 fn segment(
@@ -216,7 +234,7 @@ fn segment(
     let weightless = params.fh_k > 0.0;
     let mut uf = UnionFind::new(n);
     let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(n / 2);
-    let cos_noise = params.c1_noise_deg.to_radians().cos();
+    let constants = EdgeConstants::new(params);
     for (pixel, &k) in grid.iter().enumerate() {
         if k == NO_POINT {
             continue;
@@ -228,7 +246,7 @@ fn segment(
                 return;
             }
             if let Some(nj) = &normals[j as usize] {
-                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params, cos_noise) {
+                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, &constants) {
                     if w == 0.0 && weightless {
                         uf.join_weightless(k, j);
                     } else {
