@@ -1,6 +1,7 @@
 //! Tile keys: square tiles of `tile_size_m` in absolute projected coordinates (paper §6.2). The
 //! same key names a tile in memory, in chunk files and in object-store keys (`{tx}_{ty}`).
 
+use crate::geom::floor;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 
@@ -12,7 +13,7 @@ pub struct TileKey {
 
 impl TileKey {
     pub fn of(x: f64, y: f64, tile_size_m: f64) -> Self {
-        Self { tx: (x / tile_size_m).floor() as i32, ty: (y / tile_size_m).floor() as i32 }
+        Self { tx: floor(x / tile_size_m) as i32, ty: floor(y / tile_size_m) as i32 }
     }
 
     /// South-west corner in absolute coordinates.

@@ -97,6 +97,12 @@ impl Trajectory {
         &self.rotations
     }
 
+    /// Per segment i (samples i, i+1), the body-frame rotation vector ω_i with
+    /// `R_{i+1} = R_i · Exp(ω_i)`; [`Self::pose_in_segment`] rotates by `Exp(λ·ω_i)`.
+    pub fn segment_rotations(&self) -> &[Vec3] {
+        &self.segment_rotations
+    }
+
     /// First and last time stamp.
     pub fn time_span(&self) -> (f64, f64) {
         (self.times[0], self.times[self.times.len() - 1])

@@ -19,8 +19,9 @@ pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
 pub use chunk::TileChunk;
 pub use precimap_segment::{NormalMethod, DROPPED as DROPPED_COLUMN};
 pub use prepare::{
-    measurement_geometry, prepare_strip, PrepareError, PrepareStats, PreparedStrip, ScanImage, SegmentParams,
-    SegmentStats, StripContext, StripSamples, DROPPED_SEGMENT, NO_SEGMENT,
+    measurement_geometry, prepare_strip, prepare_strip_observed, GeometryCursor, PrepareError, PreparePhase,
+    PrepareStats, PreparedStrip, ScanImage, SegmentParams, SegmentStats, StripContext, StripSamples, DROPPED_SEGMENT,
+    NO_SEGMENT,
 };
 pub use solve::{solve_trajectory, TrajectorySolution};
 pub use stats::{ResidualHistogram, TileStats};

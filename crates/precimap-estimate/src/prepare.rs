@@ -6,9 +6,9 @@
 
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
-use precimap_segment::{PixelNormal, StripGeometry, DROPPED, NO_POINT};
-pub use precimap_segment::{ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
-use std::collections::BTreeMap;
+pub use precimap_segment::{PixelNormal, ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
+use precimap_segment::{StripGeometry, DROPPED, NO_POINT};
+use std::collections::HashMap;
 
 /// A strip's points in acquisition order (struct of arrays, as read from LAS).
 #[derive(Clone, Copy, Debug)]
@@ -61,7 +61,8 @@ pub struct MeasurementGeometry {
 }
 
 /// Geometry of the point `p` measured at time `t` by a scanner with lever arm `lever_arm`.
-/// `None` when the trajectory does not cover `t`.
+/// `None` when the trajectory does not cover `t`. For many points of one strip, a
+/// [`GeometryCursor`] gives the same values faster.
 pub fn measurement_geometry(
     trajectory: &Trajectory,
     lever_arm: &Vec3,
@@ -69,22 +70,143 @@ pub fn measurement_geometry(
     t: f64,
     p: [f64; 3],
 ) -> Option<MeasurementGeometry> {
-    let (i, lambda) = trajectory.locate(t)?;
-    let pose = trajectory.pose_in_segment(i, lambda);
-    let t0 = pose.position + pose.rotation * lever_arm;
-    let arcs = trajectory.arc_lengths();
-    let s = arcs[i] + (arcs[i + 1] - arcs[i]) * lambda;
-    let times = trajectory.times();
-    let speed = (arcs[i + 1] - arcs[i]) / (times[i + 1] - times[i]);
-    let u = (s / anchor_spacing_m).max(0.0);
-    let anchor = u.floor();
-    Some(MeasurementGeometry {
-        t0: [t0.x, t0.y, t0.z],
-        r: [p[0] - t0.x, p[1] - t0.y, p[2] - t0.z],
-        anchor: anchor as u32,
-        lambda: (u - anchor) as f32,
-        speed,
-    })
+    GeometryCursor::new(trajectory, lever_arm, anchor_spacing_m).at(t, p)
+}
+
+/// [`measurement_geometry`] for the points of one strip in turn: it keeps the trajectory segment
+/// of the previous point, so points in time order find theirs in O(1) (a step forward, a binary
+/// search only after a jump), and it rotates the lever arm alone (`R_i·Exp(λ·ω_i)·ℓ`, with the
+/// rotation's series exact to double precision for the small angle of one segment) instead of
+/// forming the interpolated rotation matrix.
+#[derive(Clone, Debug)]
+pub struct GeometryCursor<'a> {
+    trajectory: &'a Trajectory,
+    lever_arm: [f64; 3],
+    anchor_spacing_m: f64,
+    /// The segment of the last point and what every point in it shares; `usize::MAX` before
+    /// the first point.
+    index: usize,
+    segment: SegmentData,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct SegmentData {
+    t0: f64,
+    t1: f64,
+    p0: [f64; 3],
+    p1: [f64; 3],
+    rotation: [[f64; 3]; 3],
+    omega: [f64; 3],
+    arc0: f64,
+    arc1: f64,
+    speed: f64,
+}
+
+impl<'a> GeometryCursor<'a> {
+    pub fn new(trajectory: &'a Trajectory, lever_arm: &Vec3, anchor_spacing_m: f64) -> Self {
+        Self {
+            trajectory,
+            lever_arm: [lever_arm.x, lever_arm.y, lever_arm.z],
+            anchor_spacing_m,
+            index: usize::MAX,
+            segment: SegmentData::default(),
+        }
+    }
+
+    /// The segment holding `t`: the last sample at or before `t`, at most the last but one
+    /// (exactly [`Trajectory::locate`]'s choice). `None` outside the trajectory's span.
+    #[inline]
+    fn locate(&mut self, t: f64) -> Option<()> {
+        let times = self.trajectory.times();
+        let last = times.len() - 2;
+        let s = &self.segment;
+        if self.index != usize::MAX && t >= s.t0 && (t < s.t1 || (self.index == last && t <= s.t1)) {
+            return Some(());
+        }
+        if !self.trajectory.covers(t) {
+            return None;
+        }
+        let mut i = self.index;
+        if i != usize::MAX && t >= s.t0 && i + 4 <= last && t < times[i + 4] {
+            // A few segments ahead (time order): step.
+            while times[i + 1] <= t {
+                i += 1;
+            }
+        } else {
+            i = match times.binary_search_by(|x| x.total_cmp(&t)) {
+                Ok(i) => i.min(last),
+                Err(i) => i - 1,
+            };
+        }
+        self.load(i);
+        Some(())
+    }
+
+    fn load(&mut self, i: usize) {
+        let tr = self.trajectory;
+        let (times, positions, arcs) = (tr.times(), tr.positions(), tr.arc_lengths());
+        let r = &tr.rotations()[i];
+        let w = tr.segment_rotations()[i];
+        let p = |v: &Vec3| [v.x, v.y, v.z];
+        self.index = i;
+        self.segment = SegmentData {
+            t0: times[i],
+            t1: times[i + 1],
+            p0: p(&positions[i]),
+            p1: p(&positions[i + 1]),
+            rotation: [
+                [r[(0, 0)], r[(0, 1)], r[(0, 2)]],
+                [r[(1, 0)], r[(1, 1)], r[(1, 2)]],
+                [r[(2, 0)], r[(2, 1)], r[(2, 2)]],
+            ],
+            omega: [w.x, w.y, w.z],
+            arc0: arcs[i],
+            arc1: arcs[i + 1],
+            speed: (arcs[i + 1] - arcs[i]) / (times[i + 1] - times[i]),
+        };
+    }
+
+    /// The geometry of point `p` measured at `t`; `None` outside the trajectory's span.
+    #[inline]
+    pub fn at(&mut self, t: f64, p: [f64; 3]) -> Option<MeasurementGeometry> {
+        self.locate(t)?;
+        let s = &self.segment;
+        let lambda = ((t - s.t0) / (s.t1 - s.t0)).clamp(0.0, 1.0);
+        let arm = rotate_exact(s.omega.map(|w| w * lambda), self.lever_arm);
+        let r = &s.rotation;
+        let mut t0 = [0.0; 3];
+        for k in 0..3 {
+            let c = s.p0[k] + (s.p1[k] - s.p0[k]) * lambda;
+            t0[k] = c + (r[k][0] * arm[0] + r[k][1] * arm[1] + r[k][2] * arm[2]);
+        }
+        let arc = s.arc0 + (s.arc1 - s.arc0) * lambda;
+        let u = (arc / self.anchor_spacing_m).max(0.0);
+        let anchor = precimap_core::geom::floor(u);
+        Some(MeasurementGeometry {
+            t0,
+            r: [p[0] - t0[0], p[1] - t0[1], p[2] - t0[2]],
+            anchor: anchor as u32,
+            lambda: (u - anchor) as f32,
+            speed: s.speed,
+        })
+    }
+}
+
+/// `Exp(θ)·v` (Rodrigues) without forming the matrix; below 0.01 rad (one trajectory segment of
+/// a vehicle) by its series to the θ⁴ terms, whose remainder (θ⁶/5040) is under double precision.
+#[inline]
+fn rotate_exact(theta: [f64; 3], v: [f64; 3]) -> [f64; 3] {
+    let [tx, ty, tz] = theta;
+    let a2 = tx * tx + ty * ty + tz * tz;
+    let (a, b) = if a2 < 1e-4 {
+        (1.0 - a2 / 6.0 * (1.0 - a2 / 20.0), 0.5 - a2 / 24.0 * (1.0 - a2 / 30.0))
+    } else {
+        let angle = a2.sqrt();
+        (angle.sin() / angle, (1.0 - angle.cos()) / a2)
+    };
+    let c1 = [ty * v[2] - tz * v[1], tz * v[0] - tx * v[2], tx * v[1] - ty * v[0]];
+    let c2 = [ty * c1[2] - tz * c1[1], tz * c1[0] - tx * c1[2], tx * c1[1] - ty * c1[0]];
+    [v[0] + a * c1[0] + b * c2[0], v[1] + a * c1[1] + b * c2[1], v[2] + a * c1[2] + b * c2[2]]
 }
 
 /// Everything a strip contributes to estimation, and its segmentation.
@@ -97,6 +219,9 @@ pub struct PreparedStrip {
     pub segment: Vec<u32>,
     /// The scan image (row and column of every point).
     pub image: ScanImage,
+    /// Per point (file order): its normal, facing the scanner, if the fit succeeded (what the
+    /// chunks carry; kept for evaluation against truth).
+    pub normals: Vec<Option<PixelNormal>>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -127,7 +252,64 @@ pub struct StripContext<'a> {
     pub segment: &'a SegmentParams,
 }
 
+/// The phases of preparing a strip, in order, for callers that measure where the time goes
+/// ([`prepare_strip_observed`]). `Decode` (reading the LAS/LAZ file) is reported by the caller
+/// that reads the strip, `Encode` by the one that encodes the chunks; the others by
+/// [`prepare_strip_observed`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PreparePhase {
+    /// Reading and decoding the strip file.
+    Decode,
+    /// Checks and the geometry against the trajectory (scan-head position, anchor, λ).
+    Geometry,
+    /// The scan image: rows, columns, standstill thinning, the pixel grid.
+    ScanImage,
+    /// RANSAC normals.
+    Normals,
+    /// C0/C1 edge weights, Felzenszwalb–Huttenlocher, small regions.
+    Segmentation,
+    /// Image links and tile membership (the chunks in memory).
+    Tiling,
+    /// Chunk encoding to bytes.
+    Encode,
+}
+
+impl PreparePhase {
+    pub const ALL: [PreparePhase; 7] = [
+        PreparePhase::Decode,
+        PreparePhase::Geometry,
+        PreparePhase::ScanImage,
+        PreparePhase::Normals,
+        PreparePhase::Segmentation,
+        PreparePhase::Tiling,
+        PreparePhase::Encode,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PreparePhase::Decode => "decode",
+            PreparePhase::Geometry => "geometry",
+            PreparePhase::ScanImage => "scan_image",
+            PreparePhase::Normals => "normals",
+            PreparePhase::Segmentation => "segmentation",
+            PreparePhase::Tiling => "tiling",
+            PreparePhase::Encode => "encode",
+        }
+    }
+}
+
 pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<PreparedStrip, PrepareError> {
+    prepare_strip_observed(samples, ctx, &mut |_| {})
+}
+
+/// [`prepare_strip`] calling `phase_done` at the end of each of its phases (in order: geometry,
+/// scan image, normals, segmentation, tiling); the result is the same.
+pub fn prepare_strip_observed(
+    samples: &StripSamples<'_>,
+    ctx: &StripContext<'_>,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<PreparedStrip, PrepareError> {
     let n = samples.len();
     if [samples.y.len(), samples.z.len(), samples.gps_time.len(), samples.scan_angle_deg.len(), samples.channel.len()]
         .iter()
@@ -140,13 +322,21 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
     }
     let geometry = strip_geometry(samples, ctx)?;
     let head: Vec<[f64; 3]> = geometry.iter().map(|g| g.t0).collect();
+    phase_done(PreparePhase::Geometry);
     let mut image = ScanImage::build(samples.scan_angle_deg, samples.gps_time, samples.channel);
     image.thin_standstill(&head, ctx.params.min_revolution_advance_m);
+    let grid = image.grid();
+    phase_done(PreparePhase::ScanImage);
     let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head: &head };
-    let segmentation = precimap_segment::segment_strip(&geo, &image, ctx.segment);
+    let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
+    phase_done(PreparePhase::Normals);
+    let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
+    phase_done(PreparePhase::Segmentation);
     drop(head);
-    let links = Links::build(&image);
+    let links = Links::build(&image, &grid);
+    drop(grid);
     let chunks = emit_tiles(samples, ctx, &geometry, &links, &segmentation.normals, &segmentation.segment);
+    phase_done(PreparePhase::Tiling);
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.iter().map(|g| g.anchor).min().unwrap_or(0);
     let last_anchor = geometry.iter().map(|g| g.anchor).max().unwrap_or(0) + 1;
@@ -167,6 +357,7 @@ pub fn prepare_strip(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Resu
         },
         segment: segmentation.segment,
         image,
+        normals: segmentation.normals,
     })
 }
 
@@ -177,6 +368,7 @@ fn strip_geometry(
     let (start, end) = ctx.trajectory_data.time_span();
     let mut out = Vec::with_capacity(samples.len());
     let mut previous = f64::NEG_INFINITY;
+    let mut cursor = GeometryCursor::new(ctx.trajectory_data, &ctx.lever_arm, ctx.params.anchor_spacing_m);
     for k in 0..samples.len() {
         let t = samples.gps_time[k];
         let p = [samples.x[k], samples.y[k], samples.z[k]];
@@ -192,8 +384,7 @@ fn strip_geometry(
             return Err(PrepareError::NotInOrder { index: k, time: t, previous });
         }
         previous = t;
-        let g = measurement_geometry(ctx.trajectory_data, &ctx.lever_arm, ctx.params.anchor_spacing_m, t, p)
-            .ok_or(PrepareError::NotCovered { index: k, time: t, start, end })?;
+        let g = cursor.at(t, p).ok_or(PrepareError::NotCovered { index: k, time: t, start, end })?;
         out.push(g);
     }
     Ok(out)
@@ -208,11 +399,10 @@ struct Links {
 }
 
 impl Links {
-    fn build(image: &ScanImage) -> Self {
+    fn build(image: &ScanImage, grid: &[u32]) -> Self {
         let n = image.row.len();
         let mut right = vec![NO_NEIGHBOUR; n];
         let mut down = vec![NO_NEIGHBOUR; n];
-        let grid = image.grid();
         let rows = image.rows as usize;
         for k in 0..n {
             let c = image.column[k];
@@ -242,8 +432,11 @@ fn emit_tiles(
     segment: &[u32],
 ) -> Vec<TileChunk> {
     let params = ctx.params;
-    // Points per tile, in acquisition order.
-    let mut members: BTreeMap<TileKey, Vec<u32>> = BTreeMap::new();
+    // Points per tile, in acquisition order. Consecutive points mostly fall in the tiles of the
+    // previous point: a small cache of recent tiles saves the map look-up.
+    let mut tiles: Vec<(TileKey, Vec<u32>)> = Vec::new();
+    let mut index: HashMap<TileKey, usize> = HashMap::new();
+    let mut recent: [(TileKey, usize); 4] = [(TileKey { tx: i32::MIN, ty: i32::MIN }, 0); 4];
     let max_range2 = params.max_range_m * params.max_range_m;
     for k in 0..samples.len() {
         let r = geometry[k].r;
@@ -252,21 +445,34 @@ fn emit_tiles(
             continue;
         }
         for key in TileKey::with_overlap(samples.x[k], samples.y[k], params.tile_size_m, params.tile_overlap_m) {
-            members.entry(key).or_default().push(k as u32);
+            let slot = match recent.iter().find(|(r, _)| *r == key) {
+                Some(&(_, slot)) => slot,
+                None => {
+                    let slot = *index.entry(key).or_insert_with(|| {
+                        tiles.push((key, Vec::new()));
+                        tiles.len() - 1
+                    });
+                    recent.rotate_right(1);
+                    recent[0] = (key, slot);
+                    slot
+                }
+            };
+            tiles[slot].1.push(k as u32);
         }
     }
-    members
+    tiles.sort_unstable_by_key(|(key, _)| *key);
+    // Global point index → index inside the tile being emitted (reset after each tile).
+    let mut local = vec![NO_NEIGHBOUR; samples.len()];
+    tiles
         .into_iter()
         .map(|(key, globals)| {
             let (ox, oy) = key.origin(params.tile_size_m);
             let origin = [ox, oy, 0.0];
             let mut chunk = TileChunk::with_capacity(key, ctx.strip, ctx.trajectory, origin, globals.len());
-            let local = |g: u32| -> u32 {
-                if g == NO_NEIGHBOUR {
-                    return NO_NEIGHBOUR;
-                }
-                globals.binary_search(&g).map(|i| i as u32).unwrap_or(NO_NEIGHBOUR)
-            };
+            for (i, &g) in globals.iter().enumerate() {
+                local[g as usize] = i as u32;
+            }
+            let local_of = |g: u32| if g == NO_NEIGHBOUR { NO_NEIGHBOUR } else { local[g as usize] };
             for &g in &globals {
                 let k = g as usize;
                 let geo = &geometry[k];
@@ -277,11 +483,14 @@ fn emit_tiles(
                     nrm.normal,
                     geo.anchor,
                     geo.lambda,
-                    local(links.right[k]),
-                    local(links.down[k]),
+                    local_of(links.right[k]),
+                    local_of(links.down[k]),
                     nrm.edge_limit,
                     segment[k],
                 );
+            }
+            for &g in &globals {
+                local[g as usize] = NO_NEIGHBOUR;
             }
             chunk
         })
@@ -353,6 +562,44 @@ mod tests {
         }
         // The anchor coordinate follows arc length: first point at 1 m → anchor 2.
         assert_eq!(prepared.stats.first_anchor, 2);
+    }
+
+    /// The cursor gives what the full interpolation gives (pose at t, rotation times lever arm,
+    /// arc length), in time order, backwards, at sample times and at both ends; outside the span
+    /// nothing.
+    #[test]
+    fn geometry_cursor_matches_the_interpolated_pose() {
+        let times: Vec<f64> = (0..50).map(|i| 100.0 + i as f64 * 0.01 + (i % 3) as f64 * 0.002).collect();
+        let positions = times.iter().map(|t| Vec3::new((t - 100.0) * 12.0, (t * 3.0).sin(), 0.1 * t)).collect();
+        // Mostly 0.3° per sample (the series branch), every fifth sample a 3° jump (closed form).
+        let rpy = (0..50)
+            .map(|i| {
+                [(i as f64 * 0.3).sin() * 0.2, i as f64 * 0.05, i as f64 * 0.3 + if i % 5 == 0 { 3.0 } else { 0.0 }]
+            })
+            .collect();
+        let traj = Trajectory::new(times.clone(), positions, rpy).unwrap();
+        let lever = Vec3::new(0.8, -0.4, 1.9);
+        let mut ts: Vec<f64> = (0..2000).map(|k| 100.0 + k as f64 * 0.000_26).filter(|t| *t <= times[49]).collect();
+        ts.extend(times.iter().copied());
+        ts.extend([times[49], times[0], 100.2345, 100.0001, times[49]]);
+        let mut cursor = GeometryCursor::new(&traj, &lever, 0.5);
+        let p = [3.0, 4.0, 5.0];
+        for &t in &ts {
+            let g = cursor.at(t, p).unwrap();
+            let pose = traj.pose_at(t).unwrap();
+            let t0 = pose.position + pose.rotation * lever;
+            for k in 0..3 {
+                assert!((g.t0[k] - t0[k]).abs() < 1e-12, "t {t}: {:?} vs {t0:?}", g.t0);
+                assert!((g.r[k] - (p[k] - t0[k])).abs() < 1e-12);
+            }
+            let u = traj.arc_length_at(t).unwrap() / 0.5;
+            assert_eq!(g.anchor, u.floor() as u32, "t {t}");
+            assert!((g.lambda as f64 - u.fract()).abs() < 1e-6, "t {t}");
+        }
+        assert!(cursor.at(times[0] - 1e-9, p).is_none());
+        assert!(cursor.at(times[49] + 1e-9, p).is_none());
+        assert!(cursor.at(f64::NAN, p).is_none());
+        assert!(cursor.at(100.3, p).is_some());
     }
 
     #[test]

@@ -14,10 +14,12 @@
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
 
+mod normals;
 mod segments;
 mod stats;
 mod trajectory;
 
+pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
     signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, ShiftFreeMeans,

@@ -223,23 +223,30 @@ struct Source {
     next: u64,
 }
 
+/// The LAZ compression description of a compressed strip, checked against the header: the
+/// decoder steps through records by the LAZ item sizes (and panics on zero), so they must describe
+/// exactly the header's record length.
+fn laz_vlr(path: &Path, header: &Header) -> Result<laz::LazVlr, FormatError> {
+    let record = u64::from(header.point_format().len());
+    let vlr = header.laz_vlr().map_err(|e| {
+        FormatError::file(path, format!("cannot read the LAZ compression description ({e}); {DAMAGED}"))
+    })?;
+    let items = vlr.items_size();
+    if items != record {
+        return Err(FormatError::file(
+            path,
+            format!("LAZ items describe {items}-byte points but the header says {record} bytes; {DAMAGED}"),
+        ));
+    }
+    Ok(vlr)
+}
+
 impl Source {
     fn open(path: &Path) -> Result<Self, FormatError> {
         let (file, header) = open_header(path)?;
         let n = header.number_of_points();
         if header.point_format().is_compressed {
-            // The decoder steps through records by the LAZ item sizes (and panics on zero), so
-            // they must describe exactly the header's record length.
-            let record = u64::from(header.point_format().len());
-            let items = header.laz_vlr().map(|v| v.items_size()).map_err(|e| {
-                FormatError::file(path, format!("cannot read the LAZ compression description ({e}); {DAMAGED}"))
-            })?;
-            if items != record {
-                return Err(FormatError::file(
-                    path,
-                    format!("LAZ items describe {items}-byte points but the header says {record} bytes; {DAMAGED}"),
-                ));
-            }
+            laz_vlr(path, &header)?;
         }
         let reader = Reader::new(BufReader::with_capacity(1 << 20, file))
             .map_err(|e| FormatError::file(path, format!("cannot start decoding the point data ({e}); {DAMAGED}")))?;
@@ -266,24 +273,74 @@ impl Source {
         }
     }
 
-    /// Batches fail as a whole; re-decode the failed batch point by point to name the bad point.
     fn locate_failure(&self, first: u64, batch_error: las::Error) -> FormatError {
-        let last = (first + BATCH as u64).min(self.n);
-        let found = (|| {
-            let file = File::open(&self.path).ok()?;
-            let mut r = Reader::new(BufReader::new(file)).ok()?;
-            r.seek(first).ok()?;
-            let mut one = PointDataBuilder::new().for_header(r.header()).build();
-            (first..last).find_map(|i| r.fill_points(1, &mut one).err().map(|e| (i, e)))
-        })();
-        match found {
-            Some((i, e)) => point_error(&self.path, i, format!("cannot decode point data ({e}); {DAMAGED}")),
-            None => point_error(
-                &self.path,
-                first,
-                format!("cannot decode points {first}..{last} ({batch_error}); {DAMAGED}"),
-            ),
+        locate_failure(&self.path, self.n, first, &batch_error)
+    }
+}
+
+/// Batches fail as a whole; re-decode the failed batch point by point to name the bad point.
+fn locate_failure(path: &Path, n: u64, first: u64, batch_error: &dyn std::fmt::Display) -> FormatError {
+    let last = (first + BATCH as u64).min(n);
+    let found = (|| {
+        let file = File::open(path).ok()?;
+        let mut r = Reader::new(BufReader::new(file)).ok()?;
+        r.seek(first).ok()?;
+        let mut one = PointDataBuilder::new().for_header(r.header()).build();
+        (first..last).find_map(|i| r.fill_points(1, &mut one).err().map(|e| (i, e)))
+    })();
+    match found {
+        Some((i, e)) => point_error(path, i, format!("cannot decode point data ({e}); {DAMAGED}")),
+        None => point_error(path, first, format!("cannot decode points {first}..{last} ({batch_error}); {DAMAGED}")),
+    }
+}
+
+/// A LAZ strip opened for decoding only the fields [`read_strip`] needs: x, y, z, return and
+/// channel, scan angle and GPS time. LAS 1.4 point formats 6–10 are compressed in layers, one per
+/// field group, and the decoder skips the layers not asked for (intensity, classification, flags,
+/// user data, point source id, colour, waveform, extra bytes) without decoding them; the bytes of
+/// skipped fields in the records are not meaningful. Formats 0–5 are decoded whole.
+struct LazFieldSource {
+    path: PathBuf,
+    decompressor: laz::LasZipDecompressor<'static, BufReader<File>>,
+    record_len: usize,
+    n: u64,
+    next: u64,
+    buffer: Vec<u8>,
+}
+
+impl LazFieldSource {
+    fn open(path: &Path) -> Result<(Self, Header), FormatError> {
+        let (file, header) = open_header(path)?;
+        let vlr = laz_vlr(path, &header)?;
+        let offset = header
+            .clone()
+            .into_raw()
+            .map_err(|e| FormatError::file(path, format!("cannot read the LAS header ({e}); {DAMAGED}")))?
+            .offset_to_point_data;
+        let mut input = BufReader::with_capacity(1 << 20, file);
+        input.seek(SeekFrom::Start(u64::from(offset))).map_err(|e| FormatError::io(path, "read strip", e))?;
+        let fields = laz::DecompressionSelection::base().decompress_z().decompress_scan_angle().decompress_gps_time();
+        let decompressor = laz::LasZipDecompressor::selective(input, vlr, fields)
+            .map_err(|e| FormatError::file(path, format!("cannot start decoding the point data ({e}); {DAMAGED}")))?;
+        let record_len = usize::from(header.point_format().len());
+        let n = header.number_of_points();
+        let source = Self { path: path.to_path_buf(), decompressor, record_len, n, next: 0, buffer: Vec::new() };
+        Ok((source, header))
+    }
+
+    /// Decodes the next batch; returns the index of its first point and its records.
+    fn next_batch(&mut self) -> Result<Option<(u64, &[u8])>, FormatError> {
+        if self.next >= self.n {
+            return Ok(None);
         }
+        let first = self.next;
+        let k = (self.n - first).min(BATCH as u64) as usize;
+        self.buffer.resize(k * self.record_len, 0);
+        if let Err(e) = self.decompressor.decompress_many(&mut self.buffer) {
+            return Err(locate_failure(&self.path, self.n, first, &e));
+        }
+        self.next += k as u64;
+        Ok(Some((first, &self.buffer)))
     }
 }
 
@@ -310,41 +367,79 @@ pub fn strip_info(path: &Path) -> Result<StripInfo, FormatError> {
 }
 
 /// Reads the fields estimation needs. The whole strip is held in memory (bounded by strip size).
+/// LAZ strips decode only those fields ([`LazFieldSource`]).
 pub fn read_strip(path: &Path) -> Result<StripPoints, FormatError> {
+    if strip_info(path)?.compressed {
+        let (mut src, header) = LazFieldSource::open(path)?;
+        let mut out = StripReader::new(path, &header, src.n)?;
+        let record_len = src.record_len;
+        while let Some((first, records)) = src.next_batch()? {
+            out.push_records(first, records, record_len)?;
+        }
+        return Ok(out.points);
+    }
     let mut src = Source::open(path)?;
-    let format = *src.reader.header().point_format();
-    if !format.has_gps_time {
-        let number = format.to_u8().unwrap_or(0);
-        return Err(FormatError::file(
-            path,
-            format!(
-                "point format {number} has no GPS time, which is required to place points on the trajectory; \
-                 re-export with GPS time: point format 1, 3 or 6–10"
-            ),
-        ));
-    }
-    if src.n == 0 {
-        return Err(FormatError::file(path, "has no points; export the strip again or remove it from the manifest"));
-    }
-    // LAS sizes were checked against the file; a LAZ header's count is not trusted for reservation.
-    let reserve = if format.is_compressed { src.n.min(1 << 24) } else { src.n };
-    let mut out = StripPoints::with_capacity(usize::try_from(reserve).unwrap_or(0));
-    let t = *src.reader.header().transforms();
-    let (gps_at, extended) = if format.is_extended { (layout::EXT_GPS, true) } else { (layout::LEGACY_GPS, false) };
+    let mut out = StripReader::new(path, src.reader.header(), src.n)?;
     let mut pd = src.batch_buffer();
     while let Some(first) = src.next_batch(&mut pd)? {
-        let record_len = pd.record_len();
-        for (j, rec) in pd.raw_bytes().chunks_exact(record_len).enumerate() {
-            let [x, y, z] = decode_xyz(rec, &t);
+        out.push_records(first, pd.raw_bytes(), pd.record_len())?;
+    }
+    Ok(out.points)
+}
+
+/// Turns raw records into [`StripPoints`].
+struct StripReader<'a> {
+    path: &'a Path,
+    points: StripPoints,
+    transforms: Vector<Transform>,
+    gps_at: usize,
+    extended: bool,
+}
+
+impl<'a> StripReader<'a> {
+    fn new(path: &'a Path, header: &Header, n: u64) -> Result<Self, FormatError> {
+        let format = *header.point_format();
+        if !format.has_gps_time {
+            let number = format.to_u8().unwrap_or(0);
+            return Err(FormatError::file(
+                path,
+                format!(
+                    "point format {number} has no GPS time, which is required to place points on the trajectory; \
+                 re-export with GPS time: point format 1, 3 or 6–10"
+                ),
+            ));
+        }
+        if n == 0 {
+            return Err(FormatError::file(
+                path,
+                "has no points; export the strip again or remove it from the manifest",
+            ));
+        }
+        // LAS sizes were checked against the file; a LAZ header's count is not trusted for reservation.
+        let reserve = if format.is_compressed { n.min(1 << 24) } else { n };
+        let gps_at = if format.is_extended { layout::EXT_GPS } else { layout::LEGACY_GPS };
+        Ok(Self {
+            path,
+            points: StripPoints::with_capacity(usize::try_from(reserve).unwrap_or(0)),
+            transforms: *header.transforms(),
+            gps_at,
+            extended: format.is_extended,
+        })
+    }
+
+    fn push_records(&mut self, first: u64, records: &[u8], record_len: usize) -> Result<(), FormatError> {
+        let (t, gps_at, out) = (&self.transforms, self.gps_at, &mut self.points);
+        for (j, rec) in records.chunks_exact(record_len).enumerate() {
+            let [x, y, z] = decode_xyz(rec, t);
             let gps = f64::from_le_bytes(bytes8(rec, gps_at));
             if !gps.is_finite() {
                 return Err(point_error(
-                    path,
+                    self.path,
                     first + j as u64,
                     format!("GPS time is {gps}, not a finite number; the point data is damaged: re-export the strip"),
                 ));
             }
-            let (angle, channel) = if extended {
+            let (angle, channel) = if self.extended {
                 let raw = i16::from_le_bytes([rec[layout::EXT_SCAN_ANGLE], rec[layout::EXT_SCAN_ANGLE + 1]]);
                 (f32::from(raw) * SCAN_ANGLE_UNIT_DEG, (rec[layout::FLAGS2] >> 4) & 3)
             } else {
@@ -357,8 +452,8 @@ pub fn read_strip(path: &Path) -> Result<StripPoints, FormatError> {
             out.scan_angle_deg.push(angle);
             out.channel.push(channel);
         }
+        Ok(())
     }
-    Ok(out)
 }
 
 #[inline]

@@ -505,3 +505,25 @@ fn timed_rewrite_passes_gps_time() {
     let err = rewrite_strip_timed(&no_time, &dir.path().join("x.las"), |_, xyz, _| xyz).unwrap_err();
     assert!(err.to_string().contains("GPS time"), "{err}");
 }
+
+/// LAZ strips decode only the fields `read_strip` needs (layered formats skip the other layers):
+/// they must come out exactly as a full decode gives them, whatever the other fields hold, for
+/// legacy and extended formats with colour, NIR and extra bytes.
+#[test]
+fn selective_laz_decoding_matches_full_decoding() {
+    let dir = tempfile::tempdir().unwrap();
+    for (format, version) in [(1u8, (1, 2)), (3, (1, 2)), (6, (1, 4)), (7, (1, 4)), (8, (1, 4))] {
+        let path = dir.path().join(format!("rich{format}.laz"));
+        let points = write_rich_source(&path, format, version, 70_000);
+        let s = read_strip(&path).unwrap();
+        assert_eq!(s.len(), points.len());
+        let full = las_points(&path);
+        for (i, p) in full.iter().enumerate() {
+            assert_eq!([s.x[i], s.y[i], s.z[i]], [p.x, p.y, p.z], "format {format} point {i}");
+            assert_eq!(s.gps_time[i], p.gps_time.unwrap(), "format {format} point {i}");
+            assert!((s.scan_angle_deg[i] - p.scan_angle).abs() < 1e-4, "format {format} point {i}");
+            assert_eq!(s.channel[i], p.scanner_channel, "format {format} point {i}");
+            assert_eq!(s.channel[i], points[i].scanner_channel);
+        }
+    }
+}

@@ -8,8 +8,8 @@ use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile, measurement_geometry, prepare_strip, AnchorBlock, PrepareStats, PreparedStrip, SegmentParams,
-    StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
+    estimate_tile, prepare_strip_observed, AnchorBlock, GeometryCursor, PreparePhase, PrepareStats, PreparedStrip,
+    SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
 };
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -62,9 +62,20 @@ pub fn prepare_strip_in_memory(
     strip: usize,
     segment_params: &SegmentParams,
 ) -> Result<PreparedStrip, PipelineError> {
+    prepare_strip_in_memory_observed(campaign, strip, segment_params, &mut |_| {})
+}
+
+/// [`prepare_strip_in_memory`] calling `phase_done` at the end of each phase (decoding the file,
+/// then the phases of [`precimap_estimate::prepare_strip_observed`]), for benchmarks.
+pub fn prepare_strip_in_memory_observed(
+    campaign: &Campaign,
+    strip: usize,
+    segment_params: &SegmentParams,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<PreparedStrip, PipelineError> {
     let entry = &campaign.strips[strip];
     let traj = &campaign.trajectories[entry.trajectory as usize];
-    prepare_strip_chunks(entry, strip as u32, traj, &campaign.params, segment_params)
+    prepare_strip_chunks_observed(entry, strip as u32, traj, &campaign.params, segment_params, phase_done)
 }
 
 /// The storage-free part of `segment_strip` over explicit entries (what a job-framework executor
@@ -78,7 +89,19 @@ pub fn prepare_strip_chunks(
     params: &Parameters,
     segment_params: &SegmentParams,
 ) -> Result<PreparedStrip, PipelineError> {
+    prepare_strip_chunks_observed(entry, strip_index, traj, params, segment_params, &mut |_| {})
+}
+
+fn prepare_strip_chunks_observed(
+    entry: &StripEntry,
+    strip_index: u32,
+    traj: &TrajectoryEntry,
+    params: &Parameters,
+    segment_params: &SegmentParams,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<PreparedStrip, PipelineError> {
     let points = precimap_formats::read_strip(&entry.path)?;
+    phase_done(PreparePhase::Decode);
     let (t_first, t_last) = time_range(&points.gps_time);
     let (start, end) = traj.data.time_span();
     if t_first < start || t_last > end {
@@ -108,7 +131,7 @@ pub fn prepare_strip_chunks(
         params,
         segment: segment_params,
     };
-    prepare_strip(&samples, &ctx).map_err(|source| PipelineError::Prepare {
+    prepare_strip_observed(&samples, &ctx, phase_done).map_err(|source| PipelineError::Prepare {
         strip: entry.id.clone(),
         path: entry.path.clone(),
         source,
@@ -189,14 +212,13 @@ pub fn export_strip_file(
     dst: &Path,
 ) -> Result<u64, PipelineError> {
     let mut uncovered = None;
+    let mut cursor = GeometryCursor::new(&traj.data, &entry.lever_arm, anchor_spacing_m);
     let written =
-        precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| {
-            match measurement_geometry(&traj.data, &entry.lever_arm, anchor_spacing_m, gps_time, xyz) {
-                Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
-                None => {
-                    uncovered.get_or_insert(i);
-                    xyz
-                }
+        precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| match cursor.at(gps_time, xyz) {
+            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+            None => {
+                uncovered.get_or_insert(i);
+                xyz
             }
         })?;
     if let Some(i) = uncovered {

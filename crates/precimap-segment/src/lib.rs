@@ -11,7 +11,7 @@ mod fh;
 mod image;
 mod normals;
 
-pub use fh::{felzenszwalb_huttenlocher, UnionFind};
+pub use fh::{felzenszwalb_huttenlocher, felzenszwalb_huttenlocher_from, UnionFind};
 pub use image::{ScanImage, DROPPED, NO_POINT};
 pub use normals::{estimate_normals, NormalMethod, PixelNormal};
 
@@ -131,7 +131,20 @@ pub struct SegmentStats {
 pub fn segment_strip(geo: &StripGeometry<'_>, image: &ScanImage, params: &SegmentParams) -> Segmentation {
     let grid = image.grid();
     let normals = estimate_normals(geo, image, &grid, params);
-    let mut segment = segment(geo, image, &grid, &normals, params);
+    segment_with_normals(geo, image, &grid, normals, params)
+}
+
+/// The second half of [`segment_strip`]: C0/C1 edge weights, Felzenszwalb–Huttenlocher and the
+/// small-region removal, given the pixel grid (`image.grid()`) and the normals
+/// ([`estimate_normals`]); separate so that callers can time the two halves.
+pub fn segment_with_normals(
+    geo: &StripGeometry<'_>,
+    image: &ScanImage,
+    grid: &[u32],
+    normals: Vec<Option<PixelNormal>>,
+    params: &SegmentParams,
+) -> Segmentation {
+    let mut segment = segment(geo, image, grid, &normals, params);
     for (id, &c) in segment.ids.iter_mut().zip(&image.column) {
         if c == DROPPED {
             *id = DROPPED_SEGMENT;
@@ -156,38 +169,56 @@ struct Regions {
 }
 
 /// Homogeneity of two neighbouring pixels: `None` where C0 or C1 continuity is broken outright,
-/// else the edge weight (0 = same plane).
+/// else the edge weight (0 = same plane). The tests compare squares and cosines, so an edge within
+/// the noise (most of them) costs no square root, division or arc cosine.
 #[inline]
-pub fn edge_weight(
-    p: [f64; 3],
-    q: [f64; 3],
-    np: &PixelNormal,
-    nq: &PixelNormal,
-    params: &SegmentParams,
-    cos_noise: f64,
-) -> Option<f32> {
+pub fn edge_weight(p: [f64; 3], q: [f64; 3], np: &PixelNormal, nq: &PixelNormal, c: &EdgeConstants) -> Option<f32> {
     let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
-    let gap = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    if gap > np.edge_limit.max(nq.edge_limit) as f64 {
+    let gap2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    let limit = np.edge_limit.max(nq.edge_limit) as f64;
+    if gap2 > limit * limit {
         return None;
     }
     let (a, b) = (np.normal.map(f64::from), nq.normal.map(f64::from));
     let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
-    // Cheap cosine tests first: most neighbours are within the noise.
-    let angle = if cos >= cos_noise { 0.0 } else { cos.acos().to_degrees() };
-    if angle > params.c1_break_deg {
+    if cos < c.cos_break {
         return None;
     }
     let m = [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
-    let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt().max(1e-12);
-    let step = ((m[0] * d[0] + m[1] * d[1] + m[2] * d[2]) / len).abs();
+    let len2 = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).max(1e-24);
+    // The step along the mean normal, squared and times |m|².
+    let along = m[0] * d[0] + m[1] * d[1] + m[2] * d[2];
+    let along2 = along * along;
     let tol = np.tolerance.max(nq.tolerance) as f64;
-    if step > params.c0_break * tol {
+    if along2 > c.c0_break2 * tol * tol * len2 {
         return None;
     }
-    let c0 = (step / tol - 1.0).max(0.0);
-    let c1 = (angle - params.c1_noise_deg).max(0.0) / params.c1_scale_deg;
+    let c0 = if along2 <= tol * tol * len2 { 0.0 } else { along.abs() / len2.sqrt() / tol - 1.0 };
+    let c1 =
+        if cos >= c.cos_noise { 0.0 } else { (cos.acos().to_degrees() - c.c1_noise_deg).max(0.0) / c.c1_scale_deg };
     Some((c0 + c1) as f32)
+}
+
+/// The [`SegmentParams`] of [`edge_weight`] in the form it uses.
+#[derive(Clone, Copy, Debug)]
+pub struct EdgeConstants {
+    cos_noise: f64,
+    cos_break: f64,
+    c0_break2: f64,
+    c1_noise_deg: f64,
+    c1_scale_deg: f64,
+}
+
+impl EdgeConstants {
+    pub fn new(params: &SegmentParams) -> Self {
+        Self {
+            cos_noise: params.c1_noise_deg.to_radians().cos(),
+            cos_break: params.c1_break_deg.to_radians().cos(),
+            c0_break2: params.c0_break * params.c0_break,
+            c1_noise_deg: params.c1_noise_deg,
+            c1_scale_deg: params.c1_scale_deg,
+        }
+    }
 }
 
 fn segment(
@@ -199,8 +230,11 @@ fn segment(
 ) -> Regions {
     let n = geo.len();
     let rows = image.rows as usize;
-    let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(2 * n);
-    let cos_noise = params.c1_noise_deg.to_radians().cos();
+    // Edges within the noise (weight 0) are joined at once; only the weighted ones are sorted.
+    let weightless = params.fh_k > 0.0;
+    let mut uf = UnionFind::new(n);
+    let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(n / 2);
+    let constants = EdgeConstants::new(params);
     for (pixel, &k) in grid.iter().enumerate() {
         if k == NO_POINT {
             continue;
@@ -212,8 +246,12 @@ fn segment(
                 return;
             }
             if let Some(nj) = &normals[j as usize] {
-                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, params, cos_noise) {
-                    edges.push((w, k, j));
+                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, &constants) {
+                    if w == 0.0 && weightless {
+                        uf.join_weightless(k, j);
+                    } else {
+                        edges.push((w, k, j));
+                    }
                 }
             }
         };
@@ -225,7 +263,8 @@ fn segment(
             link(grid[pixel + rows]);
         }
     }
-    let mut uf = felzenszwalb_huttenlocher(n, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
+    let mut uf =
+        felzenszwalb_huttenlocher_from(uf, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
     let mut ids = vec![NO_SEGMENT; n];
     let mut label: Vec<u32> = vec![NO_SEGMENT; n];
     let (mut regions, mut segments) = (0u64, 0u64);

@@ -173,6 +173,7 @@ fn ransac_keeps_curb_edges_sharp() {
     };
     let ransac = errors(NormalMethod::Ransac);
     let ls = errors(NormalMethod::LeastSquares);
+    eprintln!("mean normal error 3–20 cm from the curbs: RANSAC {ransac:.2}°, least squares {ls:.2}°");
     assert!(ransac < 3.0, "RANSAC mean error at curbs {ransac:.2}°");
     assert!(ls > 2.0 * ransac && ls > 5.0, "least squares {ls:.2}° vs RANSAC {ransac:.2}°");
 }
