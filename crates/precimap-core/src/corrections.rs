@@ -63,6 +63,91 @@ impl TrajectoryCorrections {
     }
 }
 
+/// Distribution of the per-anchor change between two iterations (the displacement of a point at
+/// the nominal range, as [`TrajectoryCorrections::max_change_m`]), in logarithmic bins of a tenth
+/// of a decade from 1 µm to 10 m. Mergeable across trajectories, so the job framework's planner
+/// reports the same quantiles as the in-process driver. The maximum alone cannot tell a few
+/// wandering anchors (a trajectory's end) from a whole campaign still drifting; the median can.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ChangeHistogram {
+    /// `counts[0]`: below 1 µm; `counts[k]` for k ≥ 1: `[10^((k−1)/10), 10^(k/10))` µm; the last
+    /// bin also holds everything larger. Empty until the first value.
+    pub counts: Vec<u64>,
+}
+
+impl ChangeHistogram {
+    const BINS: usize = 72;
+    const SMALLEST_M: f64 = 1e-6;
+
+    pub fn add(&mut self, change_m: f64) {
+        if self.counts.is_empty() {
+            self.counts = vec![0; Self::BINS];
+        }
+        let bin = if change_m < Self::SMALLEST_M {
+            0
+        } else {
+            // NaN lands in the last bin: a non-finite change is as bad as the largest.
+            let k = (10.0 * (change_m / Self::SMALLEST_M).log10()).floor();
+            if k.is_nan() {
+                Self::BINS - 1
+            } else {
+                (k as usize + 1).min(Self::BINS - 1)
+            }
+        };
+        self.counts[bin] += 1;
+    }
+
+    pub fn merge(&mut self, other: &ChangeHistogram) {
+        if other.counts.is_empty() {
+            return;
+        }
+        if self.counts.is_empty() {
+            self.counts = vec![0; Self::BINS];
+        }
+        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
+            *a += b;
+        }
+    }
+
+    pub fn total(&self) -> u64 {
+        self.counts.iter().sum()
+    }
+
+    /// Upper edge of the bin holding the `q`-quantile (0 ≤ q ≤ 1): at most 26 % above the true
+    /// quantile, never below it. 0 when empty.
+    pub fn quantile_m(&self, q: f64) -> f64 {
+        let total = self.total();
+        if total == 0 {
+            return 0.0;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
+        let mut seen = 0;
+        for (k, &c) in self.counts.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return Self::SMALLEST_M * 10f64.powf(k as f64 / 10.0);
+            }
+        }
+        Self::SMALLEST_M * 10f64.powf((Self::BINS - 1) as f64 / 10.0)
+    }
+}
+
+impl TrajectoryCorrections {
+    /// Per-anchor changes against `other` (see [`Self::max_change_m`]) as a histogram.
+    pub fn change_histogram(&self, other: &Self, range_m: f64) -> ChangeHistogram {
+        let first = self.first_anchor.min(other.first_anchor);
+        let last = self.last_anchor().max(other.last_anchor());
+        let mut h = ChangeHistogram::default();
+        for i in first..=last {
+            let (a, b) = (self.anchor(i), other.anchor(i));
+            let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+            let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
+            h.add(dt + range_m * dr);
+        }
+        h
+    }
+}
+
 /// Applies a correction: `t0 + δt + Exp(δθ)·r`.
 #[inline]
 pub fn apply(t0: [f64; 3], r: [f64; 3], c: &Correction) -> [f64; 3] {
@@ -83,6 +168,33 @@ mod tests {
         assert_eq!(c.at(3, 0.5)[0], 0.0);
         let z = TrajectoryCorrections::zeros(10, 11);
         assert!((c.max_change_m(&z, 10.0) - (5f64.sqrt() + 1.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn change_quantiles_bound_the_true_ones_from_above() {
+        let mut h = ChangeHistogram::default();
+        assert_eq!(h.quantile_m(0.5), 0.0);
+        // 1, 2, …, 100 mm.
+        for k in 1..=100 {
+            h.add(k as f64 * 1e-3);
+        }
+        let mut other = ChangeHistogram::default();
+        other.add(f64::NAN);
+        other.add(0.0);
+        h.merge(&other);
+        assert_eq!(h.total(), 102);
+        for (q, truth) in [(0.5, 0.050), (0.9, 0.091), (0.005, 0.0)] {
+            let got = h.quantile_m(q);
+            assert!(got >= truth && got <= truth.max(1e-6) * 1.26, "q {q}: {got} for {truth}");
+        }
+        // The NaN counts as the largest change.
+        assert!(h.quantile_m(1.0) > 1.0);
+        let c = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6], [0.01, 0.0, 0.0, 0.0, 0.0, 0.0]] };
+        let z = TrajectoryCorrections::zeros(0, 1);
+        let hz = c.change_histogram(&z, 10.0);
+        assert_eq!(hz.total(), 2);
+        assert!(hz.quantile_m(1.0) >= 0.01 && hz.quantile_m(1.0) < 0.0126);
+        assert_eq!(hz.quantile_m(0.5), 1e-6);
     }
 
     #[test]

@@ -10,7 +10,7 @@ pub mod params;
 pub mod tile;
 pub mod trajectory;
 
-pub use corrections::{Correction, TrajectoryCorrections};
+pub use corrections::{ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
 pub use params::{IterationStep, Parameters};
 pub use tile::TileKey;

@@ -4,7 +4,7 @@
 //! Gauss–Newton system exactly in linear time.
 
 use crate::blocks::{sym_index, AnchorBlock};
-use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::corrections::{ChangeHistogram, TrajectoryCorrections};
 use precimap_core::Parameters;
 use precimap_solve::{BlockTridiagonal, Mat6, Vec6};
 use serde::{Deserialize, Serialize};
@@ -14,6 +14,9 @@ pub struct TrajectorySolution {
     pub corrections: TrajectoryCorrections,
     /// Largest change against the previous corrections, as the displacement of a point at 10 m.
     pub max_change_m: f64,
+    /// Every anchor's change, measured the same way.
+    #[serde(default)]
+    pub change_histogram: ChangeHistogram,
     /// Anchors with at least one observation.
     pub anchors_observed: u32,
     pub observations: u64,
@@ -325,9 +328,11 @@ pub fn solve_trajectory<'a>(
         .collect();
     let corrections = TrajectoryCorrections { first_anchor: first, values };
     let max_change_m = corrections.max_change_m(current, CHANGE_RANGE_M);
+    let change_histogram = corrections.change_histogram(current, CHANGE_RANGE_M);
     Ok(TrajectorySolution {
         corrections,
         max_change_m,
+        change_histogram,
         anchors_observed: observed.iter().filter(|&&o| o).count() as u32,
         observations,
         sigma,

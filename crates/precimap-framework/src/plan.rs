@@ -166,6 +166,8 @@ pub struct EstimateResult {
 pub struct SolveResult {
     pub trajectory: u32,
     pub max_change_m: f64,
+    #[serde(default)]
+    pub change_histogram: precimap_core::ChangeHistogram,
     pub report: TrajectoryReport,
     pub seconds: f64,
 }
@@ -508,6 +510,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
 
 fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(IterationRecord, Next), String> {
     let mut max_change = 0.0f64;
+    let mut changes = precimap_core::ChangeHistogram::default();
     let mut reports = vec![None; state.trajectories.len()];
     state.previous_corrections = state.corrections.clone();
     state.previous_step = Some(effective_step(&state.params, state.step_index, state.robust_sigma));
@@ -519,6 +522,7 @@ fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Iterati
             return Err(format!("{}: result names unknown trajectory {t}", task.key));
         }
         max_change = max_change.max(r.max_change_m);
+        changes.merge(&r.change_histogram);
         seconds += r.seconds;
         let key = task
             .outputs
@@ -531,7 +535,7 @@ fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Iterati
     state.trajectory_reports = reports.into_iter().flatten().collect();
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let report = iteration_report(state.iteration as usize, &step, &stats, max_change, seconds);
+    let report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, seconds);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();
     state.estimate_s += seconds;

@@ -61,6 +61,13 @@ pub struct IterationReport {
     /// Mean over shared pixels of the standard deviation of the strips' heights.
     pub pixel_std_mean_m: f64,
     pub max_correction_change_m: f64,
+    /// Median and 99th percentile of the anchors' changes (upper edges of 26 % wide bins): a
+    /// campaign still drifting everywhere shows in the median, a few wandering anchors only in
+    /// the maximum.
+    #[serde(default)]
+    pub median_correction_change_m: f64,
+    #[serde(default)]
+    pub p99_correction_change_m: f64,
     pub seconds: f64,
 }
 

@@ -158,13 +158,15 @@ pub fn run_campaign(
         // schedule's last step (early convergence jumps to it).
         let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
+        let mut changes = precimap_core::ChangeHistogram::default();
+        sol.iter().for_each(|s| changes.merge(&s.change_histogram));
         let next = sol.iter().map(|s| s.corrections.clone()).collect();
         previous = Some((std::mem::replace(&mut corrections, next), *step));
         solutions = sol;
         histogram = stats.histogram.clone();
         robust_sigma = histogram.robust_sigma_m();
-        let report =
-            iteration_report(iterations.len() + 1, step, &stats, max_change, iteration_started.elapsed().as_secs_f64());
+        let seconds = iteration_started.elapsed().as_secs_f64();
+        let report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
@@ -260,6 +262,7 @@ pub fn iteration_report(
     step: &precimap_core::IterationStep,
     stats: &TileStats,
     max_change_m: f64,
+    changes: &precimap_core::ChangeHistogram,
     seconds: f64,
 ) -> IterationReport {
     IterationReport {
@@ -277,6 +280,8 @@ pub fn iteration_report(
             0.0
         },
         max_correction_change_m: max_change_m,
+        median_correction_change_m: changes.quantile_m(0.5),
+        p99_correction_change_m: changes.quantile_m(0.99),
         seconds,
     }
 }
