@@ -238,6 +238,10 @@ pub struct PrepareStats {
     pub last_anchor: u32,
     pub time_start: f64,
     pub time_end: f64,
+    /// The strip had no scan angles (all equal); rows came from the beam directions instead
+    /// ([`reconstructed_scan_angles`]).
+    #[serde(default)]
+    pub scan_angles_reconstructed: bool,
     pub segmentation: SegmentStats,
 }
 
@@ -323,7 +327,15 @@ pub fn prepare_strip_observed(
     let geometry = strip_geometry(samples, ctx)?;
     let head: Vec<[f64; 3]> = geometry.iter().map(|g| g.t0).collect();
     phase_done(PreparePhase::Geometry);
-    let mut image = ScanImage::build(samples.scan_angle_deg, samples.gps_time, samples.channel);
+    let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
+        reconstructed_scan_angles(&geometry, samples, ctx.trajectory_data)
+    } else {
+        None
+    };
+    let scan_angles_reconstructed = reconstructed.is_some();
+    let angles = reconstructed.as_deref().unwrap_or(samples.scan_angle_deg);
+    let mut image = ScanImage::build(angles, samples.gps_time, samples.channel);
+    drop(reconstructed);
     image.thin_standstill(&head, ctx.params.min_revolution_advance_m);
     let grid = image.grid();
     phase_done(PreparePhase::ScanImage);
@@ -353,6 +365,7 @@ pub fn prepare_strip_observed(
             last_anchor,
             time_start: samples.gps_time[0],
             time_end: samples.gps_time[n - 1],
+            scan_angles_reconstructed,
             segmentation: segmentation.stats,
         },
         segment: segmentation.segment,
@@ -388,6 +401,120 @@ fn strip_geometry(
         out.push(g);
     }
     Ok(out)
+}
+
+/// A strip carries no scan angles when every point has the same value (LAS writers that do not
+/// know the angle leave the field 0).
+fn scan_angles_missing(angles: &[f32]) -> bool {
+    angles.first().is_some_and(|&a| angles.iter().all(|&b| b == a))
+}
+
+/// Scan angles reconstructed from the geometry, for strips without the field. A rotating
+/// scanner's beams lie in one plane fixed to the vehicle: in the body frame, every beam
+/// direction of a channel is perpendicular to the rotation axis, which is therefore the
+/// direction in which the beam directions spread least (the smallest eigenvector of
+/// `Σ u uᵀ`). A beam's angle is its azimuth about that axis, signed so that it grows with time
+/// within a revolution as the LAS field does. The zero of the angle differs from the scanner's;
+/// the scan image only needs measurement order and revolution boundaries. `None` when a channel's
+/// beams do not lie in a plane (not a rotating line scanner: the smallest spread is over 5 % of
+/// the largest), so the strip keeps no scan-image neighbourhood.
+pub fn reconstructed_scan_angles(
+    geometry: &[MeasurementGeometry],
+    samples: &StripSamples<'_>,
+    trajectory: &Trajectory,
+) -> Option<Vec<f32>> {
+    let n = geometry.len();
+    // Unit beam directions in the body frame.
+    let mut body = Vec::with_capacity(n);
+    for (k, g) in geometry.iter().enumerate() {
+        let pose = trajectory.pose_at(samples.gps_time[k])?;
+        let u = pose.rotation.transpose() * Vec3::from(g.r);
+        let norm = u.norm();
+        body.push(if norm > 0.0 { u / norm } else { Vec3::zeros() });
+    }
+    let mut scatter = [nalgebra::Matrix3::<f64>::zeros(); 256];
+    for (u, &c) in body.iter().zip(samples.channel) {
+        scatter[c as usize] += u * u.transpose();
+    }
+    // Per channel, the plane's basis (e1, e2); e1 × e2 is the rotation axis.
+    let mut basis: [Option<(Vec3, Vec3)>; 256] = [None; 256];
+    for (c, m) in scatter.iter().enumerate() {
+        if m.trace() == 0.0 {
+            continue;
+        }
+        let eig = nalgebra::SymmetricEigen::new(*m);
+        let order = {
+            let mut o = [0usize, 1, 2];
+            o.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+            o
+        };
+        if eig.eigenvalues[order[0]] > 0.05 * eig.eigenvalues[order[2]] {
+            return None;
+        }
+        let axis: Vec3 = eig.eigenvectors.column(order[0]).into_owned();
+        let e1: Vec3 = eig.eigenvectors.column(order[2]).into_owned();
+        basis[c] = Some((e1, axis.cross(&e1)));
+    }
+    let azimuth = |u: &Vec3, c: u8| -> f64 {
+        let (e1, e2) = basis[c as usize].expect("every channel with points has a basis");
+        u.dot(&e2).atan2(u.dot(&e1)).to_degrees()
+    };
+    // Orientation per channel: consecutive beams mostly step forward.
+    let mut votes = [0i64; 256];
+    let mut last: [Option<f64>; 256] = [None; 256];
+    for (u, &c) in body.iter().zip(samples.channel) {
+        let a = azimuth(u, c);
+        if let Some(prev) = last[c as usize] {
+            let step = (a - prev + 540.0).rem_euclid(360.0) - 180.0;
+            votes[c as usize] += if step > 0.0 {
+                1
+            } else if step < 0.0 {
+                -1
+            } else {
+                0
+            };
+        }
+        last[c as usize] = Some(a);
+    }
+    let oriented = |u: &Vec3, c: u8| if votes[c as usize] < 0 { -azimuth(u, c) } else { azimuth(u, c) };
+    // A revolution must not be split where beams are dense: put the wrap-around (±180°) in the
+    // middle of the widest gap in azimuth (the sky, for a head that sees the ground).
+    const BINS: usize = 720;
+    let mut occupied = vec![[false; BINS]; 256];
+    for (u, &c) in body.iter().zip(samples.channel) {
+        let bin = ((oriented(u, c) + 180.0) / 360.0 * BINS as f64) as usize;
+        occupied[c as usize][bin.min(BINS - 1)] = true;
+    }
+    let mut gap_centre = [180.0f64; 256];
+    for (c, bins) in occupied.iter().enumerate() {
+        let Some(start) = bins.iter().position(|&b| b) else { continue };
+        // Walk once round the circle from an occupied bin, measuring runs of empty bins.
+        let (mut best, mut best_mid, mut run) = (0usize, None, 0usize);
+        for i in 1..=BINS {
+            if bins[(start + i) % BINS] {
+                if run > best {
+                    best = run;
+                    best_mid = Some(start as f64 + i as f64 - run as f64 / 2.0);
+                }
+                run = 0;
+            } else {
+                run += 1;
+            }
+        }
+        if let Some(mid) = best_mid {
+            gap_centre[c] = mid * 360.0 / BINS as f64 - 180.0;
+        }
+    }
+    Some(
+        body.iter()
+            .zip(samples.channel)
+            .map(|(u, &c)| {
+                let a = (oriented(u, c) - gap_centre[c as usize]).rem_euclid(360.0) - 180.0;
+                // −180 and 180 are the same beam.
+                (if a >= 180.0 { a - 360.0 } else { a }) as f32
+            })
+            .collect(),
+    )
 }
 
 /// Scan-image neighbour links: next row in the same revolution (wrapping round), same row in the
@@ -562,6 +689,113 @@ mod tests {
         }
         // The anchor coordinate follows arc length: first point at 1 m → anchor 2.
         assert_eq!(prepared.stats.first_anchor, 2);
+    }
+
+    /// A strip without scan angles (all 0) gets its scan image from the beam directions: with the
+    /// scan plane turned 30° in the vehicle and the vehicle heading 20°, the image has the same
+    /// size, the same points get normals and the ground is still one segment.
+    #[test]
+    fn strip_without_scan_angles_gets_its_rows_from_the_beam_directions() {
+        let speed = 10.0;
+        let heading = 20f64.to_radians();
+        let times: Vec<f64> = (0..=400).map(|i| 1000.0 + i as f64 * 0.005).collect();
+        let positions =
+            times.iter().map(|t| Vec3::new(heading.cos(), heading.sin(), 0.0) * ((t - 1000.0) * speed)).collect();
+        let traj = Trajectory::new(times, positions, vec![[0.0, 0.0, 20.0]; 401]).unwrap();
+        let rows = 300u32;
+        let rate = 40.0;
+        let turn = 30f64.to_radians();
+        let (mut x, mut y, mut z, mut t, mut a) = (vec![], vec![], vec![], vec![], vec![]);
+        for rev in 0..50 {
+            for j in 0..rows {
+                let phi = -180.0 + j as f64 * 360.0 / rows as f64;
+                let time = 1000.1 + rev as f64 / rate + j as f64 / (rate * rows as f64);
+                let pose = traj.pose_at(time).unwrap();
+                let (sp, cp) = phi.to_radians().sin_cos();
+                // The plane of (0, sin φ, cos φ) turned about the body's z axis.
+                let body = Vec3::new(-turn.sin() * sp, turn.cos() * sp, cp);
+                let dir = pose.rotation * body;
+                // Only downward beams hit the ground (z = 0); the head is 2 m up.
+                if dir.z > -0.3 {
+                    continue;
+                }
+                let p = pose.position + dir * (-2.0 / dir.z);
+                x.push(p.x);
+                y.push(p.y);
+                z.push(0.0);
+                t.push(time);
+                a.push(phi as f32);
+            }
+        }
+        let traj_head = Trajectory::new(
+            traj.times().to_vec(),
+            traj.positions().iter().map(|p| p + Vec3::new(0.0, 0.0, 2.0)).collect(),
+            traj.rpy_deg().to_vec(),
+        )
+        .unwrap();
+        let channel = vec![0u8; x.len()];
+        let zeros = vec![0f32; x.len()];
+        let params = Parameters::default();
+        let segment = SegmentParams::default();
+        let ctx = StripContext {
+            strip: 0,
+            trajectory: 0,
+            trajectory_data: &traj_head,
+            lever_arm: Vec3::zeros(),
+            params: &params,
+            segment: &segment,
+        };
+        let with = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
+        let without = StripSamples { scan_angle_deg: &zeros, ..with };
+        let known = prepare_strip(&with, &ctx).unwrap();
+        let rebuilt = prepare_strip(&without, &ctx).unwrap();
+        assert!(!known.stats.scan_angles_reconstructed && rebuilt.stats.scan_angles_reconstructed);
+        assert_eq!(known.stats.rows_per_revolution, rows);
+        assert_eq!(rebuilt.stats.rows_per_revolution, rows);
+        // The simulated angle wraps at the nadir, inside the ground fan; the reconstruction puts
+        // the seam in the sky, so its first and last revolutions are halves: one column more.
+        assert_eq!(rebuilt.stats.revolutions, known.stats.revolutions + 1);
+        assert!(known.stats.points_with_normal as f64 > 0.9 * known.stats.points as f64);
+        assert!(rebuilt.stats.points_with_normal as f64 >= 0.99 * known.stats.points_with_normal as f64);
+        assert_eq!(rebuilt.stats.segmentation.segments, 1);
+        // Same angular steps between consecutive beams; columns advance only at the seam.
+        for k in 0..x.len() - 1 {
+            let step = |image: &ScanImage| (image.row[k + 1] + rows - image.row[k]) % rows;
+            if known.image.column[k + 1] == known.image.column[k] {
+                assert_eq!(step(&rebuilt.image), step(&known.image), "point {k}");
+            }
+            let advance = rebuilt.image.column[k + 1] - rebuilt.image.column[k];
+            assert!(advance <= 1, "point {k}: {advance}");
+        }
+    }
+
+    /// Beams that do not lie in one plane are not a rotating scanner's: no angles are made up.
+    #[test]
+    fn scattered_beams_give_no_reconstructed_angles() {
+        let times: Vec<f64> = (0..=10).map(|i| i as f64 * 0.1).collect();
+        let positions = times.iter().map(|t| Vec3::new(*t, 0.0, 0.0)).collect();
+        let traj = Trajectory::new(times, positions, vec![[0.0; 3]; 11]).unwrap();
+        let mut cursor = GeometryCursor::new(&traj, &Vec3::zeros(), 0.5);
+        let (mut x, mut y, mut z, mut t) = (vec![], vec![], vec![], vec![]);
+        let mut geometry = vec![];
+        for k in 0..500 {
+            let time = k as f64 * 0.001;
+            // Directions spread over a sphere (golden-angle spiral).
+            let h = 1.0 - 2.0 * (k as f64 + 0.5) / 500.0;
+            let r = (1.0 - h * h).sqrt();
+            let phi = k as f64 * 2.399_963;
+            let p = [time + 5.0 * r * phi.cos(), 5.0 * r * phi.sin(), 5.0 * h];
+            geometry.push(cursor.at(time, p).unwrap());
+            x.push(p[0]);
+            y.push(p[1]);
+            z.push(p[2]);
+            t.push(time);
+        }
+        let zeros = vec![0f32; x.len()];
+        let channel = vec![0u8; x.len()];
+        let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &zeros, channel: &channel };
+        assert!(scan_angles_missing(&zeros));
+        assert!(reconstructed_scan_angles(&geometry, &samples, &traj).is_none());
     }
 
     /// The cursor gives what the full interpolation gives (pose at t, rotation times lever arm,

@@ -27,6 +27,9 @@ pub struct StripReport {
     pub points_emitted: u64,
     pub revolutions: u64,
     pub rows_per_revolution: u32,
+    /// The strip had no scan angles; its scan image was built from reconstructed ones.
+    #[serde(default)]
+    pub scan_angles_reconstructed: bool,
     pub tiles: usize,
 }
 
@@ -40,6 +43,7 @@ impl StripReport {
             points_emitted: stats.points_emitted,
             revolutions: stats.revolutions,
             rows_per_revolution: stats.rows_per_revolution,
+            scan_angles_reconstructed: stats.scan_angles_reconstructed,
             tiles,
         }
     }

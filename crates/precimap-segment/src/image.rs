@@ -34,8 +34,9 @@ impl ScanImage {
     /// difference of consecutive measurements of one channel (missing returns only make some
     /// differences multiples of it); a revolution ends where the angle wraps around; a gap in GPS
     /// time longer than ¾ of a period skips as many columns as revolutions elapsed. If the strip
-    /// carries no scan angle (all equal), every point is its own row in one column per
-    /// revolution-less strip: no scan-image neighbourhood can be formed (see [`Self::has_angles`]).
+    /// carries no scan angle (all equal), every point is its own row in one column: no scan-image
+    /// neighbourhood can be formed; `prepare_strip` therefore passes angles reconstructed from
+    /// the beam directions for such strips.
     pub fn build(angles_deg: &[f32], gps_time: &[f64], channel: &[u8]) -> Self {
         let n = angles_deg.len().min(gps_time.len()).min(channel.len());
         let mut histogram: BTreeMap<i64, (u64, f64)> = BTreeMap::new();
