@@ -1063,7 +1063,12 @@ impl JobStore {
     /// stage's last task died between its commit and the barrier. `planner` must be the one the
     /// completers use. Safe to run from every executor concurrently, also while tasks complete.
     pub async fn reconcile(&self, planner: &dyn StagePlanner) -> Result<ReconcileReport, JobError> {
-        let q = self.sql("SELECT DISTINCT campaign FROM tasks WHERE state = 'leased' AND lease_expires_at_ms < NOW_MS");
+        // The redundant `IN` lets SQLite, too, scan the partial index `tasks_open` (open tasks
+        // only) rather than every task ever run.
+        let q = self.sql(
+            "SELECT DISTINCT campaign FROM tasks WHERE state IN ('queued', 'leased') AND state = 'leased' \
+             AND lease_expires_at_ms < NOW_MS",
+        );
         let campaigns: Vec<Uuid> = with_pool!(self, p => sqlx::query_scalar(&q).fetch_all(p).await?);
         let mut report = ReconcileReport::default();
         for campaign in campaigns {
@@ -1111,8 +1116,8 @@ impl JobStore {
         let lock = self
             .sql("SELECT state, max_attempts, backoff_base_ms, backoff_max_ms FROM campaigns WHERE id = $1 FOR_LOCK");
         let expired = self.sql(
-            "SELECT id, kind, key, attempt, worker FROM tasks WHERE campaign = $1 AND state = 'leased' \
-             AND lease_expires_at_ms < NOW_MS ORDER BY id",
+            "SELECT id, kind, key, attempt, worker FROM tasks WHERE campaign = $1 AND state IN ('queued', 'leased') \
+             AND state = 'leased' AND lease_expires_at_ms < NOW_MS ORDER BY id",
         );
         // Re-checks the expiry: a heartbeat that committed meanwhile keeps its lease.
         let dead = self.sql(
