@@ -8,8 +8,10 @@
 //! checks of concurrent inserts), then touches tasks. `claim`, `heartbeat` and the commit of
 //! `complete` touch one task row only (plus rows they insert) and never wait for a campaign lock,
 //! so no cycle of waits can form, and completions of one campaign do not queue behind each other;
-//! only the completion that finds its stage closed takes the campaign lock, to advance it. SQLite
-//! serialises all writers with `BEGIN IMMEDIATE`.
+//! only the completion that finds its stage closed takes the campaign lock, to advance it.
+//! `complete_and_claim` adds a second task row to the commit of `complete`, taken with `SKIP
+//! LOCKED` after the first, so it never waits for it. SQLite serialises all writers with
+//! `BEGIN IMMEDIATE`.
 
 use std::collections::HashMap;
 use std::str::FromStr;
