@@ -215,6 +215,7 @@ impl Executor {
                         Ok((WorkOutcome::Done { kind, key }, next))
                     }
                     Err(JobError::LeaseLost) => {
+                        let mut next = None;
                         if tries.load(Ordering::Relaxed) > 1 {
                             // A try that failed with a transient error may have committed the task
                             // before its barrier check failed; the retry then finds the task done.
@@ -223,8 +224,18 @@ impl Executor {
                             if let Err(e) = self.reconcile().await {
                                 warn!(error = %e, "reconcile after a retried completion failed");
                             }
+                            // That try may also have claimed a task for this loop, which holds
+                            // nothing else now: take it rather than leave it leased until expiry.
+                            if claim_next {
+                                match self.jobs.leased_by(worker).await {
+                                    Ok(mut leased) => next = (!leased.is_empty()).then(|| leased.remove(0)),
+                                    Err(e) => {
+                                        warn!(error = %e, "looking for a claim lost with a retried completion failed")
+                                    }
+                                }
+                            }
                         }
-                        Ok((WorkOutcome::LeaseLost { kind, key }, None))
+                        Ok((WorkOutcome::LeaseLost { kind, key }, next))
                     }
                     Err(e) => Err(e.into()),
                 }

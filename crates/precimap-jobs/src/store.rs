@@ -678,8 +678,8 @@ impl JobStore {
     /// and that task's own completion comes later and checks again.
     ///
     /// If the call fails with a transient error after its commit (a dropped connection), the
-    /// claimed task is not returned; it stays leased until its lease expires and the reconciler
-    /// queues it again, like a claimer that died.
+    /// claimed task is not returned; the caller finds it with [`JobStore::leased_by`] (else it
+    /// stays leased until its lease expires and the reconciler queues it again).
     pub async fn complete_and_claim(
         &self,
         task: &ClaimedTask,
@@ -1190,6 +1190,17 @@ impl JobStore {
         let mut keys: Vec<String> = with_pool!(self, p => sqlx::query_scalar(q).bind(campaign).fetch_all(p).await?);
         keys.sort();
         Ok(keys)
+    }
+
+    /// Tasks leased to `worker` (oldest first), with their lease tokens. An executor loop whose
+    /// `complete_and_claim` failed with a transient error after its commit finds here the task
+    /// that call claimed, instead of leaving it leased until its lease expires.
+    pub async fn leased_by(&self, worker: &str) -> Result<Vec<ClaimedTask>, JobError> {
+        // The redundant `IN` lets both backends scan `tasks_open` only.
+        let q = "SELECT id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms \
+                 FROM tasks WHERE state IN ('queued', 'leased') AND state = 'leased' AND worker = $1 ORDER BY id";
+        let rows: Vec<ClaimRow> = with_pool!(self, p => sqlx::query_as(q).bind(worker).fetch_all(p).await?);
+        Ok(rows.into_iter().map(|r| claimed_task(r, worker)).collect())
     }
 
     /// Lease tokens of the campaign's running attempts (their objects must not be cleaned up).

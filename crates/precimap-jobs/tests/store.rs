@@ -736,6 +736,9 @@ async fn combined_stale_lease_claims_nothing(store: JobStore, _url: String) {
     assert_eq!(queued(store.clone()).await, 3, "a stale token claims nothing");
     assert_eq!(store.live_lease_tokens(id).await.unwrap(), vec![t1.lease_token]);
 
+    assert_eq!(store.leased_by("w").await.unwrap(), vec![t1.clone()], "the lease as claimed, found by worker");
+    assert!(store.leased_by("v").await.unwrap().is_empty());
+
     // The holder completes and gets the next task; completing again (a duplicated delivery) is
     // refused and claims nothing more.
     let (c, t2) = store.complete_and_claim(&t1, outcome(&t1), &planner, "w", LONG).await.unwrap();
@@ -743,6 +746,8 @@ async fn combined_stale_lease_claims_nothing(store: JobStore, _url: String) {
     let t2 = t2.expect("the next task");
     assert_eq!((t2.key.as_str(), t2.attempt, t2.stage.as_str()), ("s00001", 1, "s0"));
     assert_ne!(t2.lease_token, t1.lease_token);
+    // What a loop whose call failed after the commit finds: the task it claimed, as returned.
+    assert_eq!(store.leased_by("w").await.unwrap(), vec![t2.clone()]);
     let r = store.complete_and_claim(&t1, outcome(&t1), &planner, "w", LONG).await;
     assert!(matches!(r, Err(JobError::LeaseLost)), "{r:?}");
     assert_eq!(queued(store.clone()).await, 2);
