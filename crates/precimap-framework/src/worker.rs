@@ -207,10 +207,19 @@ impl Executor {
                     }
                 };
                 match retry_transient(patience, complete).await {
-                    Ok((completion, next)) => {
+                    Ok((completion, mut next)) => {
                         self.wake.notify_waiters();
                         if completion.campaign_state != CampaignState::Running {
                             self.clean_up(task.campaign).await;
+                            // The clean-up may take a while on a remote store: renew the lease of
+                            // the task claimed with the completion before running it.
+                            if let Some(n) = &next {
+                                match self.jobs.heartbeat(n, lease).await {
+                                    Ok(()) => {}
+                                    Err(JobError::LeaseLost) => next = None,
+                                    Err(e) => warn!(error = %e, "heartbeat of the next task failed"),
+                                }
+                            }
                         }
                         Ok((WorkOutcome::Done { kind, key }, next))
                     }

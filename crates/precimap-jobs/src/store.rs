@@ -1194,7 +1194,8 @@ impl JobStore {
 
     /// Tasks leased to `worker` (oldest first), with their lease tokens. An executor loop whose
     /// `complete_and_claim` failed with a transient error after its commit finds here the task
-    /// that call claimed, instead of leaving it leased until its lease expires.
+    /// that call claimed, instead of leaving it leased until its lease expires (worker ids must
+    /// be unique among running executors, as `hostname-pid-loop` is).
     pub async fn leased_by(&self, worker: &str) -> Result<Vec<ClaimedTask>, JobError> {
         // The redundant `IN` lets both backends scan `tasks_open` only.
         let q = "SELECT id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms \
