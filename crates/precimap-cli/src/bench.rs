@@ -41,6 +41,10 @@ pub enum BenchCommand {
         /// off; completions stay durable).
         #[arg(long)]
         async_claims: bool,
+        /// Claim with a statement of its own after every completion, instead of claiming the next
+        /// task in the completion's transaction (`JobStore::complete_and_claim`, what executors do).
+        #[arg(long)]
+        separate_claims: bool,
         /// Campaign for the overhead measurement (a full run in-process and through the framework).
         #[arg(long, default_value = "small")]
         overhead_scale: precimap_sim::Scale,
@@ -82,8 +86,22 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
-        BenchCommand::Queue { postgres, tasks, async_claims, overhead_scale, no_overhead, cache, json } => {
-            bench_queue(&postgres, tasks, async_claims, (!no_overhead).then_some(overhead_scale), &cache, json)
+        BenchCommand::Queue {
+            postgres,
+            tasks,
+            async_claims,
+            separate_claims,
+            overhead_scale,
+            no_overhead,
+            cache,
+            json,
+        } => {
+            let options = precimap_jobs::bench::QueueBenchOptions {
+                durable_commits: true,
+                durable_claims: !async_claims,
+                combined: !separate_claims,
+            };
+            bench_queue(&postgres, tasks, options, (!no_overhead).then_some(overhead_scale), &cache, json)
         }
         BenchCommand::Preprocess { scale, seed, cache, repeat, no_scaling, json } => {
             bench_preprocess(scale, seed, &cache, repeat.max(1), !no_scaling, json)
@@ -500,7 +518,7 @@ struct FrameworkOverhead {
 fn bench_queue(
     postgres: &str,
     tasks: usize,
-    async_claims: bool,
+    options: precimap_jobs::bench::QueueBenchOptions,
     overhead_scale: Option<precimap_sim::Scale>,
     cache: &Path,
     json: bool,
@@ -509,28 +527,16 @@ fn bench_queue(
     let mut sqlite = Vec::new();
     let mut pg = Vec::new();
     for claimers in [1, 4, 16] {
-        let f = rt.block_on(precimap_jobs::bench::queue_bench("sqlite://", claimers, tasks))?;
+        let f = rt.block_on(precimap_jobs::bench::queue_bench_with("sqlite://", claimers, tasks, options))?;
         if !json {
-            eprintln!(
-                "sqlite     {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
-                f.cycles_per_s,
-                f.claim_p50_ms,
-                f.claim_p99_ms,
-                cpu_per_cycle(&f)
-            );
+            eprintln!("sqlite     {claimers:>2} claimers: {}", queue_figures(&f));
         }
         sqlite.push(f);
         let f = rt
-            .block_on(precimap_jobs::bench::queue_bench_with(postgres, claimers, tasks, true, !async_claims))
+            .block_on(precimap_jobs::bench::queue_bench_with(postgres, claimers, tasks, options))
             .with_context(|| format!("PostgreSQL at {postgres}"))?;
         if !json {
-            eprintln!(
-                "postgresql {claimers:>2} claimers: {:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, {}",
-                f.cycles_per_s,
-                f.claim_p50_ms,
-                f.claim_p99_ms,
-                cpu_per_cycle(&f)
-            );
+            eprintln!("postgresql {claimers:>2} claimers: {}", queue_figures(&f));
         }
         pg.push(f);
     }
@@ -584,6 +590,18 @@ fn bench_queue(
         outln!("{}", serde_json::to_string_pretty(&result)?);
     }
     Ok(())
+}
+
+/// One line of queue figures: cycles/s, claim and completion latency, CPU per cycle.
+fn queue_figures(f: &precimap_jobs::bench::QueueBenchFigures) -> String {
+    format!(
+        "{:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, completion p99 {:.2} ms, {}",
+        f.cycles_per_s,
+        f.claim_p50_ms,
+        f.claim_p99_ms,
+        f.complete_p99_ms,
+        cpu_per_cycle(f)
+    )
 }
 
 /// "CPU per cycle: client … ms, server … ms" with what the bench could measure.

@@ -119,11 +119,38 @@ impl Executor {
         let claimed = retry_transient(patience, || self.jobs.claim(&self.config.worker_id, self.config.lease)).await?;
         match claimed {
             None => Ok(WorkOutcome::NoWork),
-            Some(task) => self.run_claimed(task).await,
+            Some(task) => Ok(self.run_claimed(task, false).await?.0),
         }
     }
 
-    async fn run_claimed(&self, task: ClaimedTask) -> Result<WorkOutcome, FrameworkError> {
+    /// Runs `held` (a task claimed by the previous round) or else a newly claimed task; with
+    /// `claim_next`, a successful completion claims the next task in its own transaction
+    /// ([`JobStore::complete_and_claim`]) and returns it for the next round.
+    async fn work_round(
+        &self,
+        held: Option<ClaimedTask>,
+        claim_next: bool,
+    ) -> Result<(WorkOutcome, Option<ClaimedTask>), FrameworkError> {
+        let task = match held {
+            Some(task) => task,
+            None => {
+                let patience = self.config.database_patience;
+                let claim = || self.jobs.claim(&self.config.worker_id, self.config.lease);
+                match retry_transient(patience, claim).await? {
+                    None => return Ok((WorkOutcome::NoWork, None)),
+                    Some(task) => task,
+                }
+            }
+        };
+        self.run_claimed(task, claim_next).await
+    }
+
+    /// Runs a claimed task; with `claim_next`, the completion also claims the next task.
+    async fn run_claimed(
+        &self,
+        task: ClaimedTask,
+        claim_next: bool,
+    ) -> Result<(WorkOutcome, Option<ClaimedTask>), FrameworkError> {
         let patience = self.config.database_patience;
         let (kind, key) = (task.kind.clone(), task.key.clone());
         debug!(%kind, %key, attempt = task.attempt, "running");
@@ -131,7 +158,7 @@ impl Executor {
             Ok(i) => i,
             Err(e) => {
                 let error = format!("unreadable task input ({e}); it was queued by another version");
-                return self.fail(&task, TaskError::permanent(error)).await;
+                return Ok((self.fail(&task, TaskError::permanent(error)).await?, None));
             }
         };
         let (lost_tx, mut lost_rx) = watch::channel(false);
@@ -161,25 +188,43 @@ impl Executor {
         heartbeat.abort();
         let Some(result) = result else {
             warn!(%kind, %key, "lease lost while running; abandoning this attempt");
-            return Ok(WorkOutcome::LeaseLost { kind, key });
+            return Ok((WorkOutcome::LeaseLost { kind, key }, None));
         };
         match result {
             Ok(outcome) => {
                 let planner = CampaignPlanner;
                 let tries = AtomicU32::new(0);
+                let (worker, lease) = (self.config.worker_id.as_str(), self.config.lease);
+                let (jobs, task, outcome, planner) = (&self.jobs, &task, &outcome, &planner);
                 let complete = || {
                     tries.fetch_add(1, Ordering::Relaxed);
-                    self.jobs.complete(&task, outcome.clone(), &planner)
+                    async move {
+                        if claim_next {
+                            jobs.complete_and_claim(task, outcome.clone(), planner, worker, lease).await
+                        } else {
+                            Ok((jobs.complete(task, outcome.clone(), planner).await?, None))
+                        }
+                    }
                 };
                 match retry_transient(patience, complete).await {
-                    Ok(completion) => {
+                    Ok((completion, mut next)) => {
                         self.wake.notify_waiters();
                         if completion.campaign_state != CampaignState::Running {
                             self.clean_up(task.campaign).await;
+                            // The clean-up may take a while on a remote store: renew the lease of
+                            // the task claimed with the completion before running it.
+                            if let Some(n) = &next {
+                                match self.jobs.heartbeat(n, lease).await {
+                                    Ok(()) => {}
+                                    Err(JobError::LeaseLost) => next = None,
+                                    Err(e) => warn!(error = %e, "heartbeat of the next task failed"),
+                                }
+                            }
                         }
-                        Ok(WorkOutcome::Done { kind, key })
+                        Ok((WorkOutcome::Done { kind, key }, next))
                     }
                     Err(JobError::LeaseLost) => {
+                        let mut next = None;
                         if tries.load(Ordering::Relaxed) > 1 {
                             // A try that failed with a transient error may have committed the task
                             // before its barrier check failed; the retry then finds the task done.
@@ -188,13 +233,23 @@ impl Executor {
                             if let Err(e) = self.reconcile().await {
                                 warn!(error = %e, "reconcile after a retried completion failed");
                             }
+                            // That try may also have claimed a task for this loop, which holds
+                            // nothing else now: take it rather than leave it leased until expiry.
+                            if claim_next {
+                                match self.jobs.leased_by(worker).await {
+                                    Ok(mut leased) => next = (!leased.is_empty()).then(|| leased.remove(0)),
+                                    Err(e) => {
+                                        warn!(error = %e, "looking for a claim lost with a retried completion failed")
+                                    }
+                                }
+                            }
                         }
-                        Ok(WorkOutcome::LeaseLost { kind, key })
+                        Ok((WorkOutcome::LeaseLost { kind, key }, next))
                     }
                     Err(e) => Err(e.into()),
                 }
             }
-            Err(e) => self.fail(&task, e).await,
+            Err(e) => Ok((self.fail(&task, e).await?, None)),
         }
     }
 
@@ -226,7 +281,9 @@ impl Executor {
     }
 
     /// Runs `concurrency` executor loops until `stop` turns true. Idle loops poll with back-off
-    /// (a remote database) and wake at once when a sibling completes a task.
+    /// (a remote database) and wake at once when a sibling completes a task. A loop that is not
+    /// stopping claims its next task in the transaction that completes the current one; a task
+    /// claimed that way when `stop` turns true meanwhile is still run before the loop ends.
     pub async fn work_loop(&self, concurrency: usize, stop: watch::Receiver<bool>) -> Result<(), FrameworkError> {
         let mut loops = tokio::task::JoinSet::new();
         for i in 0..concurrency.max(1) {
@@ -236,12 +293,16 @@ impl Executor {
             loops.spawn(async move {
                 let mut idle = Duration::from_millis(20);
                 let mut last_reconcile = Instant::now() - me.config.lease;
-                while !*stop.borrow() {
+                let mut held: Option<ClaimedTask> = None;
+                while held.is_some() || !*stop.borrow() {
                     if last_reconcile.elapsed() >= me.config.lease / 2 {
                         me.reconcile().await?;
                         last_reconcile = Instant::now();
                     }
-                    match me.work_once().await? {
+                    let claim_next = !*stop.borrow();
+                    let (outcome, next) = me.work_round(held.take(), claim_next).await?;
+                    held = next;
+                    match outcome {
                         WorkOutcome::NoWork => {
                             tokio::select! {
                                 _ = me.wake.notified() => {}

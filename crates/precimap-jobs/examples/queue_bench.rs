@@ -1,9 +1,11 @@
 //! `cargo run --release -p precimap-jobs --example queue_bench -- URL [TASKS] [CLAIMERS...]`
 //! prints one JSON line of figures per claimer count. `PRECIMAP_BENCH_ASYNC_COMMIT=1` turns off
 //! PostgreSQL's `synchronous_commit` (see `StoreOptions::durable_commits`);
-//! `PRECIMAP_BENCH_ASYNC_CLAIMS=1` only for claims (`StoreOptions::durable_claims`).
+//! `PRECIMAP_BENCH_ASYNC_CLAIMS=1` only for claims (`StoreOptions::durable_claims`);
+//! `PRECIMAP_BENCH_SEPARATE_CLAIMS=1` claims with a statement of its own after each completion
+//! instead of `JobStore::complete_and_claim`.
 
-use precimap_jobs::bench::queue_bench_with;
+use precimap_jobs::bench::{queue_bench_with, QueueBenchOptions};
 
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -16,8 +18,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let durable = std::env::var("PRECIMAP_BENCH_ASYNC_COMMIT").map_or(true, |v| v != "1");
     let durable_claims = std::env::var("PRECIMAP_BENCH_ASYNC_CLAIMS").map_or(true, |v| v != "1");
+    let combined = std::env::var("PRECIMAP_BENCH_SEPARATE_CLAIMS").map_or(true, |v| v != "1");
+    let options = QueueBenchOptions { durable_commits: durable, durable_claims, combined };
     for n in claimers {
-        let figures = queue_bench_with(&url, n, tasks, durable, durable_claims).await?;
+        let figures = queue_bench_with(&url, n, tasks, options).await?;
         println!("{}", serde_json::to_string(&figures)?);
     }
     Ok(())

@@ -8,8 +8,8 @@ use sqlx::Connection;
 use uuid::Uuid;
 
 use crate::{
-    Backend, CampaignRecord, FinishedStage, JobError, JobStore, NewCampaign, NewTask, Next, OutputKey, QueueConfig,
-    StagePlanner, StageSpec, StoreOptions, TaskOutcome, Transition,
+    Backend, CampaignRecord, ClaimedTask, FinishedStage, JobError, JobStore, NewCampaign, NewTask, Next, OutputKey,
+    QueueConfig, StagePlanner, StageSpec, StoreOptions, TaskOutcome, Transition,
 };
 
 /// Figures of one run of [`queue_bench`].
@@ -21,9 +21,15 @@ pub struct QueueBenchFigures {
     pub durable_commits: bool,
     /// Claims too wait for their WAL flush ([`StoreOptions::durable_claims`]).
     pub durable_claims: bool,
+    /// Each completion claims the next task in its own transaction
+    /// ([`JobStore::complete_and_claim`]); otherwise a separate claim follows every completion.
+    #[serde(default)]
+    pub combined: bool,
     pub seconds: f64,
     /// Claim + complete cycles per second (all claimers together).
     pub cycles_per_s: f64,
+    /// Latency of getting a task: a claim, or with `combined` the combined call that returned the
+    /// next task (the time between finishing one task and holding the next).
     pub claim_p50_ms: f64,
     pub claim_p99_ms: f64,
     pub complete_p50_ms: f64,
@@ -49,26 +55,41 @@ impl StagePlanner for OneStage {
     }
 }
 
+/// How [`queue_bench_with`] runs its cycles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct QueueBenchOptions {
+    /// [`StoreOptions::durable_commits`].
+    pub durable_commits: bool,
+    /// [`StoreOptions::durable_claims`].
+    pub durable_claims: bool,
+    /// Complete and claim the next task in one transaction ([`JobStore::complete_and_claim`], what
+    /// the executor loops do) instead of a claim after every completion.
+    pub combined: bool,
+}
+
+impl Default for QueueBenchOptions {
+    fn default() -> Self {
+        QueueBenchOptions { durable_commits: true, durable_claims: true, combined: true }
+    }
+}
+
 /// Runs `tasks` claim + complete cycles with `claimers` concurrent claimers on a fresh campaign in
 /// a fresh database: for `postgres://…` a new database on that server (dropped afterwards), for
 /// `sqlite:…` a new file in the temporary directory (removed afterwards).
 pub async fn queue_bench(url: &str, claimers: usize, tasks: usize) -> Result<QueueBenchFigures, JobError> {
-    queue_bench_with(url, claimers, tasks, true, true).await
+    queue_bench_with(url, claimers, tasks, QueueBenchOptions::default()).await
 }
 
-/// [`queue_bench`] with a choice of [`StoreOptions::durable_commits`] and
-/// [`StoreOptions::durable_claims`].
+/// [`queue_bench`] with a choice of durability and of combined or separate claims.
 pub async fn queue_bench_with(
     url: &str,
     claimers: usize,
     tasks: usize,
-    durable_commits: bool,
-    durable_claims: bool,
+    options: QueueBenchOptions,
 ) -> Result<QueueBenchFigures, JobError> {
-    let durability = (durable_commits, durable_claims);
     if url.starts_with("sqlite:") {
         let path = std::env::temp_dir().join(format!("precimap_bench_{}.db", Uuid::new_v4().simple()));
-        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, durability).await;
+        let out = run(&format!("sqlite://{}", path.display()), claimers, tasks, options).await;
         for suffix in ["", "-wal", "-shm"] {
             let mut p = path.clone().into_os_string();
             p.push(suffix);
@@ -80,7 +101,7 @@ pub async fn queue_bench_with(
         let name = format!("precimap_b_{}", Uuid::new_v4().simple());
         let mut admin = sqlx::PgConnection::connect(url).await?;
         sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut admin).await?;
-        let out = run(&with_database(url, &name), claimers, tasks, durability).await;
+        let out = run(&with_database(url, &name), claimers, tasks, options).await;
         sqlx::query(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")).execute(&mut admin).await?;
         admin.close().await?;
         out
@@ -93,7 +114,7 @@ async fn run(
     url: &str,
     claimers: usize,
     tasks: usize,
-    (durable_commits, durable_claims): (bool, bool),
+    QueueBenchOptions { durable_commits, durable_claims, combined }: QueueBenchOptions,
 ) -> Result<QueueBenchFigures, JobError> {
     let claimers = claimers.max(1);
     let opts = StoreOptions {
@@ -137,18 +158,26 @@ async fn run(
         let store = store.clone();
         handles.push(tokio::spawn(async move {
             let worker = format!("bench-{w}");
+            let lease = Duration::from_secs(60);
             let (mut claim_ms, mut complete_ms) = (Vec::new(), Vec::new());
+            let mut held: Option<ClaimedTask> = None;
             loop {
-                let t0 = Instant::now();
-                let Some(task) = store.claim(&worker, Duration::from_secs(60)).await? else {
-                    if store.campaign(id).await?.is_none_or(|c| c.state.is_finished()) {
-                        break;
+                let task = match held.take() {
+                    Some(task) => task,
+                    None => {
+                        let t0 = Instant::now();
+                        let Some(task) = store.claim(&worker, lease).await? else {
+                            if store.campaign(id).await?.is_none_or(|c| c.state.is_finished()) {
+                                break;
+                            }
+                            // The last tasks are held by other claimers.
+                            tokio::time::sleep(Duration::from_millis(1)).await;
+                            continue;
+                        };
+                        claim_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+                        task
                     }
-                    // The last tasks are held by other claimers.
-                    tokio::time::sleep(Duration::from_millis(1)).await;
-                    continue;
                 };
-                claim_ms.push(t0.elapsed().as_secs_f64() * 1e3);
                 let outcome = TaskOutcome {
                     result: json!({ "ok": true }),
                     outputs: vec![OutputKey {
@@ -157,8 +186,18 @@ async fn run(
                     }],
                 };
                 let t1 = Instant::now();
-                store.complete(&task, outcome, &OneStage).await?;
-                complete_ms.push(t1.elapsed().as_secs_f64() * 1e3);
+                if combined {
+                    let (_, next) = store.complete_and_claim(&task, outcome, &OneStage, &worker, lease).await?;
+                    let ms = t1.elapsed().as_secs_f64() * 1e3;
+                    complete_ms.push(ms);
+                    if next.is_some() {
+                        claim_ms.push(ms);
+                    }
+                    held = next;
+                } else {
+                    store.complete(&task, outcome, &OneStage).await?;
+                    complete_ms.push(t1.elapsed().as_secs_f64() * 1e3);
+                }
             }
             Ok::<_, JobError>((claim_ms, complete_ms))
         }));
@@ -191,6 +230,7 @@ async fn run(
         tasks,
         durable_commits,
         durable_claims,
+        combined,
         seconds,
         cycles_per_s: cycles / seconds,
         claim_p50_ms: percentile(&mut claim_ms, 0.50),

@@ -8,8 +8,10 @@
 //! checks of concurrent inserts), then touches tasks. `claim`, `heartbeat` and the commit of
 //! `complete` touch one task row only (plus rows they insert) and never wait for a campaign lock,
 //! so no cycle of waits can form, and completions of one campaign do not queue behind each other;
-//! only the completion that finds its stage closed takes the campaign lock, to advance it. SQLite
-//! serialises all writers with `BEGIN IMMEDIATE`.
+//! only the completion that finds its stage closed takes the campaign lock, to advance it.
+//! `complete_and_claim` adds a second task row to the commit of `complete`, taken with `SKIP
+//! LOCKED` after the first, so it never waits for it. SQLite serialises all writers with
+//! `BEGIN IMMEDIATE`.
 
 use std::collections::HashMap;
 use std::str::FromStr;
@@ -41,6 +43,60 @@ const PG_NOW: &str = "(extract(epoch from clock_timestamp()) * 1000)::bigint";
 /// done (dead until vacuumed) pile up at the low end.
 const STAGE_OPEN: &str = "SELECT id FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
      AND state IN ('queued', 'leased') ORDER BY id DESC LIMIT 1";
+
+/// SQLite: claims the oldest runnable task (`$1` lease token, `$2` lease in ms, `$3` worker).
+const LITE_CLAIM: &str = "UPDATE tasks SET state = 'leased', attempt = attempt + 1, lease_token = $1, \
+       lease_expires_at_ms = NOW_MS + $2, worker = $3, updated_at_ms = NOW_MS \
+     WHERE id = (SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
+       WHERE t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
+       ORDER BY t.id LIMIT 1) \
+     RETURNING id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms";
+
+/// PostgreSQL: the CTEs `next`, `claimed` and `claimed_ev` that claim the oldest runnable task
+/// if `guard` holds, with the lease token in parameter `$first`, the lease in ms in the next one
+/// and the worker in the one after.
+fn pg_claim_ctes(first: usize, guard: &str) -> String {
+    let (token, lease, worker) = (first, first + 1, first + 2);
+    format!(
+        "next AS ( \
+           SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
+           WHERE {guard} AND t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
+           ORDER BY t.id LIMIT 1 FOR UPDATE OF t SKIP LOCKED), \
+         claimed AS ( \
+           UPDATE tasks t SET state = 'leased', attempt = t.attempt + 1, lease_token = ${token}, \
+             lease_expires_at_ms = NOW_MS + ${lease}, worker = ${worker}, updated_at_ms = NOW_MS \
+           FROM next WHERE t.id = next.id \
+           RETURNING t.id, t.campaign, t.stage, t.iteration, t.kind, t.key, t.input, t.attempt, \
+             t.lease_token, t.lease_expires_at_ms), \
+         claimed_ev AS ( \
+           INSERT INTO events (campaign, at_ms, kind, task_id, message) \
+           SELECT campaign, NOW_MS, 'claimed', id, kind || ' ' || key || ' attempt ' || attempt || \
+             ' by ' || ${worker} FROM claimed)"
+    )
+}
+
+/// PostgreSQL: the guarded completion of `complete` as CTEs `d` (the task row: `$1` id, `$2`
+/// lease token, `$3` result), `outs` (`$4` the outputs as a JSON array) and `ev`.
+const PG_DONE_CTES: &str = "d AS ( \
+       UPDATE tasks t SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+       FROM campaigns c \
+       WHERE t.id = $1 AND t.lease_token = $2 AND t.state = 'leased' AND c.id = t.campaign \
+         AND c.state = 'running' AND c.stage = t.stage AND c.iteration = t.iteration \
+       RETURNING t.id, t.campaign, t.kind, t.key, t.attempt), \
+     outs AS ( \
+       INSERT INTO task_outputs (task_id, campaign, name, object_key) \
+       SELECT d.id, d.campaign, o.name, o.object_key \
+       FROM d, jsonb_to_recordset($4) AS o(name text, object_key text)), \
+     ev AS ( \
+       INSERT INTO events (campaign, at_ms, kind, task_id, message) \
+       SELECT campaign, NOW_MS, 'done', id, kind || ' ' || key || ' done (attempt ' || attempt || ')' FROM d)";
+
+/// SQLite: the guarded completion (`$1` id, `$2` lease token, `$3` result).
+const LITE_DONE: &str =
+    "UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+     WHERE id = $1 AND lease_token = $2 AND state = 'leased' AND EXISTS (SELECT 1 FROM campaigns c \
+       WHERE c.id = tasks.campaign AND c.state = 'running' AND c.stage = tasks.stage \
+       AND c.iteration = tasks.iteration)";
 
 const CAMPAIGN_COLS: &str = "id, name, state, stage, iteration, iterations_planned, spec, plan_state, \
      object_prefix, error, max_attempts, backoff_base_ms, backoff_max_ms, created_at_ms, updated_at_ms, finished_at_ms";
@@ -167,6 +223,20 @@ macro_rules! event {
         let q =
             $self.sql("INSERT INTO events (campaign, at_ms, kind, task_id, message) VALUES ($1, NOW_MS, $2, $3, $4)");
         sqlx::query(&q).bind($campaign).bind($kind).bind($task).bind($msg).execute(&mut *$tx).await?;
+    }};
+}
+
+/// SQLite: runs the claim statement `$q` in the write transaction `$tx` and records its event.
+macro_rules! lite_claim {
+    ($self:ident, $tx:ident, $q:expr, $token:expr, $lease_ms:expr, $worker:expr) => {{
+        let worker: &str = $worker;
+        let row: Option<ClaimRow> =
+            sqlx::query_as($q).bind($token).bind($lease_ms).bind(worker).fetch_optional(&mut *$tx).await?;
+        if let Some(r) = &row {
+            let msg = format!("{} {} attempt {} by {worker}", r.4, r.5, r.7);
+            event!($self, $tx, r.1, "claimed", Some(r.0), &msg);
+        }
+        row
     }};
 }
 
@@ -528,27 +598,10 @@ impl JobStore {
     pub async fn claim(&self, worker: &str, lease: Duration) -> Result<Option<ClaimedTask>, JobError> {
         let token = Uuid::new_v4();
         let lease_ms = duration_ms(lease);
-        type ClaimRow = (i64, Uuid, String, i32, String, String, Json<Value>, i32, Uuid, i64);
         let row: Option<ClaimRow> = match &self.pool {
             Pool::Postgres(p) => {
                 // One statement, one round trip: SKIP LOCKED lets concurrent claimers pass each other.
-                let q = self.sql(
-                    "WITH next AS ( \
-                       SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
-                       WHERE t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
-                       ORDER BY t.id LIMIT 1 FOR UPDATE OF t SKIP LOCKED), \
-                     claimed AS ( \
-                       UPDATE tasks t SET state = 'leased', attempt = t.attempt + 1, lease_token = $1, \
-                         lease_expires_at_ms = NOW_MS + $2, worker = $3, updated_at_ms = NOW_MS \
-                       FROM next WHERE t.id = next.id \
-                       RETURNING t.id, t.campaign, t.stage, t.iteration, t.kind, t.key, t.input, t.attempt, \
-                         t.lease_token, t.lease_expires_at_ms), \
-                     ev AS ( \
-                       INSERT INTO events (campaign, at_ms, kind, task_id, message) \
-                       SELECT campaign, NOW_MS, 'claimed', id, kind || ' ' || key || ' attempt ' || attempt || \
-                         ' by ' || $3 FROM claimed) \
-                     SELECT claimed.* FROM claimed ASYNC",
-                );
+                let q = self.sql(&format!("WITH {} SELECT claimed.* FROM claimed ASYNC", pg_claim_ctes(1, "TRUE")));
                 // `set_config(…, true)` lasts until the end of the statement's own transaction, so
                 // it applies to this claim's commit and to nothing after it.
                 let q = q.replace(
@@ -562,41 +615,14 @@ impl JobStore {
                 sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(p).await?
             }
             Pool::Sqlite(p) => {
-                let q = self.sql(
-                    "UPDATE tasks SET state = 'leased', attempt = attempt + 1, lease_token = $1, \
-                       lease_expires_at_ms = NOW_MS + $2, worker = $3, updated_at_ms = NOW_MS \
-                     WHERE id = (SELECT t.id FROM tasks t JOIN campaigns c ON c.id = t.campaign \
-                       WHERE t.state = 'queued' AND t.not_before_ms <= NOW_MS AND c.state = 'running' \
-                       ORDER BY t.id LIMIT 1) \
-                     RETURNING id, campaign, stage, iteration, kind, key, input, attempt, lease_token, \
-                       lease_expires_at_ms",
-                );
+                let q = self.sql(LITE_CLAIM);
                 let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
-                let row: Option<ClaimRow> =
-                    sqlx::query_as(&q).bind(token).bind(lease_ms).bind(worker).fetch_optional(&mut *tx).await?;
-                if let Some(r) = &row {
-                    let msg = format!("{} {} attempt {} by {worker}", r.4, r.5, r.7);
-                    event!(self, tx, r.1, "claimed", Some(r.0), &msg);
-                }
+                let row = lite_claim!(self, tx, &q, token, lease_ms, worker);
                 tx.commit().await?;
                 row
             }
         };
-        Ok(row.map(|(id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms)| {
-            debug!(task = id, %kind, %key, attempt, worker, "claimed");
-            ClaimedTask {
-                id,
-                campaign,
-                stage,
-                iteration,
-                kind,
-                key,
-                input: input.0,
-                attempt,
-                lease_token,
-                lease_expires_at_ms,
-            }
-        }))
+        Ok(row.map(|r| claimed_task(r, worker)))
     }
 
     /// Extends the lease to now + `lease`; `Err(LeaseLost)` if the token no longer holds the task.
@@ -636,61 +662,135 @@ impl JobStore {
         outcome: TaskOutcome,
         planner: &dyn StagePlanner,
     ) -> Result<Completion, JobError> {
+        Ok(self.finish(task, outcome, planner, None).await?.0)
+    }
+
+    /// [`JobStore::complete`], and in the same transaction (one commit, one WAL flush, on
+    /// PostgreSQL one statement) [`JobStore::claim`] of the next runnable task for `worker`.
+    ///
+    /// A stale lease token completes nothing and claims nothing (`Err(LeaseLost)`). When the
+    /// completion closes its stage, the claim comes after the stage has advanced (SQLite) or, if
+    /// the combined statement found nothing to claim, is repeated after it (PostgreSQL), so the
+    /// next stage's first task is claimed at once.
+    ///
+    /// The barrier check after the commit is skipped when the claimed task belongs to the
+    /// completed task's stage: the claimer holds it leased at the commit, so the stage is open
+    /// and that task's own completion comes later and checks again.
+    ///
+    /// If the call fails with a transient error after its commit (a dropped connection), the
+    /// claimed task is not returned; the caller finds it with [`JobStore::leased_by`] (else it
+    /// stays leased until its lease expires and the reconciler queues it again).
+    pub async fn complete_and_claim(
+        &self,
+        task: &ClaimedTask,
+        outcome: TaskOutcome,
+        planner: &dyn StagePlanner,
+        worker: &str,
+        lease: Duration,
+    ) -> Result<(Completion, Option<ClaimedTask>), JobError> {
+        let (completion, next) = self.finish(task, outcome, planner, Some((worker, lease))).await?;
+        let next = match next {
+            Some(next) => Some(next),
+            // The stage advanced after a claim that found nothing (PostgreSQL): its tasks are new.
+            None if completion.stage_finished && self.is_pg() => self.claim(worker, lease).await?,
+            None => None,
+        };
+        Ok((completion, next))
+    }
+
+    /// `complete`, with a claim for `next` (worker, lease) in the same transaction.
+    async fn finish(
+        &self,
+        task: &ClaimedTask,
+        outcome: TaskOutcome,
+        planner: &dyn StagePlanner,
+        next: Option<(&str, Duration)>,
+    ) -> Result<(Completion, Option<ClaimedTask>), JobError> {
         let mut names: Vec<&str> = outcome.outputs.iter().map(|o| o.name.as_str()).collect();
         names.sort_unstable();
         if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
             return Err(JobError::Invalid(format!("output name `{}` given twice", w[0])));
         }
-        // PostgreSQL: the guarded update, the outputs (a JSON array) and the event in one statement,
-        // committed on its own (one round trip). The campaign row is read, not locked: the task row
-        // is where this races with cancelling, failing or rescuing, since each of those changes
-        // every open task of the campaign (and a stage advances only once none is open).
-        let pg_done = self.sql(
-            "WITH d AS ( \
-               UPDATE tasks t SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
-               FROM campaigns c \
-               WHERE t.id = $1 AND t.lease_token = $2 AND t.state = 'leased' AND c.id = t.campaign \
-                 AND c.state = 'running' AND c.stage = t.stage AND c.iteration = t.iteration \
-               RETURNING t.id, t.campaign, t.kind, t.key, t.attempt), \
-             outs AS ( \
-               INSERT INTO task_outputs (task_id, campaign, name, object_key) \
-               SELECT d.id, d.campaign, o.name, o.object_key \
-               FROM d, jsonb_to_recordset($4) AS o(name text, object_key text)), \
-             ev AS ( \
-               INSERT INTO events (campaign, at_ms, kind, task_id, message) \
-               SELECT campaign, NOW_MS, 'done', id, kind || ' ' || key || ' done (attempt ' || attempt || ')' FROM d) \
-             SELECT count(*) FROM d",
-        );
-        let lite_done = self.sql(
-            "UPDATE tasks SET state = 'done', result = $3, updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
-             WHERE id = $1 AND lease_token = $2 AND state = 'leased' AND EXISTS (SELECT 1 FROM campaigns c \
-               WHERE c.id = tasks.campaign AND c.state = 'running' AND c.stage = tasks.stage \
-               AND c.iteration = tasks.iteration)",
-        );
-        let stage_open = match &self.pool {
+        let token = Uuid::new_v4();
+        let (stage_open, claimed) = match &self.pool {
             Pool::Postgres(p) => {
-                let updated: i64 = sqlx::query_scalar(&pg_done)
-                    .bind(task.id)
-                    .bind(task.lease_token)
-                    .bind(Json(&outcome.result))
-                    .bind(Json(&outcome.outputs))
-                    .fetch_one(p)
-                    .await?;
+                // The guarded update, the outputs (a JSON array) and the event in one statement,
+                // committed on its own (one round trip). The campaign row is read, not locked: the
+                // task row is where this races with cancelling, failing or rescuing, since each of
+                // those changes every open task of the campaign (and a stage advances only once none
+                // is open). With `next`, the same statement claims a task, only if the completion
+                // went through (`EXISTS (SELECT 1 FROM d)`): a stale token claims nothing.
+                let (updated, claimed) = match next {
+                    None => {
+                        let q = self.sql(&format!("WITH {PG_DONE_CTES} SELECT count(*) FROM d"));
+                        let updated: i64 = sqlx::query_scalar(&q)
+                            .bind(task.id)
+                            .bind(task.lease_token)
+                            .bind(Json(&outcome.result))
+                            .bind(Json(&outcome.outputs))
+                            .fetch_one(p)
+                            .await?;
+                        (updated, None)
+                    }
+                    Some((worker, lease)) => {
+                        let q = self.sql(&format!(
+                            "WITH {PG_DONE_CTES}, {} \
+                             SELECT (SELECT count(*) FROM d) AS done, claimed.* FROM (SELECT 1) AS one \
+                             LEFT JOIN claimed ON TRUE",
+                            pg_claim_ctes(5, "EXISTS (SELECT 1 FROM d)")
+                        ));
+                        let row = sqlx::query(&q)
+                            .bind(task.id)
+                            .bind(task.lease_token)
+                            .bind(Json(&outcome.result))
+                            .bind(Json(&outcome.outputs))
+                            .bind(token)
+                            .bind(duration_ms(lease))
+                            .bind(worker)
+                            .fetch_one(p)
+                            .await?;
+                        let claimed = match row.try_get::<Option<i64>, _>("id")? {
+                            None => None,
+                            Some(id) => {
+                                let r: ClaimRow = (
+                                    id,
+                                    row.try_get("campaign")?,
+                                    row.try_get("stage")?,
+                                    row.try_get("iteration")?,
+                                    row.try_get("kind")?,
+                                    row.try_get("key")?,
+                                    row.try_get("input")?,
+                                    row.try_get("attempt")?,
+                                    row.try_get("lease_token")?,
+                                    row.try_get("lease_expires_at_ms")?,
+                                );
+                                Some(claimed_task(r, worker))
+                            }
+                        };
+                        (row.try_get::<i64, _>("done")?, claimed)
+                    }
+                };
                 if updated == 0 {
                     return Err(JobError::LeaseLost);
                 }
-                // A new statement, so a new snapshot that includes this commit.
-                sqlx::query_scalar::<_, i64>(STAGE_OPEN)
-                    .bind(task.campaign)
-                    .bind(&task.stage)
-                    .bind(task.iteration)
-                    .fetch_optional(p)
-                    .await?
-                    .is_some()
+                let open = if claimed.as_ref().is_some_and(|c| same_stage(c, task)) {
+                    true
+                } else {
+                    // A new statement, so a new snapshot that includes this commit.
+                    sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+                        .bind(task.campaign)
+                        .bind(&task.stage)
+                        .bind(task.iteration)
+                        .fetch_optional(p)
+                        .await?
+                        .is_some()
+                };
+                (open, claimed)
             }
             Pool::Sqlite(p) => {
+                let done = self.sql(LITE_DONE);
                 let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
-                let n = sqlx::query(&lite_done)
+                let n = sqlx::query(&done)
                     .bind(task.id)
                     .bind(task.lease_token)
                     .bind(Json(&outcome.result))
@@ -720,18 +820,32 @@ impl JobStore {
                     .fetch_optional(&mut *tx)
                     .await?
                     .is_some();
+                // A stage that closes here advances first (below), so the claim can take the
+                // next stage's first task.
+                let claimed = match next {
+                    Some((worker, lease)) if open => {
+                        let q = self.sql(LITE_CLAIM);
+                        lite_claim!(self, tx, &q, token, duration_ms(lease), worker).map(|r| claimed_task(r, worker))
+                    }
+                    _ => None,
+                };
                 tx.commit().await?;
-                open
+                (open, claimed)
             }
         };
         if stage_open {
-            return Ok(Completion { stage_finished: false, campaign_state: CampaignState::Running });
+            return Ok((Completion { stage_finished: false, campaign_state: CampaignState::Running }, claimed));
         }
-        match self.advance_stage(task.campaign, &task.stage, task.iteration, planner, false).await? {
+        let completion = match self.advance_stage(task.campaign, &task.stage, task.iteration, planner, false).await? {
             // The campaign was deleted after this task's commit: nothing of it is left.
-            None => Err(JobError::LeaseLost),
-            Some(barrier) => Ok(Completion { stage_finished: barrier.advanced, campaign_state: barrier.state }),
-        }
+            None => return Err(JobError::LeaseLost),
+            Some(barrier) => Completion { stage_finished: barrier.advanced, campaign_state: barrier.state },
+        };
+        let claimed = match (claimed, next) {
+            (None, Some((worker, lease))) if !self.is_pg() => self.claim(worker, lease).await?,
+            (claimed, _) => claimed,
+        };
+        Ok((completion, claimed))
     }
 
     /// The stage barrier: if the campaign is running at `stage`/`iteration` and that stage has no
@@ -951,7 +1065,12 @@ impl JobStore {
     /// stage's last task died between its commit and the barrier. `planner` must be the one the
     /// completers use. Safe to run from every executor concurrently, also while tasks complete.
     pub async fn reconcile(&self, planner: &dyn StagePlanner) -> Result<ReconcileReport, JobError> {
-        let q = self.sql("SELECT DISTINCT campaign FROM tasks WHERE state = 'leased' AND lease_expires_at_ms < NOW_MS");
+        // The redundant `IN` lets SQLite, too, scan the partial index `tasks_open` (open tasks
+        // only) rather than every task ever run.
+        let q = self.sql(
+            "SELECT DISTINCT campaign FROM tasks WHERE state IN ('queued', 'leased') AND state = 'leased' \
+             AND lease_expires_at_ms < NOW_MS",
+        );
         let campaigns: Vec<Uuid> = with_pool!(self, p => sqlx::query_scalar(&q).fetch_all(p).await?);
         let mut report = ReconcileReport::default();
         for campaign in campaigns {
@@ -999,8 +1118,8 @@ impl JobStore {
         let lock = self
             .sql("SELECT state, max_attempts, backoff_base_ms, backoff_max_ms FROM campaigns WHERE id = $1 FOR_LOCK");
         let expired = self.sql(
-            "SELECT id, kind, key, attempt, worker FROM tasks WHERE campaign = $1 AND state = 'leased' \
-             AND lease_expires_at_ms < NOW_MS ORDER BY id",
+            "SELECT id, kind, key, attempt, worker FROM tasks WHERE campaign = $1 AND state IN ('queued', 'leased') \
+             AND state = 'leased' AND lease_expires_at_ms < NOW_MS ORDER BY id",
         );
         // Re-checks the expiry: a heartbeat that committed meanwhile keeps its lease.
         let dead = self.sql(
@@ -1073,11 +1192,38 @@ impl JobStore {
         Ok(keys)
     }
 
+    /// Tasks leased to `worker` (oldest first), with their lease tokens. An executor loop whose
+    /// `complete_and_claim` failed with a transient error after its commit finds here the task
+    /// that call claimed, instead of leaving it leased until its lease expires (worker ids must
+    /// be unique among running executors, as `hostname-pid-loop` is).
+    pub async fn leased_by(&self, worker: &str) -> Result<Vec<ClaimedTask>, JobError> {
+        // The redundant `IN` lets both backends scan `tasks_open` only.
+        let q = "SELECT id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms \
+                 FROM tasks WHERE state IN ('queued', 'leased') AND state = 'leased' AND worker = $1 ORDER BY id";
+        let rows: Vec<ClaimRow> = with_pool!(self, p => sqlx::query_as(q).bind(worker).fetch_all(p).await?);
+        Ok(rows.into_iter().map(|r| claimed_task(r, worker)).collect())
+    }
+
     /// Lease tokens of the campaign's running attempts (their objects must not be cleaned up).
     pub async fn live_lease_tokens(&self, campaign: Uuid) -> Result<Vec<Uuid>, JobError> {
         let q = "SELECT lease_token FROM tasks WHERE campaign = $1 AND state = 'leased' AND lease_token IS NOT NULL";
         Ok(with_pool!(self, p => sqlx::query_scalar(q).bind(campaign).fetch_all(p).await?))
     }
+}
+
+/// The columns a claim returns: id, campaign, stage, iteration, kind, key, input, attempt,
+/// lease token, lease expiry.
+type ClaimRow = (i64, Uuid, String, i32, String, String, Json<Value>, i32, Uuid, i64);
+
+fn claimed_task(row: ClaimRow, worker: &str) -> ClaimedTask {
+    let (id, campaign, stage, iteration, kind, key, input, attempt, lease_token, lease_expires_at_ms) = row;
+    debug!(task = id, %kind, %key, attempt, worker, "claimed");
+    ClaimedTask { id, campaign, stage, iteration, kind, key, input: input.0, attempt, lease_token, lease_expires_at_ms }
+}
+
+/// The two tasks belong to the same stage of the same campaign.
+fn same_stage(a: &ClaimedTask, b: &ClaimedTask) -> bool {
+    a.campaign == b.campaign && a.iteration == b.iteration && a.stage == b.stage
 }
 
 fn ms_duration(ms: i64) -> Duration {

@@ -30,6 +30,10 @@ both_backends!(
     racing_last_completions,
     cancel_races_completions,
     stuck_barrier_is_advanced_by_reconcile,
+    combined_concurrent_claimers,
+    combined_stale_lease_claims_nothing,
+    combined_last_task_advances_the_stage,
+    combined_racing_last_completions,
 );
 
 async fn lease_guard(store: JobStore, _url: String) {
@@ -634,4 +638,238 @@ async fn stuck_barrier_is_advanced_by_reconcile(store: JobStore, _url: String) {
     assert_eq!(report, ReconcileReport { requeued: 0, dead: 0, advanced: 1, finished: vec![id] });
     assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
     assert_eq!(store.reconcile(&planner).await.unwrap(), ReconcileReport::default());
+}
+
+/// 16 executors (two pools) that claim only when they hold nothing and otherwise complete with
+/// `complete_and_claim`, through three stages: every task is claimed once and completed once,
+/// the barrier fires once per stage with all of the stage's tasks, and most claims are the
+/// combined ones.
+async fn combined_concurrent_claimers(store: JobStore, url: String) {
+    let planner = Arc::new(ChainPlanner::new(&[300, 40, 7]));
+    let id = store.create_campaign(new_campaign("chain", QueueConfig::default()), planner.first()).await.unwrap();
+    let other = JobStore::connect(&url).await.unwrap();
+    let completed: Arc<Mutex<HashMap<(String, String), usize>>> = Arc::default();
+    let claimed: Arc<Mutex<HashMap<i64, usize>>> = Arc::default();
+    let (barriers, combined) = (Arc::new(Mutex::new(0usize)), Arc::new(Mutex::new(0usize)));
+    let mut workers = Vec::new();
+    for w in 0..16 {
+        let store = if w % 2 == 0 { store.clone() } else { other.clone() };
+        let (planner, completed, claimed) = (planner.clone(), completed.clone(), claimed.clone());
+        let (barriers, combined) = (barriers.clone(), combined.clone());
+        workers.push(tokio::spawn(async move {
+            let name = format!("w{w}");
+            let mut held: Option<ClaimedTask> = None;
+            loop {
+                let task = match held.take() {
+                    Some(task) => task,
+                    None => match store.claim(&name, LONG).await.unwrap() {
+                        Some(task) => {
+                            *claimed.lock().unwrap().entry(task.id).or_default() += 1;
+                            task
+                        }
+                        None => {
+                            if store.campaign(id).await.unwrap().unwrap().state.is_finished() {
+                                break;
+                            }
+                            tokio::time::sleep(Duration::from_millis(2)).await;
+                            continue;
+                        }
+                    },
+                };
+                let (c, next) =
+                    store.complete_and_claim(&task, outcome(&task), planner.as_ref(), &name, LONG).await.unwrap();
+                *completed.lock().unwrap().entry((task.stage.clone(), task.key.clone())).or_default() += 1;
+                if c.stage_finished {
+                    *barriers.lock().unwrap() += 1;
+                }
+                if let Some(next) = &next {
+                    assert_eq!((next.attempt, next.campaign), (1, id));
+                    assert_ne!(next.id, task.id);
+                    *claimed.lock().unwrap().entry(next.id).or_default() += 1;
+                    *combined.lock().unwrap() += 1;
+                }
+                held = next;
+            }
+            assert!(held.is_none());
+        }));
+    }
+    for w in workers {
+        w.await.unwrap();
+    }
+    let completed = completed.lock().unwrap().clone();
+    assert_eq!(completed.len(), 347, "every task was completed");
+    assert!(completed.values().all(|&n| n == 1), "no task was completed twice");
+    let claimed = claimed.lock().unwrap().clone();
+    assert_eq!(claimed.len(), 347, "every task was claimed");
+    assert!(claimed.values().all(|&n| n == 1), "no task was claimed twice");
+    let combined = *combined.lock().unwrap();
+    assert!(combined > 347 / 2, "only {combined} of 347 claims came with a completion");
+    assert_eq!(*barriers.lock().unwrap(), 3, "one barrier per stage");
+    assert_eq!(
+        planner.calls(),
+        vec![("s0".to_string(), 0, 300), ("s1".to_string(), 1, 40), ("s2".to_string(), 2, 7)],
+        "the planner ran exactly once per stage, with all of the stage's tasks"
+    );
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!(c.state, CampaignState::Succeeded);
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased, counts.dead), (347, 0, 0, 0));
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 347);
+    let events = store.events(id, 0, 100_000).await.unwrap();
+    assert_eq!(events.iter().filter(|e| e.kind == "claimed").count(), 347, "one claim event per claim");
+    assert_eq!(events.iter().filter(|e| e.kind == "done").count(), 347);
+    other.close().await;
+}
+
+/// A stale lease token (never held, completed already, expired and rescued, campaign cancelled)
+/// neither completes nor claims, though other tasks are claimable.
+async fn combined_stale_lease_claims_nothing(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[4]);
+    let id = store.create_campaign(new_campaign("stale", quick_retries(3)), planner.first()).await.unwrap();
+    let t1 = store.claim("w", LONG).await.unwrap().unwrap();
+    let queued = |store: JobStore| async move { store.task_counts(id).await.unwrap().queued };
+
+    let stale = ClaimedTask { lease_token: Uuid::new_v4(), ..t1.clone() };
+    let r = store.complete_and_claim(&stale, outcome(&stale), &planner, "w", LONG).await;
+    assert!(matches!(r, Err(JobError::LeaseLost)), "{r:?}");
+    assert!(store.recorded_keys(id).await.unwrap().is_empty(), "a stale token records nothing");
+    assert_eq!(queued(store.clone()).await, 3, "a stale token claims nothing");
+    assert_eq!(store.live_lease_tokens(id).await.unwrap(), vec![t1.lease_token]);
+
+    assert_eq!(store.leased_by("w").await.unwrap(), vec![t1.clone()], "the lease as claimed, found by worker");
+    assert!(store.leased_by("v").await.unwrap().is_empty());
+
+    // The holder completes and gets the next task; completing again (a duplicated delivery) is
+    // refused and claims nothing more.
+    let (c, t2) = store.complete_and_claim(&t1, outcome(&t1), &planner, "w", LONG).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: false, campaign_state: CampaignState::Running });
+    let t2 = t2.expect("the next task");
+    assert_eq!((t2.key.as_str(), t2.attempt, t2.stage.as_str()), ("s00001", 1, "s0"));
+    assert_ne!(t2.lease_token, t1.lease_token);
+    // What a loop whose call failed after the commit finds: the task it claimed, as returned.
+    assert_eq!(store.leased_by("w").await.unwrap(), vec![t2.clone()]);
+    let r = store.complete_and_claim(&t1, outcome(&t1), &planner, "w", LONG).await;
+    assert!(matches!(r, Err(JobError::LeaseLost)), "{r:?}");
+    assert_eq!(queued(store.clone()).await, 2);
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 1);
+
+    // An expired lease, rescued: the old holder's completion is refused and claims nothing.
+    let short = store.claim("slow", Duration::from_millis(100)).await.unwrap().unwrap();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(store.reconcile(&planner).await.unwrap().requeued, 1);
+    let r = store.complete_and_claim(&short, outcome(&short), &planner, "slow", LONG).await;
+    assert!(matches!(r, Err(JobError::LeaseLost)), "{r:?}");
+    assert_eq!(queued(store.clone()).await, 2, "the rescued task and the last one");
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 1);
+
+    // A cancelled campaign: its holder's completion is refused and claims nothing, although
+    // another campaign has a runnable task.
+    let b = store.create_campaign(new_campaign("other", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    assert!(store.cancel_campaign(id).await.unwrap());
+    let r = store.complete_and_claim(&t2, outcome(&t2), &planner, "w", LONG).await;
+    assert!(matches!(r, Err(JobError::LeaseLost)), "{r:?}");
+    let other = store.task_counts(b).await.unwrap();
+    assert_eq!((other.queued, other.leased), (1, 0), "nothing of the other campaign was claimed");
+    assert!(store.live_lease_tokens(id).await.unwrap().is_empty());
+    assert_eq!(store.recorded_keys(id).await.unwrap().len(), 1);
+    assert!(planner.calls().is_empty());
+}
+
+/// The completion of a stage's last task advances it, also when the combined claim takes a task
+/// of the same stage before (which skips the barrier check) or of another campaign; after the
+/// advance the completer holds the next stage's first task.
+async fn combined_last_task_advances_the_stage(store: JobStore, _url: String) {
+    let planner = ChainPlanner::new(&[2, 3]);
+    let id = store.create_campaign(new_campaign("last", QueueConfig::default()), planner.first()).await.unwrap();
+    let t1 = store.claim("w", LONG).await.unwrap().unwrap();
+    // t2 is still queued: the completion of t1 claims it (same stage, no barrier).
+    let (c, t2) = store.complete_and_claim(&t1, outcome(&t1), &planner, "w", LONG).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: false, campaign_state: CampaignState::Running });
+    let t2 = t2.expect("the stage's second task");
+    assert_eq!((t2.stage.as_str(), t2.key.as_str()), ("s0", "s00001"));
+    assert!(planner.calls().is_empty());
+
+    // The last task of s0: the stage advances and the completer holds s1's first task.
+    let (c, mut next) = store.complete_and_claim(&t2, outcome(&t2), &planner, "w", LONG).await.unwrap();
+    assert_eq!(c, Completion { stage_finished: true, campaign_state: CampaignState::Running });
+    assert_eq!(planner.calls(), vec![("s0".to_string(), 0, 2)]);
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((c.stage.as_str(), c.iteration), ("s1", 1));
+    let first = next.clone().expect("the next stage's first task");
+    assert_eq!((first.stage.as_str(), first.iteration, first.key.as_str()), ("s1", 1, "s10000"));
+
+    // A second campaign's task is queued behind s1's: the last completion of s1 claims it (not
+    // of its own stage, so the barrier is checked) and still finishes the first campaign.
+    let b = store.create_campaign(new_campaign("behind", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let mut done = 0;
+    while let Some(t) = next.take() {
+        if t.campaign != id {
+            next = Some(t);
+            break;
+        }
+        let (c, n) = store.complete_and_claim(&t, outcome(&t), &planner, "w", LONG).await.unwrap();
+        done += 1;
+        let last = done == 3;
+        assert_eq!(c.stage_finished, last, "task {done} of s1");
+        let state = if last { CampaignState::Succeeded } else { CampaignState::Running };
+        assert_eq!(c.campaign_state, state);
+        next = n;
+    }
+    assert_eq!(done, 3);
+    assert_eq!(next.expect("the other campaign's task").campaign, b);
+    assert_eq!(planner.calls(), vec![("s0".to_string(), 0, 2), ("s1".to_string(), 1, 3)]);
+    let c = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!(c.state, CampaignState::Succeeded);
+    let counts = store.task_counts(id).await.unwrap();
+    assert_eq!((counts.done, counts.queued, counts.leased), (5, 0, 0));
+}
+
+/// The whole of a stage completes at once through `complete_and_claim` (two pools): the barrier
+/// fires once, and only its completer claims, the next stage's first task.
+async fn combined_racing_last_completions(store: JobStore, url: String) {
+    const N: usize = 40;
+    let planner = Arc::new(ChainPlanner::new(&[N, N, 1]));
+    let id = store.create_campaign(new_campaign("race", QueueConfig::default()), planner.first()).await.unwrap();
+    let other = JobStore::connect(&url).await.unwrap();
+    for round in 0..2i32 {
+        // Round 1's stage lost one task to round 0's claim, completed below.
+        let n = if round == 0 { N } else { N - 1 };
+        let tasks = lease_stage(&store, &format!("s{round}"), n).await;
+        let start = Arc::new(tokio::sync::Barrier::new(n));
+        let mut completers = Vec::new();
+        for (i, task) in tasks.into_iter().enumerate() {
+            let store = if i % 2 == 0 { store.clone() } else { other.clone() };
+            let (planner, start) = (planner.clone(), start.clone());
+            completers.push(tokio::spawn(async move {
+                start.wait().await;
+                store.complete_and_claim(&task, outcome(&task), planner.as_ref(), "w", LONG).await.unwrap()
+            }));
+        }
+        let mut finished = Vec::new();
+        let mut claimed = Vec::new();
+        for c in completers {
+            let (c, next) = c.await.unwrap();
+            assert_eq!(c.campaign_state, CampaignState::Running);
+            if c.stage_finished {
+                finished.push(next.is_some());
+            }
+            claimed.extend(next);
+        }
+        assert_eq!(finished, vec![true], "round {round}: one barrier, whose completer claimed");
+        assert_eq!(claimed.len(), 1, "round {round}: only the barrier's completer found a task");
+        let next_stage = format!("s{}", round + 1);
+        assert_eq!((claimed[0].stage.as_str(), claimed[0].iteration), (next_stage.as_str(), round + 1));
+        let size = planner.sizes[round as usize + 1] as i64;
+        let counts = store.task_counts(id).await.unwrap();
+        assert_eq!((counts.stage.queued, counts.stage.leased, counts.stage.done), (size - 1, 1, 0));
+        let c = store.complete(&claimed[0], outcome(&claimed[0]), planner.as_ref()).await.unwrap();
+        assert_eq!(c.stage_finished, size == 1);
+    }
+    assert_eq!(
+        planner.calls(),
+        vec![("s0".to_string(), 0, N), ("s1".to_string(), 1, N), ("s2".to_string(), 2, 1)],
+        "the planner ran once per stage, with all of the stage's tasks"
+    );
+    assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
+    other.close().await;
 }
