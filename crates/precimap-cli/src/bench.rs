@@ -513,6 +513,13 @@ struct FrameworkOverhead {
     framework_s: f64,
     /// (framework − in-process) / in-process wall time.
     overhead_ratio: f64,
+    /// CPU seconds (all threads of this process: the embedded framework runs its executors
+    /// in-process) of each run, and their ratio: the work the framework adds, independent of
+    /// what else the machine is doing, whereas the wall-time ratio also holds stage tails (idle
+    /// cores at barriers) and other load.
+    in_process_cpu_s: f64,
+    framework_cpu_s: f64,
+    overhead_cpu_ratio: f64,
 }
 
 fn bench_queue(
@@ -545,13 +552,16 @@ fn bench_queue(
         Some(scale) => {
             let (dir, manifest) = cached_campaign(cache, scale, 1, false)?;
             let started = Instant::now();
+            let cpu_started = cpu_seconds();
             let report = precimap_pipeline::run_campaign(
                 &manifest,
                 &precimap_pipeline::RunOptions { out_dir: dir.join("out-in-process"), keep_work: false },
                 &|_| {},
             )?;
             let in_process_s = started.elapsed().as_secs_f64();
+            let in_process_cpu_s = cpu_seconds() - cpu_started;
             let started = Instant::now();
+            let cpu_started = cpu_seconds();
             let options = precimap_framework::EmbeddedOptions {
                 out_dir: dir.join("out-framework"),
                 concurrency: rayon::current_num_threads(),
@@ -559,20 +569,28 @@ fn bench_queue(
             };
             rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {}))?;
             let framework_s = started.elapsed().as_secs_f64();
+            let framework_cpu_s = cpu_seconds() - cpu_started;
             let o = FrameworkOverhead {
                 scale: format!("{scale:?}").to_lowercase(),
                 points: report.points_total,
                 in_process_s,
                 framework_s,
                 overhead_ratio: (framework_s - in_process_s) / in_process_s,
+                in_process_cpu_s,
+                framework_cpu_s,
+                overhead_cpu_ratio: (framework_cpu_s - in_process_cpu_s) / in_process_cpu_s.max(1e-9),
             };
             if !json {
                 eprintln!(
-                    "framework overhead on {}: in-process {:.1} s, framework {:.1} s → {:+.1} %",
+                    "framework overhead on {}: wall in-process {:.1} s, framework {:.1} s → {:+.1} %; \
+                     CPU in-process {:.1} s, framework {:.1} s → {:+.1} %",
                     o.scale,
                     o.in_process_s,
                     o.framework_s,
-                    100.0 * o.overhead_ratio
+                    100.0 * o.overhead_ratio,
+                    o.in_process_cpu_s,
+                    o.framework_cpu_s,
+                    100.0 * o.overhead_cpu_ratio
                 );
             }
             Some(o)
