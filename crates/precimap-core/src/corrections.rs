@@ -4,6 +4,7 @@
 //! `p' = t0 + δt + Exp(δθ)·r` (t0 scan-head position, r measurement vector).
 
 use crate::geom::rotate_small;
+use crate::histogram::LogBins;
 use serde::{Deserialize, Serialize};
 
 /// `[δtx, δty, δtz, δθx, δθy, δθz]`: translation in metres, rotation vector in radians, world frame.
@@ -76,25 +77,18 @@ pub struct ChangeHistogram {
 }
 
 impl ChangeHistogram {
-    const BINS: usize = 72;
-    const SMALLEST_M: f64 = 1e-6;
+    /// 1 µm … 10 m in tenths of a decade: 72 bins, few enough to travel in every solve result.
+    fn bins() -> LogBins {
+        LogBins::spanning(1e-6, 10.0, 10f64.powf(0.1))
+    }
 
     pub fn add(&mut self, change_m: f64) {
+        let bins = Self::bins();
         if self.counts.is_empty() {
-            self.counts = vec![0; Self::BINS];
+            self.counts = vec![0; bins.count];
         }
-        let bin = if change_m < Self::SMALLEST_M {
-            0
-        } else {
-            // NaN lands in the last bin: a non-finite change is as bad as the largest.
-            let k = (10.0 * (change_m / Self::SMALLEST_M).log10()).floor();
-            if k.is_nan() {
-                Self::BINS - 1
-            } else {
-                (k as usize + 1).min(Self::BINS - 1)
-            }
-        };
-        self.counts[bin] += 1;
+        // A non-finite change is as bad as the largest.
+        self.counts[bins.index(if change_m.is_nan() { f64::INFINITY } else { change_m })] += 1;
     }
 
     pub fn merge(&mut self, other: &ChangeHistogram) {
@@ -102,11 +96,9 @@ impl ChangeHistogram {
             return;
         }
         if self.counts.is_empty() {
-            self.counts = vec![0; Self::BINS];
+            self.counts = vec![0; Self::bins().count];
         }
-        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
-            *a += b;
-        }
+        LogBins::merge(&mut self.counts, &other.counts);
     }
 
     pub fn total(&self) -> u64 {
@@ -116,19 +108,7 @@ impl ChangeHistogram {
     /// Upper edge of the bin holding the `q`-quantile (0 ≤ q ≤ 1): at most 26 % above the true
     /// quantile, never below it. 0 when empty.
     pub fn quantile_m(&self, q: f64) -> f64 {
-        let total = self.total();
-        if total == 0 {
-            return 0.0;
-        }
-        let rank = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
-        let mut seen = 0;
-        for (k, &c) in self.counts.iter().enumerate() {
-            seen += c;
-            if seen >= rank {
-                return Self::SMALLEST_M * 10f64.powf(k as f64 / 10.0);
-            }
-        }
-        Self::SMALLEST_M * 10f64.powf((Self::BINS - 1) as f64 / 10.0)
+        LogBins::quantile_bin(&self.counts, q).map_or(0.0, |k| Self::bins().upper_edge(k))
     }
 }
 

@@ -63,14 +63,15 @@ pub fn so3_log(r: &Mat3) -> Vec3 {
     w * (angle / (2.0 * angle.sin()))
 }
 
-/// `Exp(θ)·r` without forming the matrix. For the tiny angles of pose corrections (< 0.01 rad) a
-/// third-order series is used (relative error < θ⁴/24 ≈ 4·10⁻¹⁰); larger angles use Rodrigues.
+/// `Exp(θ)·r` without forming the matrix. Below 0.01 rad (pose corrections, one trajectory
+/// segment of a vehicle) by the series to the θ⁴ terms, whose remainder (θ⁶/5040) is under double
+/// precision; larger angles use Rodrigues.
 #[inline]
 pub fn rotate_small(theta: [f64; 3], r: [f64; 3]) -> [f64; 3] {
     let [tx, ty, tz] = theta;
     let angle2 = tx * tx + ty * ty + tz * tz;
     let (a, b) = if angle2 < 1e-4 {
-        (1.0 - angle2 / 6.0, 0.5 - angle2 / 24.0)
+        (1.0 - angle2 / 6.0 * (1.0 - angle2 / 20.0), 0.5 - angle2 / 24.0 * (1.0 - angle2 / 30.0))
     } else {
         let angle = angle2.sqrt();
         (angle.sin() / angle, (1.0 - angle.cos()) / angle2)

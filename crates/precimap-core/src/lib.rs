@@ -6,6 +6,7 @@
 
 pub mod corrections;
 pub mod geom;
+pub mod histogram;
 pub mod params;
 pub mod tile;
 pub mod trajectory;

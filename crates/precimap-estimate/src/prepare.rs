@@ -5,6 +5,7 @@
 //! segmented points keyed into tiles with a border overlap.
 
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
+use precimap_core::geom::rotate_small;
 use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
 pub use precimap_segment::{PixelNormal, ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
 use precimap_segment::{StripGeometry, DROPPED, NO_POINT};
@@ -172,7 +173,7 @@ impl<'a> GeometryCursor<'a> {
         self.locate(t)?;
         let s = &self.segment;
         let lambda = ((t - s.t0) / (s.t1 - s.t0)).clamp(0.0, 1.0);
-        let arm = rotate_exact(s.omega.map(|w| w * lambda), self.lever_arm);
+        let arm = rotate_small(s.omega.map(|w| w * lambda), self.lever_arm);
         let r = &s.rotation;
         let mut t0 = [0.0; 3];
         for k in 0..3 {
@@ -190,23 +191,6 @@ impl<'a> GeometryCursor<'a> {
             speed: s.speed,
         })
     }
-}
-
-/// `Exp(θ)·v` (Rodrigues) without forming the matrix; below 0.01 rad (one trajectory segment of
-/// a vehicle) by its series to the θ⁴ terms, whose remainder (θ⁶/5040) is under double precision.
-#[inline]
-fn rotate_exact(theta: [f64; 3], v: [f64; 3]) -> [f64; 3] {
-    let [tx, ty, tz] = theta;
-    let a2 = tx * tx + ty * ty + tz * tz;
-    let (a, b) = if a2 < 1e-4 {
-        (1.0 - a2 / 6.0 * (1.0 - a2 / 20.0), 0.5 - a2 / 24.0 * (1.0 - a2 / 30.0))
-    } else {
-        let angle = a2.sqrt();
-        (angle.sin() / angle, (1.0 - angle.cos()) / a2)
-    };
-    let c1 = [ty * v[2] - tz * v[1], tz * v[0] - tx * v[2], tx * v[1] - ty * v[0]];
-    let c2 = [ty * c1[2] - tz * c1[1], tz * c1[0] - tx * c1[2], tx * c1[1] - ty * c1[0]];
-    [v[0] + a * c1[0] + b * c2[0], v[1] + a * c1[1] + b * c2[1], v[2] + a * c1[2] + b * c2[2]]
 }
 
 /// Everything a strip contributes to estimation, and its segmentation.
@@ -455,15 +439,19 @@ pub fn reconstructed_scan_angles(
         let e1: Vec3 = eig.eigenvectors.column(order[2]).into_owned();
         basis[c] = Some((e1, axis.cross(&e1)));
     }
-    let azimuth = |u: &Vec3, c: u8| -> f64 {
-        let (e1, e2) = basis[c as usize].expect("every channel with points has a basis");
-        u.dot(&e2).atan2(u.dot(&e1)).to_degrees()
-    };
+    let mut azimuth: Vec<f64> = body
+        .iter()
+        .zip(samples.channel)
+        .map(|(u, &c)| {
+            let (e1, e2) = basis[c as usize].expect("every channel with points has a basis");
+            u.dot(&e2).atan2(u.dot(&e1)).to_degrees()
+        })
+        .collect();
+    drop(body);
     // Orientation per channel: consecutive beams mostly step forward.
     let mut votes = [0i64; 256];
     let mut last: [Option<f64>; 256] = [None; 256];
-    for (u, &c) in body.iter().zip(samples.channel) {
-        let a = azimuth(u, c);
+    for (&a, &c) in azimuth.iter().zip(samples.channel) {
         if let Some(prev) = last[c as usize] {
             let step = (a - prev + 540.0).rem_euclid(360.0) - 180.0;
             votes[c as usize] += if step > 0.0 {
@@ -476,13 +464,17 @@ pub fn reconstructed_scan_angles(
         }
         last[c as usize] = Some(a);
     }
-    let oriented = |u: &Vec3, c: u8| if votes[c as usize] < 0 { -azimuth(u, c) } else { azimuth(u, c) };
+    for (a, &c) in azimuth.iter_mut().zip(samples.channel) {
+        if votes[c as usize] < 0 {
+            *a = -*a;
+        }
+    }
     // A revolution must not be split where beams are dense: put the wrap-around (±180°) in the
     // middle of the widest gap in azimuth (the sky, for a head that sees the ground).
     const BINS: usize = 720;
     let mut occupied = vec![[false; BINS]; 256];
-    for (u, &c) in body.iter().zip(samples.channel) {
-        let bin = ((oriented(u, c) + 180.0) / 360.0 * BINS as f64) as usize;
+    for (&a, &c) in azimuth.iter().zip(samples.channel) {
+        let bin = ((a + 180.0) / 360.0 * BINS as f64) as usize;
         occupied[c as usize][bin.min(BINS - 1)] = true;
     }
     let mut gap_centre = [180.0f64; 256];
@@ -506,10 +498,11 @@ pub fn reconstructed_scan_angles(
         }
     }
     Some(
-        body.iter()
+        azimuth
+            .iter()
             .zip(samples.channel)
-            .map(|(u, &c)| {
-                let a = (oriented(u, c) - gap_centre[c as usize]).rem_euclid(360.0) - 180.0;
+            .map(|(&a, &c)| {
+                let a = (a - gap_centre[c as usize]).rem_euclid(360.0) - 180.0;
                 // −180 and 180 are the same beam.
                 (if a >= 180.0 { a - 360.0 } else { a }) as f32
             })

@@ -1,6 +1,7 @@
 //! Pure, mergeable statistics the evaluation is built from: error moments with an |error|
 //! histogram for percentiles, and per tile–strip means for the strip offset spread.
 
+use precimap_core::histogram::LogBins;
 use precimap_core::TileKey;
 use std::collections::{BTreeMap, HashMap};
 
@@ -27,31 +28,20 @@ impl Default for AbsHistogram {
 }
 
 impl AbsHistogram {
+    fn bins() -> LogBins {
+        LogBins::spanning(HIST_MIN_M, HIST_MAX_M, HIST_RATIO)
+    }
+
     pub fn new() -> Self {
-        Self { bins: vec![0; Self::bin_count()] }
-    }
-
-    fn bin_count() -> usize {
-        ((HIST_MAX_M / HIST_MIN_M).ln() / HIST_RATIO.ln()).ceil() as usize + 2
-    }
-
-    fn index(abs: f64) -> usize {
-        if abs.is_nan() || abs < HIST_MIN_M {
-            return 0;
-        }
-        let k = ((abs / HIST_MIN_M).ln() / HIST_RATIO.ln()).floor();
-        // `as` saturates, so +∞ lands in the last bin too.
-        ((k as usize).saturating_add(1)).min(Self::bin_count() - 1)
+        Self { bins: vec![0; Self::bins().count] }
     }
 
     pub fn add(&mut self, e: f64) {
-        self.bins[Self::index(e.abs())] += 1;
+        self.bins[Self::bins().index(e.abs())] += 1;
     }
 
     pub fn merge(&mut self, other: &Self) {
-        for (a, b) in self.bins.iter_mut().zip(&other.bins) {
-            *a += b;
-        }
+        LogBins::merge(&mut self.bins, &other.bins);
     }
 
     pub fn count(&self) -> u64 {
@@ -61,23 +51,12 @@ impl AbsHistogram {
     /// The `q`-quantile (0 < q ≤ 1, nearest rank) of |error| as the geometric centre of its bin;
     /// NaN when empty.
     pub fn quantile(&self, q: f64) -> f64 {
-        let n = self.count();
-        if n == 0 {
-            return f64::NAN;
+        match LogBins::quantile_bin(&self.bins, q) {
+            None => f64::NAN,
+            Some(0) => 0.5 * HIST_MIN_M,
+            Some(k) if k == self.bins.len() - 1 => HIST_MAX_M,
+            Some(k) => HIST_MIN_M * HIST_RATIO.powf(k as f64 - 0.5),
         }
-        let rank = ((q.clamp(0.0, 1.0) * n as f64).ceil() as u64).clamp(1, n);
-        let mut seen = 0;
-        for (k, &c) in self.bins.iter().enumerate() {
-            seen += c;
-            if seen >= rank {
-                return match k {
-                    0 => 0.5 * HIST_MIN_M,
-                    k if k == self.bins.len() - 1 => HIST_MAX_M,
-                    k => HIST_MIN_M * HIST_RATIO.powf(k as f64 - 0.5),
-                };
-            }
-        }
-        HIST_MAX_M
     }
 }
 
