@@ -41,6 +41,12 @@ impl IterationStep {
         self.cell_m.unwrap_or(params.cell_size_m)
     }
 
+    /// Whether this step solves the common-mode field before the per-trajectory solves: the
+    /// point-sampled steps, whose latent heights know which passes build them.
+    pub fn solves_field(&self, params: &Parameters) -> bool {
+        params.common_mode_field_m > 0.0 && self.grid_m < params.point_latent_below_grid_m
+    }
+
     /// Whether momentum carries `previous`'s correction step into this one: both steps evaluate
     /// the latent surface exactly at the points (the fine steps, which all build the same map)
     /// with the same cells and unknowns. Thresholds may differ. The coarse steps capture: one
@@ -123,6 +129,12 @@ pub struct Parameters {
     /// contraction ρ into about (ρ + β)/2 + √(((ρ + β)/2)² − β) without moving the fixed point.
     /// 0 disables it.
     pub momentum: f64,
+    /// Node spacing of the common-mode field, the coarse level of the estimation: before the
+    /// per-trajectory solves of every point-sampled step, one translation field over the whole
+    /// campaign (bilinear between nodes this far apart) is solved with the latent map moving
+    /// along, and added to every trajectory at its anchors. It moves the shift every pass at a
+    /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
+    pub common_mode_field_m: f64,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,
     /// Converged when no anchor moves a point at 10 m range by more than this between iterations.
@@ -151,6 +163,7 @@ impl Default for Parameters {
             point_latent_below_grid_m: 0.03,
             threshold_floor_sigmas: 3.0,
             momentum: 0.85,
+            common_mode_field_m: 30.0,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
         }
@@ -256,6 +269,12 @@ impl Parameters {
         }
         if !(0.0..1.0).contains(&self.momentum) {
             out.push(ParameterProblem { field: "momentum".into(), problem: "must be in [0, 1)".into() });
+        }
+        if !(self.common_mode_field_m.is_finite() && self.common_mode_field_m >= 0.0) {
+            out.push(ParameterProblem {
+                field: "common_mode_field_m".into(),
+                problem: "must be zero (off) or a positive node spacing in metres".into(),
+            });
         }
         if !(self.point_latent_below_grid_m.is_finite() && self.point_latent_below_grid_m >= 0.0) {
             out.push(ParameterProblem {

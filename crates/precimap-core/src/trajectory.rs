@@ -154,6 +154,29 @@ impl Trajectory {
     pub fn arc_lengths(&self) -> &[f64] {
         &self.arc
     }
+
+    /// Horizontal position at each of the arc lengths `first·spacing, (first+1)·spacing, …`
+    /// (`count` of them; where anchors sit), linearly interpolated and clamped to the ends.
+    pub fn horizontal_positions_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 2]> {
+        let mut out = Vec::with_capacity(count);
+        let mut i = 0usize;
+        let last = self.arc.len() - 1;
+        for k in 0..count {
+            let s = (first as f64 + k as f64) * spacing;
+            while i + 1 < last && self.arc[i + 1] < s {
+                i += 1;
+            }
+            let p = if last == 0 {
+                self.positions[0]
+            } else {
+                let (a, b) = (self.arc[i], self.arc[i + 1]);
+                let lambda = if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 };
+                self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda
+            };
+            out.push([p.x, p.y]);
+        }
+        out
+    }
 }
 
 #[cfg(test)]

@@ -9,6 +9,7 @@
 
 pub mod blocks;
 pub mod chunk;
+pub mod field;
 mod hash;
 pub mod prepare;
 pub mod solve;
@@ -17,6 +18,7 @@ pub mod tile;
 
 pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
 pub use chunk::TileChunk;
+pub use field::{solve_field, FieldEquations, FieldSolution, FieldTrajectory};
 pub use precimap_segment::{NormalMethod, DROPPED as DROPPED_COLUMN};
 pub use prepare::{
     measurement_geometry, prepare_strip, prepare_strip_observed, GeometryCursor, PrepareError, PreparePhase,

@@ -18,6 +18,7 @@
 
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
+use crate::field::{FieldAccumulator, FieldEquations};
 use crate::hash::FxHashMap;
 use crate::stats::{ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
@@ -50,6 +51,9 @@ pub struct TileEstimate {
     pub tile: TileKey,
     pub blocks: Vec<TrajectoryBlocks>,
     pub stats: TileStats,
+    /// The common-mode field's data equations, in steps that solve the field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<FieldEquations>,
 }
 
 #[derive(Clone, Copy, Default)]
@@ -220,6 +224,9 @@ pub fn estimate_tile(
     //    cell whose normals agree (a segment can wrap round a pole or a corner within a cell).
     let mut position = Vec::with_capacity(total);
     let mut measurement = Vec::with_capacity(total);
+    let solves_field = step.solves_field(params);
+    // Absolute horizontal scan-head positions, where the common-mode field acts.
+    let mut vehicle: Vec<[f64; 2]> = Vec::with_capacity(if solves_field { total } else { 0 });
     let mut patch_of = Vec::with_capacity(total);
     let mut patches: Vec<Patch> = Vec::new();
     let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
@@ -239,6 +246,9 @@ pub fn estimate_tile(
                 t0[2] as f64 + shift[2] + c[2] + rr[2],
             ];
             let n = rotate_small(theta, chunk.normal[k].map(f64::from));
+            if solves_field {
+                vehicle.push([chunk.origin[0] + t0[0] as f64, chunk.origin[1] + t0[1] as f64]);
+            }
             position.push(p);
             measurement.push(rr);
             let key = if params.segment_surfaces {
@@ -327,11 +337,12 @@ pub fn estimate_tile(
     stats.surface_models = models.len() as u64;
     let in_core = |p: &[f64; 3]| p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size;
     // 2. The latent height under every point of the tile's core (NaN: not observable).
-    let latent: Vec<f64> = if grid < params.point_latent_below_grid_m {
-        point_latent(&triangles, &in_core, &mut stats)
+    let (latent, others) = if grid < params.point_latent_below_grid_m {
+        point_latent(&triangles, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats)
     } else {
-        raster_latent(&triangles, grid, &in_core, &mut stats)
+        (raster_latent(&triangles, grid, &in_core, &mut stats), Vec::new())
     };
+    let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
     let mut histogram = ResidualHistogram::default();
@@ -367,6 +378,10 @@ pub fn estimate_tile(
             let rw = cross(measurement[a], w);
             let g = [w[0], w[1], w[2], rw[0], rw[1], rw[2]];
             intervals[(chunk.anchor[k] - first) as usize].add(&g, e, weight, chunk.lambda[k] as f64);
+            if let Some(field) = field.as_mut() {
+                let [x, y, count] = others[a];
+                field.add(vehicle[a], [x, y], count, w, e, weight);
+            }
         }
         let blocks = per_trajectory.entry(chunk.trajectory).or_default();
         for (offset, moments) in intervals.iter().enumerate() {
@@ -386,7 +401,7 @@ pub fn estimate_tile(
         .into_iter()
         .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
         .collect();
-    Ok(TileEstimate { tile, blocks, stats })
+    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish) })
 }
 
 /// The points of one strip segment in one cell whose normals agree.
@@ -514,10 +529,11 @@ struct Triangles<'a> {
 }
 
 impl Triangles<'_> {
-    /// Calls `visit(model, corners, strip, anchor)` for every triangle and every surface model one
+    /// Calls `visit(model, corners, strip, anchor, first)` (`first`: index of the corner the
+    /// triangle hangs off) for every triangle and every surface model one
     /// of its corners belongs to, provided the triangle is continuous surface (short edges) lying
     /// on that model (facet and model normals agree, and the corners' models are not at odds).
-    fn for_each(&self, mut visit: impl FnMut(u32, [[f64; 3]; 3], u32, u32)) {
+    fn for_each(&self, mut visit: impl FnMut(u32, [[f64; 3]; 3], u32, u32, usize)) {
         let mut base = 0usize;
         for chunk in self.chunks {
             for k in 0..chunk.len() {
@@ -529,12 +545,12 @@ impl Triangles<'_> {
                 let limit =
                     chunk.edge_limit[k].max(chunk.edge_limit[right as usize]).max(chunk.edge_limit[down as usize]);
                 let anchor = chunk.anchor[k];
-                self.triangle([a, b, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor));
+                self.triangle([a, b, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor, a));
                 let diagonal = chunk.down[right as usize];
                 if diagonal != NO_NEIGHBOUR {
                     let d = base + diagonal as usize;
                     let limit = limit.max(chunk.edge_limit[diagonal as usize]);
-                    self.triangle([b, d, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor));
+                    self.triangle([b, d, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor, a));
                 }
             }
             base += chunk.len();
@@ -611,7 +627,7 @@ fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool,
         })
         .collect();
     let mut pixels = vec![Pixel::default(); pixel_count];
-    t.for_each(|id, p, strip, anchor| {
+    t.for_each(|id, p, strip, anchor, _| {
         let (m, r) = (&models[id as usize], &rasters[id as usize]);
         let tag = pass_tag(strip, anchor);
         let mut x = [0.0; 3];
@@ -658,7 +674,16 @@ fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool,
 /// there are not steeper than [`MAX_SLOPE`] against the model plane.
 ///
 /// Points are found through a per-model bucket grid with about [`POINTS_PER_BUCKET`] core points per bucket.
-fn point_latent(t: &Triangles, in_core: &impl Fn(&[f64; 3]) -> bool, stats: &mut TileStats) -> Vec<f64> {
+///
+/// With `vehicle` (absolute horizontal scan-head positions) it also returns, per point, the mean
+/// scan-head position of the other passes' triangles and their count, `[x, y, n]` (what the
+/// common-mode field's observation row needs); otherwise the second vector is empty.
+fn point_latent(
+    t: &Triangles,
+    in_core: &impl Fn(&[f64; 3]) -> bool,
+    vehicle: Option<&[[f64; 2]]>,
+    stats: &mut TileStats,
+) -> (Vec<f64>, Vec<[f64; 3]>) {
     let models = t.models;
     let n = t.position.len();
     // Plane coordinates of the core points, their strip and anchor (for the own-pass test).
@@ -736,8 +761,9 @@ fn point_latent(t: &Triangles, in_core: &impl Fn(&[f64; 3]) -> bool, stats: &mut
 
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
     let mut acc = vec![Sample::default(); count];
-    t.for_each(|id, p, strip, anchor| {
+    t.for_each(|id, p, strip, anchor, first| {
         let (m, g) = (&models[id as usize], &grids[id as usize]);
+        let from = vehicle.map_or([0.0; 2], |v| v[first]);
         if g.nu == 0 {
             return;
         }
@@ -797,11 +823,12 @@ fn point_latent(t: &Triangles, in_core: &impl Fn(&[f64; 3]) -> bool, stats: &mut
                 if s_q == strip && a_q.abs_diff(anchor) < SAME_PASS_ANCHORS {
                     continue;
                 }
-                acc[q].add(h0 + l1 * dh1 + l2 * dh2, hx, hy);
+                acc[q].add(h0 + l1 * dh1 + l2 * dh2, hx, hy, from);
             }
         }
     });
     let mut latent = vec![f64::NAN; n];
+    let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
     for (q, &a) in items.iter().enumerate() {
         let s = &acc[q];
         if s.count == 0 {
@@ -816,10 +843,13 @@ fn point_latent(t: &Triangles, in_core: &impl Fn(&[f64; 3]) -> bool, stats: &mut
         stats.pixel_std_sum_m += var.sqrt();
         if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
             latent[a as usize] = mean;
+            if let Some(o) = others.get_mut(a as usize) {
+                *o = [s.vehicle[0] / c, s.vehicle[1] / c, c];
+            }
         }
     }
     stats.pixels = count as u64;
-    latent
+    (latent, others)
 }
 
 /// Mean number of core points per bucket of [`point_latent`]'s grids.
@@ -846,13 +876,17 @@ struct Sample {
     sum: f64,
     sum2: f64,
     slope: [f64; 2],
+    /// Sum of the contributing triangles' scan-head positions (common-mode field only).
+    vehicle: [f64; 2],
     count: u32,
 }
 
 impl Sample {
     #[inline]
-    fn add(&mut self, h: f64, hx: f64, hy: f64) {
+    fn add(&mut self, h: f64, hx: f64, hy: f64, vehicle: [f64; 2]) {
         self.sum += h;
+        self.vehicle[0] += vehicle[0];
+        self.vehicle[1] += vehicle[1];
         self.sum2 += h * h;
         self.slope[0] += hx;
         self.slope[1] += hy;

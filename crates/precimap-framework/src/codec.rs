@@ -4,9 +4,10 @@
 //! anything else with a clear error.
 
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_estimate::AnchorBlock;
+use precimap_estimate::{AnchorBlock, FieldEquations};
 
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
+const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
 const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR01";
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -48,6 +49,14 @@ impl<'a> Reader<'a> {
 
     fn u32(&mut self) -> Result<u32, CodecError> {
         Ok(u32::from_le_bytes(self.take()?))
+    }
+
+    fn i64(&mut self) -> Result<i64, CodecError> {
+        Ok(i64::from_le_bytes(self.take()?))
+    }
+
+    fn u64(&mut self) -> Result<u64, CodecError> {
+        Ok(u64::from_le_bytes(self.take()?))
     }
 
     fn f64(&mut self) -> Result<f64, CodecError> {
@@ -118,6 +127,49 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
     Ok(blocks)
 }
 
+/// One tile's common-mode field equations: nodes, node-pair blocks, right-hand sides.
+pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
+    let mut out = Vec::with_capacity(28 + f.nodes.len() * 40 + f.pairs.len() * 80);
+    out.extend_from_slice(FIELD_MAGIC);
+    out.extend_from_slice(&f.observations.to_le_bytes());
+    out.extend_from_slice(&(f.nodes.len() as u32).to_le_bytes());
+    for (node, rhs) in f.nodes.iter().zip(&f.rhs) {
+        out.extend_from_slice(&node.0.to_le_bytes());
+        out.extend_from_slice(&node.1.to_le_bytes());
+        put_f64s(&mut out, rhs);
+    }
+    out.extend_from_slice(&(f.pairs.len() as u32).to_le_bytes());
+    for (a, b, m) in &f.pairs {
+        out.extend_from_slice(&a.to_le_bytes());
+        out.extend_from_slice(&b.to_le_bytes());
+        put_f64s(&mut out, m);
+    }
+    out
+}
+
+pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
+    const WHAT: &str = "common-mode field equations";
+    let mut r = Reader::new(bytes, FIELD_MAGIC, WHAT)?;
+    let observations = r.u64()?;
+    let n = r.count(40)?;
+    let (mut nodes, mut rhs) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    for _ in 0..n {
+        nodes.push((r.i64()?, r.i64()?));
+        rhs.push(r.f64s::<3>()?);
+    }
+    let m = r.count(80)?;
+    let mut pairs = Vec::with_capacity(m);
+    for _ in 0..m {
+        let (a, b) = (r.u32()?, r.u32()?);
+        if a as usize >= n || b as usize >= n {
+            return Err(CodecError::Truncated { what: WHAT, at: r.at, len: bytes.len() });
+        }
+        pairs.push((a, b, r.f64s::<9>()?));
+    }
+    r.finish()?;
+    Ok(FieldEquations { nodes, pairs, rhs, observations })
+}
+
 /// Corrections with the optional posterior standard deviations of the final iteration.
 pub fn encode_corrections(c: &TrajectoryCorrections, sigma: Option<&[[f64; 6]]>) -> Vec<u8> {
     let mut out = Vec::with_capacity(20 + c.values.len() * 96);
@@ -169,6 +221,30 @@ mod tests {
         b.rhs = [seed, -1e-300, f64::MIN_POSITIVE, 1e300, 0.0, -0.0];
         b.observations = 7 + anchor;
         b
+    }
+
+    #[test]
+    fn field_round_trip_bit_exact() {
+        let f = FieldEquations {
+            nodes: vec![(-3, 7), (16_667, 180_000)],
+            pairs: vec![(0, 0, [1.5; 9]), (0, 1, std::array::from_fn(|k| -1e-300 * k as f64)), (1, 1, [0.25; 9])],
+            rhs: vec![[0.1, -0.2, 1e300], [f64::MIN_POSITIVE, -0.0, 3.0]],
+            observations: 1 << 40,
+        };
+        let bytes = encode_field(&f);
+        let back = decode_field(&bytes).unwrap();
+        assert_eq!(back.nodes, f.nodes);
+        assert_eq!(back.observations, f.observations);
+        let bits = |e: &FieldEquations| -> Vec<u64> {
+            e.rhs.iter().flatten().chain(e.pairs.iter().flat_map(|p| p.2.iter())).map(|v| v.to_bits()).collect()
+        };
+        assert_eq!(bits(&back), bits(&f));
+        assert!(decode_field(&bytes[..bytes.len() - 3]).is_err());
+        let mut bad = bytes.clone();
+        // The second pair's node index points past the nodes.
+        let at = 8 + 8 + 4 + 2 * 40 + 4 + 80;
+        bad[at..at + 4].copy_from_slice(&9u32.to_le_bytes());
+        assert!(decode_field(&bad).is_err());
     }
 
     #[test]

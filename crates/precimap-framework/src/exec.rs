@@ -3,12 +3,12 @@
 //! (so a lost attempt can never overwrite a committed one), and returns what the job store
 //! records. CPU work runs on the blocking pool; nothing here touches the database.
 
-use crate::codec::{decode_blocks, decode_corrections, encode_blocks, encode_corrections};
+use crate::codec::{decode_blocks, decode_corrections, decode_field, encode_blocks, encode_corrections, encode_field};
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
-    CorrectionsRef, EstimateResult, ExportResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
-    BLOCKS_PREFIX, OUTPUT_CORRECTIONS, SEGMENTS_PREFIX,
+    CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult, StripInput, TaskInput,
+    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
@@ -214,7 +214,64 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 ctx.put(&key, encode_blocks(&tb.blocks)).await?;
                 outputs.push(OutputKey { name: format!("{BLOCKS_PREFIX}{}", tb.trajectory), object_key: key });
             }
+            if let Some(field) = &estimate.field {
+                let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");
+                ctx.put(&key, encode_field(field)).await?;
+                outputs.push(OutputKey { name: OUTPUT_FIELD.into(), object_key: key });
+            }
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+        }
+        TaskInput::SolveField { prefix, iteration, params, trajectories, current, previous, equations } => {
+            let mut positions = Vec::with_capacity(trajectories.len());
+            for (t, c) in trajectories.iter().zip(&current) {
+                let entry = read_trajectory(ctx, t).await?;
+                let (first, last) = c.anchors;
+                let count = (last.saturating_sub(first) + 1) as usize;
+                positions.push(entry.data.horizontal_positions_along(params.anchor_spacing_m, first, count));
+            }
+            let mut corrections = Vec::with_capacity(current.len());
+            for c in &current {
+                corrections.push(read_corrections(ctx, c).await?);
+            }
+            let mut before = Vec::new();
+            for c in previous.iter().flatten() {
+                before.push(read_corrections(ctx, c).await?);
+            }
+            let mut decoded = Vec::with_capacity(equations.len());
+            for key in &equations {
+                let bytes = ctx.get(key).await?;
+                decoded
+                    .push(decode_field(&bytes).map_err(|e| TaskError::permanent(format!("field object {key}: {e}")))?);
+            }
+            let solved = blocking(move || {
+                let field_trajectories: Vec<_> = corrections
+                    .iter()
+                    .zip(&positions)
+                    .map(|(c, p)| precimap_estimate::FieldTrajectory { positions: p, corrections: c })
+                    .collect();
+                let field = precimap_estimate::solve_field(decoded.iter(), &field_trajectories, &params)?;
+                let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
+                let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
+                let max_m = positions.iter().map(|p| field.max_at(p)).fold(0.0, f64::max);
+                Ok::<_, precimap_estimate::field::FieldError>((start, before, max_m, field.nodes.len()))
+            })
+            .await?
+            .map_err(|e| {
+                TaskError::permanent(format!(
+                    "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
+                ))
+            })?;
+            let (start, before, max_m, nodes) = solved;
+            let mut outputs = Vec::with_capacity(start.len() + before.len());
+            for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
+                for (t, c) in trajectories.iter().zip(list) {
+                    let key = format!("{prefix}/it/{iteration}/{name}{}.{tag}.bin", t.index);
+                    ctx.put(&key, encode_corrections(c, None)).await?;
+                    outputs.push(OutputKey { name: format!("{name}{}", t.index), object_key: key });
+                }
+            }
+            let result = FieldResult { max_m, nodes, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::SolveTrajectory {

@@ -2,6 +2,7 @@
 //! that completes a stage's last task (DESIGN §3: barriers without a coordinator):
 //!
 //! `prepare` (one `segment_strip` per strip) → { `estimate` k (one `estimate_tile` per tile) →
+//! [`field` k (one `solve_field`, in steps that solve the common-mode field)] →
 //! `solve` k (one `solve_trajectory` per trajectory) } for each schedule step, with the in-process
 //! driver's early-stop rule → `export` (`export_strip` per strip, `export_trajectory` per
 //! trajectory) → `report` (`write_report`) → succeeded.
@@ -23,12 +24,14 @@ use std::collections::BTreeMap;
 
 pub const STAGE_PREPARE: &str = "prepare";
 pub const STAGE_ESTIMATE: &str = "estimate";
+pub const STAGE_FIELD: &str = "field";
 pub const STAGE_SOLVE: &str = "solve";
 pub const STAGE_EXPORT: &str = "export";
 pub const STAGE_REPORT: &str = "report";
 
 pub const KIND_SEGMENT_STRIP: &str = "segment_strip";
 pub const KIND_ESTIMATE_TILE: &str = "estimate_tile";
+pub const KIND_SOLVE_FIELD: &str = "solve_field";
 pub const KIND_SOLVE_TRAJECTORY: &str = "solve_trajectory";
 pub const KIND_EXPORT_STRIP: &str = "export_strip";
 pub const KIND_EXPORT_TRAJECTORY: &str = "export_trajectory";
@@ -37,6 +40,12 @@ pub const KIND_WRITE_REPORT: &str = "write_report";
 /// Output names: `tile` chunks are named by their tile key, blocks by `blocks/{trajectory index}`.
 pub const OUTPUT_CORRECTIONS: &str = "corrections";
 pub const BLOCKS_PREFIX: &str = "blocks/";
+/// A tile's common-mode field equations.
+pub const OUTPUT_FIELD: &str = "field";
+/// `solve_field` outputs: each trajectory's corrections with the field added (`start/{t}`), and
+/// the corrections momentum measures from, shifted alike (`previous/{t}`).
+pub const START_PREFIX: &str = "start/";
+pub const PREVIOUS_PREFIX: &str = "previous/";
 /// A strip's per-point segment ids (a result, like the exported strips).
 pub const SEGMENTS_PREFIX: &str = "segments/";
 
@@ -94,6 +103,18 @@ pub enum TaskInput {
         chunks: Vec<ChunkRef>,
         corrections: Vec<CorrectionsRef>,
     },
+    SolveField {
+        prefix: String,
+        iteration: u32,
+        params: Parameters,
+        /// Every trajectory (its anchors' positions come from its file).
+        trajectories: Vec<TrajectoryInput>,
+        current: Vec<CorrectionsRef>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        previous: Option<Vec<CorrectionsRef>>,
+        /// Field equation object keys in tile order (the in-process driver's summation order).
+        equations: Vec<String>,
+    },
     SolveTrajectory {
         prefix: String,
         iteration: u32,
@@ -131,6 +152,7 @@ impl TaskInput {
         match self {
             Self::SegmentStrip { .. } => KIND_SEGMENT_STRIP,
             Self::EstimateTile { .. } => KIND_ESTIMATE_TILE,
+            Self::SolveField { .. } => KIND_SOLVE_FIELD,
             Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
             Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
             Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
@@ -159,6 +181,14 @@ pub struct SegmentResult {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EstimateResult {
     pub stats: TileStats,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FieldResult {
+    /// Largest translation the field applied to an anchor.
+    pub max_m: f64,
+    pub nodes: usize,
     pub seconds: f64,
 }
 
@@ -203,6 +233,16 @@ pub struct PlanState {
     pub previous_corrections: Vec<Option<String>>,
     #[serde(default)]
     pub previous_step: Option<IterationStep>,
+    /// Blocks keys per trajectory between the map stage and the reduce stage (while the field
+    /// stage runs in between).
+    #[serde(default)]
+    pub pending_blocks: Vec<Vec<String>>,
+    /// This iteration's corrections with the field added, which the reduce stage starts from
+    /// (empty in iterations without a field).
+    #[serde(default)]
+    pub started_from: Vec<Option<String>>,
+    #[serde(default)]
+    pub pending_field_max_m: f64,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
     pub pending_seconds: f64,
@@ -269,6 +309,9 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         corrections: vec![None; trajectories.len()],
         previous_corrections: vec![None; trajectories.len()],
         previous_step: None,
+        pending_blocks: Vec::new(),
+        started_from: Vec::new(),
+        pending_field_max_m: 0.0,
         pending_stats: None,
         pending_seconds: 0.0,
         iterations: Vec::new(),
@@ -340,6 +383,7 @@ impl StagePlanner for CampaignPlanner {
                 }
             }
             STAGE_ESTIMATE => after_estimate(&mut state, &finished.tasks)?,
+            STAGE_FIELD => after_field(&mut state, &finished.tasks)?,
             STAGE_SOLVE => {
                 let (record, next) = after_solve(&mut state, &finished.tasks)?;
                 iteration = Some(record);
@@ -463,12 +507,17 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     per_tile.sort_by_key(|(k, _)| *k);
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
     let mut blocks: Vec<Vec<String>> = vec![Vec::new(); state.trajectories.len()];
+    let mut equations = Vec::new();
     let mut seconds = 0.0;
     for (_, task) in &per_tile {
         let r: EstimateResult = parse(task)?;
         stats.merge(&r.stats);
         seconds += r.seconds;
         for out in &task.outputs {
+            if out.name == OUTPUT_FIELD {
+                equations.push(out.object_key.clone());
+                continue;
+            }
             let t: usize = out
                 .name
                 .strip_prefix(BLOCKS_PREFIX)
@@ -481,8 +530,85 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let with_sigma = state.step_index + 1 == state.params.schedule.len();
     let momentum = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
+    if !step.solves_field(&state.params) {
+        let current = state.corrections.clone();
+        let previous = momentum.then(|| state.previous_corrections.clone());
+        return Ok(solve_stage(state, blocks, current, previous));
+    }
+    state.pending_blocks = blocks;
+    let refs = |keys: &[Option<String>]| -> Vec<CorrectionsRef> {
+        state
+            .trajectories
+            .iter()
+            .map(|t| CorrectionsRef {
+                trajectory: t.index,
+                anchors: state.anchor_ranges[t.index as usize],
+                key: keys.get(t.index as usize).cloned().flatten(),
+            })
+            .collect()
+    };
+    let task = TaskInput::SolveField {
+        prefix: state.prefix.clone(),
+        iteration: state.iteration,
+        params: state.params.clone(),
+        trajectories: state.trajectories.clone(),
+        current: refs(&state.corrections),
+        previous: momentum.then(|| refs(&state.previous_corrections)),
+        equations,
+    }
+    .task("field".into());
+    Ok(Next::Stage(StageSpec { stage: STAGE_FIELD.to_string(), iteration: state.iteration as i32, tasks: vec![task] }))
+}
+
+fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, String> {
+    let task = tasks.first().ok_or("the field stage finished without its task")?;
+    let r: FieldResult = parse(task)?;
+    state.pending_seconds += r.seconds;
+    state.pending_field_max_m = r.max_m;
+    let n = state.trajectories.len();
+    let mut start = vec![None; n];
+    let mut previous = vec![None; n];
+    let mut any_previous = false;
+    for out in &task.outputs {
+        let (slot, name) = if let Some(t) = out.name.strip_prefix(START_PREFIX) {
+            (&mut start, t)
+        } else if let Some(t) = out.name.strip_prefix(PREVIOUS_PREFIX) {
+            any_previous = true;
+            (&mut previous, t)
+        } else {
+            return Err(format!("{}: unexpected output {:?}", task.key, out.name));
+        };
+        let t: usize = name
+            .parse()
+            .ok()
+            .filter(|&t: &usize| t < n)
+            .ok_or_else(|| format!("{}: output {:?} names no trajectory", task.key, out.name))?;
+        slot[t] = Some(out.object_key.clone());
+    }
+    if start.iter().any(Option::is_none) {
+        return Err(format!("{}: not every trajectory's shifted corrections were recorded", task.key));
+    }
+    let blocks = std::mem::take(&mut state.pending_blocks);
+    state.started_from = start.clone();
+    Ok(solve_stage(state, blocks, start, any_previous.then_some(previous)))
+}
+
+/// The reduce stage: one `solve_trajectory` per trajectory from `current` (with `previous` when
+/// momentum carries the last step on).
+fn solve_stage(
+    state: &mut PlanState,
+    mut blocks: Vec<Vec<String>>,
+    current: Vec<Option<String>>,
+    previous: Option<Vec<Option<String>>>,
+) -> Next {
+    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
+    let with_sigma = state.step_index + 1 == state.params.schedule.len();
+    let reference = |keys: &[Option<String>], t: u32| CorrectionsRef {
+        trajectory: t,
+        anchors: state.anchor_ranges[t as usize],
+        key: keys.get(t as usize).cloned().flatten(),
+    };
     let tasks = state
         .trajectories
         .iter()
@@ -494,25 +620,23 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
                 step,
                 params: state.params.clone(),
                 with_sigma,
-                current: corrections_ref(state, traj.index),
-                previous: momentum.then(|| CorrectionsRef {
-                    trajectory: traj.index,
-                    anchors: state.anchor_ranges[traj.index as usize],
-                    key: state.previous_corrections.get(traj.index as usize).cloned().flatten(),
-                }),
+                current: reference(&current, traj.index),
+                previous: previous.as_ref().map(|p| reference(p, traj.index)),
                 blocks: std::mem::take(&mut blocks[traj.index as usize]),
             }
             .task(traj.id.clone())
         })
         .collect();
-    Ok(Next::Stage(StageSpec { stage: STAGE_SOLVE.to_string(), iteration: state.iteration as i32, tasks }))
+    Next::Stage(StageSpec { stage: STAGE_SOLVE.to_string(), iteration: state.iteration as i32, tasks })
 }
 
 fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(IterationRecord, Next), String> {
     let mut max_change = 0.0f64;
     let mut changes = precimap_core::ChangeHistogram::default();
     let mut reports = vec![None; state.trajectories.len()];
-    state.previous_corrections = state.corrections.clone();
+    // Momentum measures the next step from where this one started (after the field, if any).
+    state.previous_corrections =
+        if state.started_from.is_empty() { state.corrections.clone() } else { std::mem::take(&mut state.started_from) };
     state.previous_step = Some(effective_step(&state.params, state.step_index, state.robust_sigma));
     let mut seconds = state.pending_seconds;
     for task in tasks {
@@ -535,7 +659,8 @@ fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Iterati
     state.trajectory_reports = reports.into_iter().flatten().collect();
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, seconds);
+    let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, seconds);
+    report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();
     state.estimate_s += seconds;

@@ -19,6 +19,8 @@ pub enum PipelineError {
     Estimate { tile: String, source: precimap_estimate::EstimateError },
     #[error("trajectory {trajectory}: the normal equations could not be solved ({source}); the campaign parameters (sigma values) are probably inconsistent")]
     Solve { trajectory: String, source: precimap_solve::SolveError },
+    #[error("common-mode field: {0}; check parameters.common_mode_field_m and the sigma values")]
+    Field(precimap_estimate::field::FieldError),
 }
 
 impl PipelineError {

@@ -52,6 +52,10 @@ impl StripReport {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct IterationReport {
     pub iteration: usize,
+    /// Largest translation the common-mode field solved in this iteration applied to an anchor
+    /// (0 in steps without it).
+    #[serde(default)]
+    pub common_mode_field_max_m: f64,
     pub grid_m: f64,
     pub threshold_m: f64,
     /// Points in tile cores (each point once).

@@ -10,7 +10,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::TileStats;
+use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -33,11 +33,12 @@ pub enum Progress {
 }
 
 /// The campaign's state after preparation: which strips each tile holds and every trajectory's
-/// anchor range.
+/// anchor range (and its anchors' horizontal positions, where the common-mode field acts).
 #[derive(Debug)]
 pub struct Prepared {
     pub tiles: BTreeMap<TileKey, Vec<usize>>,
     pub anchor_ranges: Vec<(u32, u32)>,
+    pub anchor_positions: Vec<Vec<[f64; 2]>>,
     pub strips: Vec<StripReport>,
     pub points_total: u64,
 }
@@ -79,10 +80,31 @@ pub fn prepare_all(
             *r = (0, 0);
         }
     }
-    Ok(Prepared { tiles, anchor_ranges, strips, points_total })
+    let anchor_positions = campaign
+        .trajectories
+        .iter()
+        .zip(&anchor_ranges)
+        .map(|(t, &(a, b))| {
+            t.data.horizontal_positions_along(campaign.params.anchor_spacing_m, a, (b - a + 1) as usize)
+        })
+        .collect();
+    Ok(Prepared { tiles, anchor_ranges, anchor_positions, strips, points_total })
 }
 
-/// One iteration: every tile's map task, then every trajectory's reduce task.
+/// What one iteration produced.
+#[derive(Debug)]
+pub struct Iterated {
+    pub solutions: Vec<precimap_estimate::TrajectorySolution>,
+    pub stats: TileStats,
+    /// The common-mode field, in steps that solve it.
+    pub field: Option<FieldSolution>,
+    /// The corrections the per-trajectory solves started from: the input corrections plus the
+    /// field (the input itself without one). Momentum measures the next step from these.
+    pub started_from: Vec<TrajectoryCorrections>,
+}
+
+/// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
+/// then every trajectory's reduce task.
 pub fn iterate(
     campaign: &Campaign,
     work: &Path,
@@ -91,7 +113,7 @@ pub fn iterate(
     previous: Option<&[TrajectoryCorrections]>,
     step: &precimap_core::IterationStep,
     with_sigma: bool,
-) -> Result<(Vec<precimap_estimate::TrajectorySolution>, TileStats), PipelineError> {
+) -> Result<Iterated, PipelineError> {
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
     let estimates = tiles
         .par_iter()
@@ -108,15 +130,35 @@ pub fn iterate(
             per_trajectory[tb.trajectory as usize].extend(tb.blocks.iter());
         }
     }
+    let mut field = None;
+    let mut started_from = corrections.to_vec();
+    let mut previous = previous.map(<[TrajectoryCorrections]>::to_vec);
+    if step.solves_field(&campaign.params) {
+        let trajectories: Vec<FieldTrajectory> = corrections
+            .iter()
+            .zip(&prepared.anchor_positions)
+            .map(|(c, positions)| FieldTrajectory { positions, corrections: c })
+            .collect();
+        let solved = solve_field(estimates.iter().filter_map(|e| e.field.as_ref()), &trajectories, &campaign.params)
+            .map_err(PipelineError::Field)?;
+        for (t, positions) in prepared.anchor_positions.iter().enumerate() {
+            started_from[t] = solved.apply(positions, &corrections[t]);
+            // Momentum carries the last fine step only, not this field step.
+            if let Some(p) = previous.as_mut() {
+                p[t] = solved.apply(positions, &p[t]);
+            }
+        }
+        field = Some(solved);
+    }
     let solutions = per_trajectory
         .par_iter()
         .enumerate()
         .map(|(t, blocks)| {
-            let before = previous.map(|p| &p[t]);
-            solve_trajectory_task(campaign, t, blocks.iter().copied(), &corrections[t], before, step, with_sigma)
+            let before = previous.as_ref().map(|p| &p[t]);
+            solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, with_sigma)
         })
         .collect::<Result<Vec<_>, _>>()?;
-    Ok((solutions, stats))
+    Ok(Iterated { solutions, stats, field, started_from })
 }
 
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
@@ -156,17 +198,21 @@ pub fn run_campaign(
             previous.as_ref().filter(|(_, s)| step.momentum_continues(s, &campaign.params)).map(|(c, _)| c.as_slice());
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
-        let (sol, stats) = iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
+        let Iterated { solutions: sol, stats, field, started_from } =
+            iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
         let mut changes = precimap_core::ChangeHistogram::default();
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
         let next = sol.iter().map(|s| s.corrections.clone()).collect();
-        previous = Some((std::mem::replace(&mut corrections, next), *step));
+        corrections = next;
+        previous = Some((started_from, *step));
         solutions = sol;
         histogram = stats.histogram.clone();
         robust_sigma = histogram.robust_sigma_m();
         let seconds = iteration_started.elapsed().as_secs_f64();
-        let report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
+        let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
+        report.common_mode_field_max_m =
+            field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
@@ -267,6 +313,7 @@ pub fn iteration_report(
 ) -> IterationReport {
     IterationReport {
         iteration,
+        common_mode_field_max_m: 0.0,
         grid_m: step.grid_m,
         threshold_m: step.threshold_m,
         points_in_tiles: stats.points,

@@ -1,0 +1,437 @@
+//! The common-mode field: the coarse level of a two-level estimation (ARCHITECTURE.md,
+//! "Estimation robustness").
+//!
+//! Alternating least squares moves a correction that every pass at a place shares by only a
+//! few per cent per iteration: the latent map follows the strips, so only the GNSS/IMU prior and
+//! the small disagreement between scan heads that see a place from different vehicle positions
+//! resist it. The field is that mode made explicit: a translation `c(x, y)`, bilinear between
+//! nodes on a square grid, added to every trajectory's correction at its anchors' horizontal
+//! positions. Its least-squares problem eliminates the map exactly: moving every pass by the
+//! field moves a point's latent height by the mean of the passes that build it, so a point's
+//! observation row is `n/(n+1) · (φ(v) − φ(v̄))·w` (`v` its scan head's position, `v̄` the mean
+//! of the other passes' positions there, `n` their count, `w` the surface normal). A constant
+//! field therefore has no data term at all and only the prior decides it, as it must.
+//!
+//! [`FieldAccumulator`] sums these rows in a tile ([`FieldEquations`], part of the map task's
+//! output); [`solve_field`] adds the prior, smoothness and curvature terms of every anchor's
+//! translation (exact: they are quadratic in the corrections) and solves the whole field at
+//! once. The per-trajectory solves then run on the shifted corrections as the smoother of the
+//! two-level method, with the data blocks of the same map task: the map moves with the field,
+//! so a point's residual barely changes.
+//!
+//! The field's unknowns are dense (three per node, nodes every `common_mode_field_m` over the
+//! area the trajectories cover): 30 m nodes over 1 km² are ~3,400 unknowns, a Cholesky of a few
+//! seconds. A city-sized campaign needs a sparse factorisation or a coarser grid.
+
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::Parameters;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Grid index of a field node: the node sits at `(ix · spacing, iy · spacing)` (absolute
+/// coordinates).
+pub type FieldNode = (i64, i64);
+
+/// Bilinear weights of the four nodes around `(x, y)`.
+#[inline]
+pub fn bilinear(x: f64, y: f64, spacing: f64) -> [(FieldNode, f64); 4] {
+    let (fx, fy) = (x / spacing, y / spacing);
+    let (ix, iy) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - ix, fy - iy);
+    let (ix, iy) = (ix as i64, iy as i64);
+    [
+        ((ix, iy), (1.0 - tx) * (1.0 - ty)),
+        ((ix + 1, iy), tx * (1.0 - ty)),
+        ((ix, iy + 1), (1.0 - tx) * ty),
+        ((ix + 1, iy + 1), tx * ty),
+    ]
+}
+
+/// The field's data normal equations from one tile: `H` as 3×3 blocks over node pairs
+/// (`a ≤ b`, indices into `nodes`, row-major), `rhs = −Σ ω·row·e`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FieldEquations {
+    pub nodes: Vec<FieldNode>,
+    pub pairs: Vec<(u32, u32, [f64; 9])>,
+    pub rhs: Vec<[f64; 3]>,
+    pub observations: u64,
+}
+
+/// Sums observation rows in a tile. A tile's points see a handful of nodes, so the nodes are a
+/// short list and `H` is dense over them.
+#[derive(Debug)]
+pub struct FieldAccumulator {
+    spacing: f64,
+    nodes: Vec<FieldNode>,
+    h: Vec<[f64; 9]>,
+    rhs: Vec<[f64; 3]>,
+    observations: u64,
+    row: Vec<(usize, f64)>,
+}
+
+impl FieldAccumulator {
+    pub fn new(spacing: f64) -> Self {
+        Self { spacing, nodes: Vec::new(), h: Vec::new(), rhs: Vec::new(), observations: 0, row: Vec::new() }
+    }
+
+    fn index(&mut self, node: FieldNode) -> usize {
+        if let Some(i) = self.nodes.iter().position(|&n| n == node) {
+            return i;
+        }
+        let old = self.nodes.len();
+        let new = old + 1;
+        let mut h = vec![[0.0; 9]; new * new];
+        for a in 0..old {
+            h[a * new..a * new + old].copy_from_slice(&self.h[a * old..(a + 1) * old]);
+        }
+        self.h = h;
+        self.nodes.push(node);
+        self.rhs.push([0.0; 3]);
+        old
+    }
+
+    /// One observation with residual `e` and weight `weight`: the point's own scan head at
+    /// `vehicle`, the other passes' mean at `others` (`count` of them), surface normal `w`.
+    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], count: f64, w: [f64; 3], e: f64, weight: f64) {
+        let k = count / (count + 1.0);
+        let mut row = std::mem::take(&mut self.row);
+        row.clear();
+        for (sign, at) in [(k, vehicle), (-k, others)] {
+            for (node, phi) in bilinear(at[0], at[1], self.spacing) {
+                if phi == 0.0 {
+                    continue;
+                }
+                let i = self.index(node);
+                match row.iter_mut().find(|(j, _)| *j == i) {
+                    Some((_, v)) => *v += sign * phi,
+                    None => row.push((i, sign * phi)),
+                }
+            }
+        }
+        let n = self.nodes.len();
+        let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
+        for &(a, ra) in &row {
+            let s = weight * ra * e;
+            for c in 0..3 {
+                self.rhs[a][c] -= s * w[c];
+            }
+            for &(b, rb) in &row {
+                if b < a {
+                    continue;
+                }
+                let s = weight * ra * rb;
+                let m = &mut self.h[a * n + b];
+                m[0] += s * ww[0];
+                m[1] += s * ww[1];
+                m[2] += s * ww[2];
+                m[4] += s * ww[3];
+                m[5] += s * ww[4];
+                m[8] += s * ww[5];
+            }
+        }
+        self.row = row;
+        self.observations += 1;
+    }
+
+    pub fn finish(self) -> FieldEquations {
+        let n = self.nodes.len();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by_key(|&i| self.nodes[i]);
+        let mut rank = vec![0u32; n];
+        for (r, &i) in order.iter().enumerate() {
+            rank[i] = r as u32;
+        }
+        let mut pairs = Vec::new();
+        for a in 0..n {
+            for b in a..n {
+                let mut m = self.h[a * n + b];
+                if m.iter().all(|&v| v == 0.0) {
+                    continue;
+                }
+                // The accumulator filled the upper triangle of each 3×3 (ww is symmetric).
+                m[3] = m[1];
+                m[6] = m[2];
+                m[7] = m[5];
+                let (ra, rb) = (rank[a], rank[b]);
+                pairs.push(if ra <= rb { (ra, rb, m) } else { (rb, ra, m) });
+            }
+        }
+        pairs.sort_by_key(|p| (p.0, p.1));
+        FieldEquations {
+            nodes: order.iter().map(|&i| self.nodes[i]).collect(),
+            pairs,
+            rhs: order.iter().map(|&i| self.rhs[i]).collect(),
+            observations: self.observations,
+        }
+    }
+}
+
+/// One trajectory as the field sees it: the horizontal position of each anchor of
+/// `corrections` (same order) and the current corrections.
+#[derive(Debug)]
+pub struct FieldTrajectory<'a> {
+    pub positions: &'a [[f64; 2]],
+    pub corrections: &'a TrajectoryCorrections,
+}
+
+/// The solved field: a translation per node.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FieldSolution {
+    pub spacing_m: f64,
+    pub nodes: Vec<FieldNode>,
+    pub values: Vec<[f64; 3]>,
+    /// Data observations summed over all tiles.
+    pub observations: u64,
+}
+
+impl FieldSolution {
+    /// The field's translation at `(x, y)`; zero at nodes it does not hold.
+    pub fn at(&self, x: f64, y: f64) -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for (node, phi) in bilinear(x, y, self.spacing_m) {
+            if let Ok(i) = self.nodes.binary_search(&node) {
+                for (c, v) in out.iter_mut().zip(&self.values[i]) {
+                    *c += phi * v;
+                }
+            }
+        }
+        out
+    }
+
+    /// `corrections` with the field added to every anchor's translation.
+    pub fn apply(&self, positions: &[[f64; 2]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
+        let mut out = corrections.clone();
+        for (v, p) in out.values.iter_mut().zip(positions) {
+            let c = self.at(p[0], p[1]);
+            for a in 0..3 {
+                v[a] += c[a];
+            }
+        }
+        out
+    }
+
+    /// Largest translation the field applies at any of `positions`.
+    pub fn max_at(&self, positions: &[[f64; 2]]) -> f64 {
+        positions
+            .iter()
+            .map(|p| {
+                let v = self.at(p[0], p[1]);
+                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+            })
+            .fold(0.0, f64::max)
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FieldError {
+    #[error("trajectory {trajectory}: {positions} anchor positions for {anchors} anchors")]
+    Positions { trajectory: usize, positions: usize, anchors: usize },
+    #[error("the common-mode field's normal equations are not positive definite ({nodes} nodes)")]
+    Singular { nodes: usize },
+}
+
+/// Solves the common-mode field from the tiles' data equations plus every anchor's prior and
+/// first-difference smoothness, linearised about the current corrections.
+pub fn solve_field<'a>(
+    equations: impl IntoIterator<Item = &'a FieldEquations>,
+    trajectories: &[FieldTrajectory],
+    params: &Parameters,
+) -> Result<FieldSolution, FieldError> {
+    let spacing = params.common_mode_field_m;
+    for (t, tr) in trajectories.iter().enumerate() {
+        if tr.positions.len() != tr.corrections.values.len() {
+            return Err(FieldError::Positions {
+                trajectory: t,
+                positions: tr.positions.len(),
+                anchors: tr.corrections.values.len(),
+            });
+        }
+    }
+    let equations: Vec<&FieldEquations> = equations.into_iter().collect();
+    // Node numbering: every node a tile or an anchor touches, in grid order.
+    let mut index: BTreeMap<FieldNode, usize> = BTreeMap::new();
+    for e in &equations {
+        for &n in &e.nodes {
+            index.insert(n, 0);
+        }
+    }
+    for tr in trajectories {
+        for p in tr.positions {
+            for (n, phi) in bilinear(p[0], p[1], spacing) {
+                if phi > 0.0 {
+                    index.insert(n, 0);
+                }
+            }
+        }
+    }
+    for (i, v) in index.values_mut().enumerate() {
+        *v = i;
+    }
+    let nodes = index.len();
+    let dim = 3 * nodes;
+    let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
+    let mut rhs = nalgebra::DVector::<f64>::zeros(dim);
+    let mut observations = 0;
+    for e in &equations {
+        observations += e.observations;
+        let global: Vec<usize> = e.nodes.iter().map(|n| index[n]).collect();
+        for &(a, b, m) in &e.pairs {
+            let (ga, gb) = (global[a as usize], global[b as usize]);
+            for r in 0..3 {
+                for c in 0..3 {
+                    h[(3 * ga + r, 3 * gb + c)] += m[3 * r + c];
+                    if ga != gb {
+                        h[(3 * gb + c, 3 * ga + r)] += m[3 * r + c];
+                    }
+                }
+            }
+        }
+        for (n, r) in e.rhs.iter().enumerate() {
+            for c in 0..3 {
+                rhs[3 * global[n] + c] += r[c];
+            }
+        }
+    }
+    // Prior and smoothness act on each axis alike: one scalar weight per node pair.
+    let prior = 1.0 / (params.sigma_prior_position_m * params.sigma_prior_position_m);
+    let smooth = 1.0 / (params.sigma_smooth_position_m * params.sigma_smooth_position_m);
+    let curvature = match params.sigma_curvature_position_m {
+        s if s > 0.0 => 1.0 / (s * s),
+        _ => 0.0,
+    };
+    let mut add_term = |row: &[(usize, f64)], value: [f64; 3], weight: f64| {
+        for &(a, ra) in row {
+            for c in 0..3 {
+                rhs[3 * a + c] -= weight * ra * value[c];
+            }
+            for &(b, rb) in row {
+                for c in 0..3 {
+                    h[(3 * a + c, 3 * b + c)] += weight * ra * rb;
+                }
+            }
+        }
+    };
+    let row_at = |p: &[f64; 2]| -> Vec<(usize, f64)> {
+        bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
+    };
+    for tr in trajectories {
+        let values = &tr.corrections.values;
+        let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
+        for (k, row) in rows.iter().enumerate() {
+            add_term(row, [values[k][0], values[k][1], values[k][2]], prior);
+            if k + 1 < rows.len() {
+                let mut diff = rows[k + 1].clone();
+                for &(a, ra) in row {
+                    match diff.iter_mut().find(|(b, _)| *b == a) {
+                        Some((_, v)) => *v -= ra,
+                        None => diff.push((a, -ra)),
+                    }
+                }
+                let d = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
+                add_term(&diff, d, smooth);
+            }
+            if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
+                let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
+                for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
+                    for &(a, ra) in r {
+                        match second.iter_mut().find(|(b, _)| *b == a) {
+                            Some((_, v)) => *v += f * ra,
+                            None => second.push((a, f * ra)),
+                        }
+                    }
+                }
+                let d = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
+                add_term(&second, d, curvature);
+            }
+        }
+    }
+    // A node that only a scan head's lever arm reaches (no anchor near it) may see data in some
+    // directions only; a weak prior on the field itself (σ 10 × the anchors') keeps it definite.
+    for i in 0..dim {
+        h[(i, i)] += prior * 1e-2;
+    }
+    let solution = match nalgebra::Cholesky::new(h) {
+        Some(chol) => chol.solve(&rhs),
+        None => return Err(FieldError::Singular { nodes }),
+    };
+    Ok(FieldSolution {
+        spacing_m: spacing,
+        nodes: index.keys().copied().collect(),
+        values: (0..nodes).map(|i| [solution[3 * i], solution[3 * i + 1], solution[3 * i + 2]]).collect(),
+        observations,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_weights_reproduce_linear_functions() {
+        let s = 30.0;
+        for &(x, y) in &[(500_012.3, 5_400_027.9), (-14.0, 3.0), (60.0, 90.0)] {
+            let w = bilinear(x, y, s);
+            let total: f64 = w.iter().map(|(_, p)| p).sum();
+            assert!((total - 1.0).abs() < 1e-12);
+            let fx: f64 = w.iter().map(|((ix, _), p)| p * (*ix as f64) * s).sum();
+            let fy: f64 = w.iter().map(|((_, iy), p)| p * (*iy as f64) * s).sum();
+            assert!((fx - x).abs() < 1e-6 && (fy - y).abs() < 1e-6, "{fx} {fy}");
+        }
+    }
+
+    #[test]
+    fn accumulator_equals_the_dense_outer_product_and_ignores_a_constant_field() {
+        let mut acc = FieldAccumulator::new(10.0);
+        let w = [0.6, 0.0, 0.8];
+        // Same position for the point and the other passes: the row is zero.
+        acc.add([3.0, 4.0], [3.0, 4.0], 2.0, w, 0.01, 5.0);
+        let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
+        assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
+        // One row across two cells against a dense computation.
+        let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
+        acc.add(v, o, n, w, e, weight);
+        let eq = acc.finish();
+        let k = n / (n + 1.0);
+        let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
+        for (node, phi) in bilinear(v[0], v[1], 10.0) {
+            *row.entry(node).or_default() += k * phi;
+        }
+        for (node, phi) in bilinear(o[0], o[1], 10.0) {
+            *row.entry(node).or_default() -= k * phi;
+        }
+        for &(a, b, m) in &eq.pairs {
+            let (ra, rb) = (row[&eq.nodes[a as usize]], row[&eq.nodes[b as usize]]);
+            for r in 0..3 {
+                for c in 0..3 {
+                    assert!((m[3 * r + c] - weight * ra * rb * w[r] * w[c]).abs() < 1e-12);
+                }
+            }
+        }
+        for (node, r) in eq.nodes.iter().zip(&eq.rhs) {
+            for c in 0..3 {
+                assert!((r[c] + weight * row[node] * e * w[c]).abs() < 1e-12);
+            }
+        }
+        // A constant field does not change the row's value: the coefficients sum to zero.
+        assert!(row.values().sum::<f64>().abs() < 1e-12);
+    }
+
+    #[test]
+    fn without_data_the_prior_takes_a_shared_offset_out() {
+        // A straight trajectory whose corrections all carry the same offset: the prior alone
+        // decides the field, which then cancels the offset at every anchor.
+        let params = Parameters { common_mode_field_m: 20.0, ..Default::default() };
+        let positions: Vec<[f64; 2]> = (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 0.1 * k as f64]).collect();
+        let corrections =
+            TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 200] };
+        let tr = [FieldTrajectory { positions: &positions, corrections: &corrections }];
+        let field = solve_field(std::iter::empty(), &tr, &params).unwrap();
+        let shifted = field.apply(&positions, &corrections);
+        // Within 1 % (the weak prior on the nodes themselves keeps a trace of it).
+        for v in &shifted.values {
+            assert!(v[0].abs() < 1e-3 && v[1].abs() < 2e-3 && v[2].abs() < 5e-4, "{v:?}");
+        }
+        let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections }];
+        assert!(matches!(solve_field(std::iter::empty(), &short, &params), Err(FieldError::Positions { .. })));
+    }
+}
