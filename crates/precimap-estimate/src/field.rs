@@ -91,9 +91,9 @@ impl FieldAccumulator {
     }
 
     /// One observation with residual `e` and weight `weight`: the point's own scan head at
-    /// `vehicle`, the other passes' mean at `others` (`count` of them), surface normal `w`.
-    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], count: f64, w: [f64; 3], e: f64, weight: f64) {
-        let k = count / (count + 1.0);
+    /// `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
+    /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`.
+    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
         let mut row = std::mem::take(&mut self.row);
         row.clear();
         for (sign, at) in [(k, vehicle), (-k, others)] {
@@ -384,12 +384,12 @@ mod tests {
         let mut acc = FieldAccumulator::new(10.0);
         let w = [0.6, 0.0, 0.8];
         // Same position for the point and the other passes: the row is zero.
-        acc.add([3.0, 4.0], [3.0, 4.0], 2.0, w, 0.01, 5.0);
+        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0);
         let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
         assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
         // One row across two cells against a dense computation.
         let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
-        acc.add(v, o, n, w, e, weight);
+        acc.add(v, o, n / (n + 1.0), w, e, weight);
         let eq = acc.finish();
         let k = n / (n + 1.0);
         let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();

@@ -340,7 +340,7 @@ pub fn estimate_tile(
     let (latent, others) = if grid < params.point_latent_below_grid_m {
         point_latent(&triangles, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats)
     } else {
-        (raster_latent(&triangles, grid, &in_core, &mut stats), Vec::new())
+        raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats)
     };
     let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
@@ -379,8 +379,8 @@ pub fn estimate_tile(
             let g = [w[0], w[1], w[2], rw[0], rw[1], rw[2]];
             intervals[(chunk.anchor[k] - first) as usize].add(&g, e, weight, chunk.lambda[k] as f64);
             if let Some(field) = field.as_mut() {
-                let [x, y, count] = others[a];
-                field.add(vehicle[a], [x, y], count, w, e, weight);
+                let [x, y, share] = others[a];
+                field.add(vehicle[a], [x, y], share, w, e, weight);
             }
         }
         let blocks = per_trajectory.entry(chunk.trajectory).or_default();
@@ -595,7 +595,17 @@ impl Triangles<'_> {
 /// Latent heights from height rasters of pixel size `grid`: every triangle is rasterised into
 /// the pixels of its models (heights interpolated at the pixel centres), and a point's latent
 /// height is the bilinear interpolation of the four pixels around it ([`latent_height`]).
-fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool, stats: &mut TileStats) -> Vec<f64> {
+///
+/// With `vehicle` it also returns, per point, the mean scan-head position of everything its
+/// latent height averages (its own pass included, which makes the field's row
+/// `φ(v) − φ(v̄)` carry the other passes' share by itself) and a share of 1, `[x, y, 1]`.
+fn raster_latent(
+    t: &Triangles,
+    grid: f64,
+    in_core: &impl Fn(&[f64; 3]) -> bool,
+    vehicle: Option<&[[f64; 2]]>,
+    stats: &mut TileStats,
+) -> (Vec<f64>, Vec<[f64; 3]>) {
     let models = t.models;
     // Raster extents from the member points; one pixel of margin on each side keeps bilinear
     // interpolation inside the raster.
@@ -627,7 +637,9 @@ fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool,
         })
         .collect();
     let mut pixels = vec![Pixel::default(); pixel_count];
-    t.for_each(|id, p, strip, anchor, _| {
+    let mut pixel_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { pixel_count } else { 0 }];
+    t.for_each(|id, p, strip, anchor, first| {
+        let from = vehicle.map_or([0.0; 2], |v| v[first]);
         let (m, r) = (&models[id as usize], &rasters[id as usize]);
         let tag = pass_tag(strip, anchor);
         let mut x = [0.0; 3];
@@ -640,7 +652,12 @@ fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool,
             h[k] = hh;
         }
         scan_triangle(x, y, h, r.nu as i64, r.nv as i64, |i, j, height| {
-            pixels[r.offset + j * r.nu as usize + i].add(height as f32, tag);
+            let at = r.offset + j * r.nu as usize + i;
+            pixels[at].add(height as f32, tag);
+            if let Some(v) = pixel_vehicle.get_mut(at) {
+                v[0] += from[0];
+                v[1] += from[1];
+            }
         });
     });
     stats.pixels = pixel_count as u64;
@@ -652,18 +669,47 @@ fn raster_latent(t: &Triangles, grid: f64, in_core: &impl Fn(&[f64; 3]) -> bool,
             stats.pixel_std_sum_m += var.sqrt();
         }
     }
-    t.position
+    let mut others = vec![[0.0; 3]; if vehicle.is_some() { t.position.len() } else { 0 }];
+    let latent = t
+        .position
         .iter()
         .zip(t.model_of)
-        .map(|(p, &id)| {
+        .enumerate()
+        .map(|(a, (p, &id))| {
             if id == NONE || !in_core(p) {
                 return f64::NAN;
             }
             let m = &models[id as usize];
+            let r = &rasters[id as usize];
             let (u, v, _) = m.project(p);
-            latent_height(&rasters[id as usize], &pixels, u, v, grid).unwrap_or(f64::NAN)
+            let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
+            if let (false, Some(o)) = (h.is_nan(), others.get_mut(a)) {
+                *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
+            }
+            h
         })
-        .collect()
+        .collect();
+    (latent, others)
+}
+
+/// Mean scan-head position of the contributions to the four pixels a point's latent height
+/// interpolates, weighted like the heights (bilinear), as `[x, y, 1]`.
+fn raster_vehicle_mean(r: &Raster, pixels: &[Pixel], vehicle: &[[f64; 2]], u: f64, v: f64, grid: f64) -> [f64; 3] {
+    let fu = (u - r.u0) / grid - 0.5;
+    let fv = (v - r.v0) / grid - 0.5;
+    let (i0, j0) = (fu.floor(), fv.floor());
+    let (tu, tv) = (fu - i0, fv - j0);
+    let (i0, j0) = (i0 as usize, j0 as usize);
+    let mut out = [0.0, 0.0, 1.0];
+    for (di, dj, wgt) in
+        [(0, 0, (1.0 - tu) * (1.0 - tv)), (1, 0, tu * (1.0 - tv)), (0, 1, (1.0 - tu) * tv), (1, 1, tu * tv)]
+    {
+        let at = r.offset + (j0 + dj) * r.nu as usize + i0 + di;
+        let c = pixels[at].count as f64;
+        out[0] += wgt * vehicle[at][0] / c;
+        out[1] += wgt * vehicle[at][1] / c;
+    }
+    out
 }
 
 /// Latent heights evaluated exactly at the points of the tile's core — the limit of an
@@ -828,6 +874,7 @@ fn point_latent(
         }
     });
     let mut latent = vec![f64::NAN; n];
+    // [x, y, share of the other passes in the latent mean].
     let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
     for (q, &a) in items.iter().enumerate() {
         let s = &acc[q];
@@ -844,7 +891,7 @@ fn point_latent(
         if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
             latent[a as usize] = mean;
             if let Some(o) = others.get_mut(a as usize) {
-                *o = [s.vehicle[0] / c, s.vehicle[1] / c, c];
+                *o = [s.vehicle[0] / c, s.vehicle[1] / c, c / (c + 1.0)];
             }
         }
     }
