@@ -139,6 +139,9 @@ struct EstimateBench {
     /// Peak resident memory during the measured iterations.
     peak_rss_bytes: u64,
     largest_tile_points: u64,
+    /// Thread CPU of one pass with the common-mode field's rows (the default) over one pass
+    /// without them (`common_mode_field_m` 0), single thread: what the field costs the map task.
+    field_cpu_ratio: f64,
 }
 
 fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
@@ -154,34 +157,37 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
     let threads = rayon::current_num_threads();
 
     // One pass over all tiles: returns (compute seconds summed over tiles, wall seconds, points).
-    let pass = |pool: &rayon::ThreadPool| -> Result<(f64, f64, u64, u64, u64, f64)> {
-        let started = Instant::now();
-        let per_tile = pool.install(|| {
-            tiles
-                .par_iter()
-                .map(|(tile, strips)| -> Result<(f64, u64, u64, f64)> {
-                    let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-                    let chunks = tasks::load_tile(&work, **tile, &ids)?;
-                    let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
-                    let t = Instant::now();
-                    let cpu = thread_cpu_s();
-                    let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, &campaign.params, &step)?;
-                    let cpu = match (cpu, thread_cpu_s()) {
-                        (Some(a), Some(b)) => b - a,
-                        _ => f64::NAN,
-                    };
-                    Ok((t.elapsed().as_secs_f64(), est.stats.points, copies, cpu))
-                })
-                .collect::<Result<Vec<_>>>()
-        })?;
-        let wall = started.elapsed().as_secs_f64();
-        let compute: f64 = per_tile.iter().map(|r| r.0).sum();
-        let points: u64 = per_tile.iter().map(|r| r.1).sum();
-        let copies: u64 = per_tile.iter().map(|r| r.2).sum();
-        let largest = per_tile.iter().map(|r| r.2).max().unwrap_or(0);
-        let cpu: f64 = per_tile.iter().map(|r| r.3).sum();
-        Ok((compute, wall, points, copies, largest, cpu))
-    };
+    let without_field = precimap_core::Parameters { common_mode_field_m: 0.0, ..campaign.params.clone() };
+    let pass_with =
+        |pool: &rayon::ThreadPool, params: &precimap_core::Parameters| -> Result<(f64, f64, u64, u64, u64, f64)> {
+            let started = Instant::now();
+            let per_tile = pool.install(|| {
+                tiles
+                    .par_iter()
+                    .map(|(tile, strips)| -> Result<(f64, u64, u64, f64)> {
+                        let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
+                        let chunks = tasks::load_tile(&work, **tile, &ids)?;
+                        let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
+                        let t = Instant::now();
+                        let cpu = thread_cpu_s();
+                        let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, &step)?;
+                        let cpu = match (cpu, thread_cpu_s()) {
+                            (Some(a), Some(b)) => b - a,
+                            _ => f64::NAN,
+                        };
+                        Ok((t.elapsed().as_secs_f64(), est.stats.points, copies, cpu))
+                    })
+                    .collect::<Result<Vec<_>>>()
+            })?;
+            let wall = started.elapsed().as_secs_f64();
+            let compute: f64 = per_tile.iter().map(|r| r.0).sum();
+            let points: u64 = per_tile.iter().map(|r| r.1).sum();
+            let copies: u64 = per_tile.iter().map(|r| r.2).sum();
+            let largest = per_tile.iter().map(|r| r.2).max().unwrap_or(0);
+            let cpu: f64 = per_tile.iter().map(|r| r.3).sum();
+            Ok((compute, wall, points, copies, largest, cpu))
+        };
+    let pass = |pool: &rayon::ThreadPool| pass_with(pool, &campaign.params);
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
@@ -189,6 +195,7 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
     let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
     let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
     let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
+    let (_, _, _, _, _, cpu_without) = pass_with(&single, &without_field)?;
     let wall_all = wn.min(wn2);
     let compute_all = cn2;
     let result = EstimateBench {
@@ -206,6 +213,7 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         parallel_efficiency: (points as f64 / wall_all) / (points as f64 / c1) / threads as f64,
         peak_rss_bytes: peak_rss_bytes(),
         largest_tile_points: largest,
+        field_cpu_ratio: cpu1 / cpu_without,
     };
     if json {
         outln!("{}", serde_json::to_string_pretty(&result)?);
@@ -213,7 +221,8 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         outln!(
             "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
-             peak RSS {:.0} MiB (largest tile {} point copies)",
+             peak RSS {:.0} MiB (largest tile {} point copies)\n  \
+             common-mode field rows: {:.3}× the CPU of the same pass without them (1 thread)",
             result.points_in_tiles,
             result.tiles,
             result.point_copies,
@@ -224,7 +233,8 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
             result.iteration_points_per_s_per_core / 1e6,
             result.parallel_efficiency * 100.0,
             result.peak_rss_bytes as f64 / (1 << 20) as f64,
-            result.largest_tile_points
+            result.largest_tile_points,
+            result.field_cpu_ratio
         );
     }
     Ok(())

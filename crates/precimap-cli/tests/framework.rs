@@ -297,6 +297,24 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
             restarted = true;
         }
     };
+    // The executor that finished the campaign removes the killed attempts' objects right after
+    // its commit; stopping the executors (SIGKILL) before it is done would cut that short.
+    let orphans = || {
+        rt.block_on(async {
+            let jobs = JobStore::connect(&db).await.unwrap();
+            let objects = Objects::from_url(&store).unwrap();
+            let campaign = jobs.campaign(id).await.unwrap().unwrap();
+            let recorded: std::collections::HashSet<String> =
+                jobs.recorded_keys(id).await.unwrap().into_iter().collect();
+            let stored = objects.list(&campaign.object_prefix).await.unwrap();
+            jobs.close().await;
+            stored.iter().filter(|k| !recorded.contains(*k)).count()
+        })
+    };
+    let waited = Instant::now();
+    while orphans() > 0 && waited.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(200));
+    }
     drop(workers);
     eprintln!(
         "chaos: {kills} executors killed, database restarted: {restarted}, {:.0} s",
