@@ -272,10 +272,17 @@ impl Parameters {
         if !(0.0..1.0).contains(&self.momentum) {
             out.push(ParameterProblem { field: "momentum".into(), problem: "must be in [0, 1)".into() });
         }
-        if !(self.common_mode_field_m.is_finite() && self.common_mode_field_m >= 0.0) {
+        // Nodes closer than a few metres would see no more than the per-trajectory solves do, and
+        // their count grows with the square of 1/spacing (the field's solve is dense).
+        if !(self.common_mode_field_m.is_finite()
+            && (self.common_mode_field_m == 0.0 || self.common_mode_field_m >= MIN_FIELD_SPACING_M))
+        {
             out.push(ParameterProblem {
                 field: "common_mode_field_m".into(),
-                problem: "must be zero (off) or a positive node spacing in metres".into(),
+                problem: format!(
+                    "must be 0 (off) or a node spacing of at least {MIN_FIELD_SPACING_M} m, got {}",
+                    self.common_mode_field_m
+                ),
             });
         }
         if !(self.point_latent_below_grid_m.is_finite() && self.point_latent_below_grid_m >= 0.0) {
@@ -314,6 +321,9 @@ impl Parameters {
         out
     }
 }
+
+/// Smallest node spacing of the common-mode field.
+pub const MIN_FIELD_SPACING_M: f64 = 5.0;
 
 fn divides(tile: f64, cell: f64) -> bool {
     if !(tile > 0.0 && cell > 0.0) {
@@ -357,6 +367,11 @@ mod tests {
         assert!(!frozen.momentum_continues(&s[6], &p));
         let bad = Parameters { momentum: 1.0, ..Default::default() };
         assert_eq!(bad.problems()[0].field, "momentum");
+        for spacing in [1.0, -30.0, f64::NAN] {
+            let bad = Parameters { common_mode_field_m: spacing, ..Default::default() };
+            assert_eq!(bad.problems()[0].field, "common_mode_field_m");
+        }
+        assert!(Parameters { common_mode_field_m: 0.0, ..Default::default() }.problems().is_empty());
     }
 
     #[test]

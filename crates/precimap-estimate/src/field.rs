@@ -228,7 +228,16 @@ pub enum FieldError {
     Positions { trajectory: usize, positions: usize, anchors: usize },
     #[error("the common-mode field's normal equations are not positive definite ({nodes} nodes)")]
     Singular { nodes: usize },
+    #[error(
+        "the common-mode field would need {nodes} nodes, more than the {limit} its dense solve takes; \
+         raise parameters.common_mode_field_m (the node spacing) or set it to 0"
+    )]
+    TooManyNodes { nodes: usize, limit: usize },
 }
+
+/// Most nodes the dense solve takes: 3 × 3,000 unknowns are a 650 MB matrix and a Cholesky of
+/// about a minute. 30 m nodes reach it at ~2.7 km².
+pub const MAX_FIELD_NODES: usize = 3_000;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior and
 /// first-difference smoothness, linearised about the current corrections.
@@ -268,6 +277,9 @@ pub fn solve_field<'a>(
         *v = i;
     }
     let nodes = index.len();
+    if nodes > MAX_FIELD_NODES {
+        return Err(FieldError::TooManyNodes { nodes, limit: MAX_FIELD_NODES });
+    }
     let dim = 3 * nodes;
     let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
     let mut rhs = nalgebra::DVector::<f64>::zeros(dim);
@@ -431,6 +443,13 @@ mod tests {
         for v in &shifted.values {
             assert!(v[0].abs() < 1e-3 && v[1].abs() < 2e-3 && v[2].abs() < 5e-4, "{v:?}");
         }
+        // Every anchor 1 cm nodes apart touches four nodes of its own: 800 anchors, 3,200 nodes.
+        let fine = Parameters { common_mode_field_m: 0.01, ..Default::default() };
+        let many: Vec<[f64; 2]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047]).collect();
+        let long = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 800] };
+        let tr_long = [FieldTrajectory { positions: &many, corrections: &long }];
+        let err = solve_field(std::iter::empty(), &tr_long, &fine).unwrap_err();
+        assert!(matches!(err, FieldError::TooManyNodes { nodes: 3200, .. }), "{err}");
         let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections }];
         assert!(matches!(solve_field(std::iter::empty(), &short, &params), Err(FieldError::Positions { .. })));
     }
