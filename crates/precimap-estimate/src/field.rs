@@ -239,8 +239,8 @@ pub enum FieldError {
 /// about a minute. 30 m nodes reach it at ~2.7 km².
 pub const MAX_FIELD_NODES: usize = 3_000;
 
-/// Solves the common-mode field from the tiles' data equations plus every anchor's prior and
-/// first-difference smoothness, linearised about the current corrections.
+/// Solves the common-mode field from the tiles' data equations plus every anchor's prior,
+/// smoothness and curvature terms, linearised about the current corrections.
 pub fn solve_field<'a>(
     equations: impl IntoIterator<Item = &'a FieldEquations>,
     trajectories: &[FieldTrajectory],
