@@ -40,7 +40,7 @@ fn tiny_campaign_is_adjusted_towards_the_truth() {
         e.same_surface_spread_m
     );
     // Most surface points take part in the final iteration (71 % measured with the threshold
-    // floor of 3 robust σ, 64 % with the fixed 7 mm).
+    // floor of 3 robust σ, 64 % with the fixed 7 mm; the floor is 4 σ since the common-mode field).
     assert!(e.surface_points_used_share.unwrap() > 0.6, "used {:?}", e.surface_points_used_share);
     // …and the points moved towards the true surfaces, the trajectories towards the true ones.
     assert!(e.surface_error_rms_m.after < 0.6 * e.surface_error_rms_m.before);

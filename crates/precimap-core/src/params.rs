@@ -163,7 +163,7 @@ impl Default for Parameters {
             sigma_curvature_rotation_deg: 0.0001,
             weak_information_ratio: 0.01,
             point_latent_below_grid_m: 0.03,
-            threshold_floor_sigmas: 3.0,
+            threshold_floor_sigmas: 4.0,
             momentum: 0.85,
             common_mode_field_m: 30.0,
             schedule: default_schedule(),
