@@ -47,6 +47,15 @@ pub fn bilinear(x: f64, y: f64, spacing: f64) -> [(FieldNode, f64); 4] {
     ]
 }
 
+/// Adds `value` to node `index` of a sparse row (a handful of entries, so a linear search).
+#[inline]
+fn accumulate(row: &mut Vec<(usize, f64)>, index: usize, value: f64) {
+    match row.iter_mut().find(|(j, _)| *j == index) {
+        Some((_, v)) => *v += value,
+        None => row.push((index, value)),
+    }
+}
+
 /// The field's data normal equations from one tile: `H` as 3×3 blocks over node pairs
 /// (`a ≤ b`, indices into `nodes`, row-major), `rhs = −Σ ω·row·e`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -102,10 +111,7 @@ impl FieldAccumulator {
                     continue;
                 }
                 let i = self.index(node);
-                match row.iter_mut().find(|(j, _)| *j == i) {
-                    Some((_, v)) => *v += sign * phi,
-                    None => row.push((i, sign * phi)),
-                }
+                accumulate(&mut row, i, sign * phi);
             }
         }
         let n = self.nodes.len();
@@ -334,10 +340,7 @@ pub fn solve_field<'a>(
             if k + 1 < rows.len() {
                 let mut diff = rows[k + 1].clone();
                 for &(a, ra) in row {
-                    match diff.iter_mut().find(|(b, _)| *b == a) {
-                        Some((_, v)) => *v -= ra,
-                        None => diff.push((a, -ra)),
-                    }
+                    accumulate(&mut diff, a, -ra);
                 }
                 let d = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
                 add_term(&diff, d, smooth);
@@ -346,10 +349,7 @@ pub fn solve_field<'a>(
                 let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
                 for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
                     for &(a, ra) in r {
-                        match second.iter_mut().find(|(b, _)| *b == a) {
-                            Some((_, v)) => *v += f * ra,
-                            None => second.push((a, f * ra)),
-                        }
+                        accumulate(&mut second, a, f * ra);
                     }
                 }
                 let d = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
