@@ -170,6 +170,32 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         // The failed campaign stops: nothing of it stays queued or leased.
         let counts = jobs.task_counts(bad_id).await.unwrap();
         assert_eq!(counts.queued + counts.leased, 0, "{counts:?}");
+
+        // Objects of lost attempts that land after the finishing executor's clean-up (an attempt
+        // cancelled with the failed campaign still writing; a clean-up cut short) are swept by the
+        // next reconcile once a lease has passed, and each campaign is marked swept.
+        let mut planted = Vec::new();
+        for id in [bad_id, good_id] {
+            let prefix = jobs.campaign(id).await.unwrap().unwrap().object_prefix;
+            let key = format!("{}/it/1/blocks/late.0123456789ab.blk", prefix.trim_end_matches('/'));
+            objects.put(&key, b"lost attempt".to_vec().into()).await.unwrap();
+            planted.push(key);
+        }
+        let sweeper = Executor::new(
+            jobs.clone(),
+            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            ExecutorConfig { lease: Duration::from_millis(20), ..ExecutorConfig::default() },
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        sweeper.reconcile().await.unwrap();
+        for (id, key) in [bad_id, good_id].into_iter().zip(&planted) {
+            assert!(!objects.exists(key).await.unwrap(), "{key} swept");
+            let prefix = jobs.campaign(id).await.unwrap().unwrap().object_prefix;
+            let mut stored = objects.list(&prefix).await.unwrap();
+            stored.sort();
+            assert_eq!(stored, jobs.recorded_keys(id).await.unwrap(), "only recorded outputs remain");
+        }
+        assert_eq!(jobs.claim_sweep(Duration::ZERO, Duration::ZERO).await.unwrap(), None, "both marked swept");
     });
 }
 

@@ -110,7 +110,42 @@ impl Executor {
         for campaign in report.finished {
             self.clean_up(campaign).await;
         }
+        self.sweep_finished().await;
         Ok(())
+    }
+
+    /// The durable half of the orphan clean-up: sweeps finished campaigns that no sweep has
+    /// covered since they finished at least one lease ago (the finishing executor's own clean-up
+    /// may have died mid-way; attempts cancelled with the campaign may have written since), and
+    /// marks each one after its sweep. A failure only postpones it to a later reconcile.
+    async fn sweep_finished(&self) {
+        let lease = self.config.lease;
+        loop {
+            let claimed = retry_transient(self.config.database_patience, || self.jobs.claim_sweep(lease, lease)).await;
+            let campaign = match claimed {
+                Ok(Some(campaign)) => campaign,
+                Ok(None) => return,
+                Err(e) => {
+                    warn!(error = %e, "claiming an orphan sweep failed");
+                    return;
+                }
+            };
+            match clean_orphans(&self.jobs, &self.ctx.objects, campaign).await {
+                Ok(n) => {
+                    if n > 0 {
+                        info!(%campaign, removed = n, "swept objects of lost attempts");
+                    }
+                    if let Err(e) = self.jobs.mark_swept(campaign).await {
+                        warn!(%campaign, error = %e, "recording an orphan sweep failed");
+                    }
+                }
+                Err(e) => {
+                    // Its sweep lease expires and another reconcile tries again.
+                    warn!(%campaign, error = %e, "orphan sweep failed");
+                    return;
+                }
+            }
+        }
     }
 
     /// Claims and runs at most one task.

@@ -34,6 +34,7 @@ both_backends!(
     combined_stale_lease_claims_nothing,
     combined_last_task_advances_the_stage,
     combined_racing_last_completions,
+    orphan_sweep_is_claimed_once_then_marked,
 );
 
 async fn lease_guard(store: JobStore, _url: String) {
@@ -871,5 +872,39 @@ async fn combined_racing_last_completions(store: JobStore, url: String) {
         "the planner ran once per stage, with all of the stage's tasks"
     );
     assert_eq!(store.campaign(id).await.unwrap().unwrap().state, CampaignState::Succeeded);
+    other.close().await;
+}
+
+/// The durable orphan sweep: only finished campaigns past the grace period are due, one claimer
+/// at a time gets each, a sweeper that died lets it go when its sweep lease expires, and a swept
+/// campaign is never due again.
+async fn orphan_sweep_is_claimed_once_then_marked(store: JobStore, url: String) {
+    let running =
+        store.create_campaign(new_campaign("running", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    let id = store.create_campaign(new_campaign("finished", QueueConfig::default()), stage("s0", 0, 1)).await.unwrap();
+    assert_eq!(store.claim_sweep(Duration::ZERO, LONG).await.unwrap(), None, "nothing has finished");
+    assert!(store.cancel_campaign(id).await.unwrap());
+    assert_eq!(store.claim_sweep(LONG, LONG).await.unwrap(), None, "not within the grace period");
+
+    // A sweeper claims it and dies: nobody else gets it until its sweep lease expires.
+    assert_eq!(store.claim_sweep(Duration::ZERO, Duration::from_millis(100)).await.unwrap(), Some(id));
+    assert_eq!(store.claim_sweep(Duration::ZERO, LONG).await.unwrap(), None, "sweep leased");
+    tokio::time::sleep(Duration::from_millis(150)).await;
+
+    // Two claimers at once: exactly one gets it.
+    let other = JobStore::connect(&url).await.unwrap();
+    let (a, b) = tokio::join!(store.claim_sweep(Duration::ZERO, LONG), other.claim_sweep(Duration::ZERO, LONG));
+    let claims: Vec<Uuid> = [a.unwrap(), b.unwrap()].into_iter().flatten().collect();
+    assert_eq!(claims, vec![id]);
+
+    // Marked swept: never due again, even with its sweep lease long expired.
+    store.mark_swept(id).await.unwrap();
+    store.mark_swept(running).await.unwrap();
+    assert_eq!(store.claim_sweep(Duration::ZERO, Duration::ZERO).await.unwrap(), None);
+    assert_eq!(other.claim_sweep(Duration::ZERO, Duration::ZERO).await.unwrap(), None);
+
+    // Marking a running campaign did nothing: once finished, it is due.
+    assert!(store.cancel_campaign(running).await.unwrap());
+    assert_eq!(store.claim_sweep(Duration::ZERO, LONG).await.unwrap(), Some(running));
     other.close().await;
 }
