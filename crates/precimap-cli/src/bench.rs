@@ -566,7 +566,11 @@ fn bench_queue(
             let cpu_started = cpu_seconds();
             let report = precimap_pipeline::run_campaign(
                 &manifest,
-                &precimap_pipeline::RunOptions { out_dir: dir.join("out-in-process"), keep_work: false },
+                &precimap_pipeline::RunOptions {
+                    out_dir: dir.join("out-in-process"),
+                    keep_work: false,
+                    assignments: false,
+                },
                 &|_| {},
             )?;
             let in_process_s = started.elapsed().as_secs_f64();

@@ -54,6 +54,10 @@ enum Command {
         /// Bypass the job framework: the in-process driver (rayon over tiles and trajectories).
         #[arg(long)]
         in_process: bool,
+        /// With --in-process: also write the surface model every point was compared with after
+        /// the last iteration (OUT/assignments; `evaluate` reports the wrong-assignment share).
+        #[arg(long, requires = "in_process")]
+        assignments: bool,
     },
     /// Serve the REST API (and optionally in-process executors).
     Serve(service::ServeArgs),
@@ -156,9 +160,9 @@ fn real_main() -> Result<()> {
     }
     match cli.command {
         Command::Simulate { scale, seed, out, laz } => simulate(scale, seed, &out, laz).map(|_| ()),
-        Command::Run { manifest, out, keep_work, in_process } => {
+        Command::Run { manifest, out, keep_work, in_process, assignments } => {
             if in_process {
-                run(&manifest, &out, keep_work).map(|_| ())
+                run(&manifest, &out, keep_work, assignments).map(|_| ())
             } else {
                 service::run_framework(&manifest, &out, keep_work).map(|_| ())
             }
@@ -217,8 +221,13 @@ fn simulate(scale: precimap_sim::Scale, seed: u64, out: &std::path::Path, laz: b
     Ok(())
 }
 
-fn run(manifest: &std::path::Path, out: &std::path::Path, keep_work: bool) -> Result<precimap_pipeline::Report> {
-    let options = precimap_pipeline::RunOptions { out_dir: out.to_path_buf(), keep_work };
+fn run(
+    manifest: &std::path::Path,
+    out: &std::path::Path,
+    keep_work: bool,
+    assignments: bool,
+) -> Result<precimap_pipeline::Report> {
+    let options = precimap_pipeline::RunOptions { out_dir: out.to_path_buf(), keep_work, assignments };
     let display = progress::Display::new();
     let report = precimap_pipeline::run_campaign(manifest, &options, &|p| display.show(p))
         .with_context(|| format!("running {}", manifest.display()))?;

@@ -21,7 +21,8 @@ fn simulate_tiny(dir: &Path, seed: u64) -> PathBuf {
 }
 
 fn in_process(manifest: &Path, out: &Path) {
-    run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false }, &|_| {}).unwrap();
+    run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false, assignments: false }, &|_| {})
+        .unwrap();
 }
 
 /// Every corrected strip and trajectory byte-identical (LAS stores coordinates as integers of

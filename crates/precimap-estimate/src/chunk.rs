@@ -2,8 +2,10 @@
 //! order, with everything estimation needs and nothing else.
 //!
 //! Encoded little-endian behind a versioned header (`PMCHUNK` + version byte), so chunks can live
-//! in files or an object store (DESIGN §3: `tiles/{tx}_{ty}/{strip}.chunk`). 60 bytes per point.
-//! Version 2 added the segment id; version 1 chunks are rejected (re-run the preparation).
+//! in files or an object store (DESIGN §3: `tiles/{tx}_{ty}/{strip}.chunk`). 64 bytes per point.
+//! Version 2 added the segment id, version 3 the point's index in its strip file (so that what
+//! estimation does with a point can be traced back to it: QC per point, the assignment audit);
+//! older chunks are rejected (re-run the preparation).
 
 use precimap_core::TileKey;
 
@@ -11,10 +13,10 @@ use precimap_core::TileKey;
 pub const NO_NEIGHBOUR: u32 = u32::MAX;
 
 const MAGIC: &[u8; 7] = b"PMCHUNK";
-const VERSION: u8 = 2;
+const VERSION: u8 = 3;
 const HEADER_BYTES: usize = 8 + 4 * 4 + 3 * 8 + 8;
 /// Bytes per point in the encoding.
-pub const BYTES_PER_POINT: usize = 12 + 12 + 12 + 4 + 4 + 4 + 4 + 4 + 4;
+pub const BYTES_PER_POINT: usize = 12 + 12 + 12 + 4 + 4 + 4 + 4 + 4 + 4 + 4;
 
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileChunk {
@@ -39,6 +41,8 @@ pub struct TileChunk {
     pub edge_limit: Vec<f32>,
     /// Segment of the point in its strip's scan-image segmentation (ids are per strip).
     pub segment: Vec<u32>,
+    /// Index of the point in its strip file (acquisition order).
+    pub source: Vec<u32>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -47,7 +51,7 @@ pub enum ChunkError {
     TooShort(usize),
     #[error("not a precimap tile chunk (bad magic)")]
     BadMagic,
-    #[error("chunk format version {0} is not supported (this build reads version {VERSION}; version 1 chunks lack segment ids: prepare the strips again)")]
+    #[error("chunk format version {0} is not supported (this build reads version {VERSION}; older chunks lack segment ids or point indices: prepare the strips again)")]
     Version(u8),
     #[error(
         "chunk header says {points} points ({expected} bytes) but {found} bytes follow; it is truncated or corrupt"
@@ -73,6 +77,7 @@ impl TileChunk {
             down: Vec::with_capacity(n),
             edge_limit: Vec::with_capacity(n),
             segment: Vec::with_capacity(n),
+            source: Vec::with_capacity(n),
         }
     }
 
@@ -96,6 +101,7 @@ impl TileChunk {
         down: u32,
         edge_limit: f32,
         segment: u32,
+        source: u32,
     ) {
         self.t0.push(t0);
         self.r.push(r);
@@ -106,6 +112,7 @@ impl TileChunk {
         self.down.push(down);
         self.edge_limit.push(edge_limit);
         self.segment.push(segment);
+        self.source.push(source);
     }
 
     /// Smallest and largest anchor index referenced (the upper one includes `anchor + 1`).
@@ -132,7 +139,7 @@ impl TileChunk {
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
-        for a in [&self.anchor, &self.right, &self.down, &self.segment] {
+        for a in [&self.anchor, &self.right, &self.down, &self.segment, &self.source] {
             for v in a.iter() {
                 out.extend_from_slice(&v.to_le_bytes());
             }
@@ -194,6 +201,7 @@ impl TileChunk {
         let right = u32s(take(4 * n));
         let down = u32s(take(4 * n));
         let segment = u32s(take(4 * n));
+        let source = u32s(take(4 * n));
         let lambda = f32s(take(4 * n));
         let edge_limit = f32s(take(4 * n));
         for (index, &neighbour) in right.iter().chain(down.iter()).enumerate() {
@@ -201,7 +209,22 @@ impl TileChunk {
                 return Err(ChunkError::BadNeighbour { index: index % n.max(1), neighbour });
             }
         }
-        Ok(Self { tile, strip, trajectory, origin, t0, r, normal, anchor, lambda, right, down, edge_limit, segment })
+        Ok(Self {
+            tile,
+            strip,
+            trajectory,
+            origin,
+            t0,
+            r,
+            normal,
+            anchor,
+            lambda,
+            right,
+            down,
+            edge_limit,
+            segment,
+            source,
+        })
     }
 }
 
@@ -212,8 +235,8 @@ mod tests {
     #[test]
     fn encode_decode_round_trip_and_corruption() {
         let mut c = TileChunk::with_capacity(TileKey { tx: -3, ty: 386_893 }, 7, 2, [549_795.0, 5_803_395.0, 0.0], 2);
-        c.push([1.0, 2.0, 3.0], [4.0, -5.0, 6.5], [0.0, 0.0, 1.0], 17, 0.25, 1, NO_NEIGHBOUR, 0.1, 4);
-        c.push([1.5, 2.0, 3.0], [4.0, -5.5, 6.5], [0.0, 0.6, 0.8], 18, 0.75, NO_NEIGHBOUR, 0, 0.2, 4);
+        c.push([1.0, 2.0, 3.0], [4.0, -5.0, 6.5], [0.0, 0.0, 1.0], 17, 0.25, 1, NO_NEIGHBOUR, 0.1, 4, 1_000_001);
+        c.push([1.5, 2.0, 3.0], [4.0, -5.5, 6.5], [0.0, 0.6, 0.8], 18, 0.75, NO_NEIGHBOUR, 0, 0.2, 4, 1_000_003);
         let bytes = c.encode();
         assert_eq!(bytes.len(), HEADER_BYTES + 2 * BYTES_PER_POINT);
         assert_eq!(TileChunk::decode(&bytes).unwrap(), c);
@@ -223,8 +246,8 @@ mod tests {
         bad[0] = b'X';
         assert_eq!(TileChunk::decode(&bad), Err(ChunkError::BadMagic));
         let mut bad = bytes;
-        bad[7] = 1;
-        assert_eq!(TileChunk::decode(&bad), Err(ChunkError::Version(1)));
+        bad[7] = 2;
+        assert_eq!(TileChunk::decode(&bad), Err(ChunkError::Version(2)));
         assert_eq!(c.anchor_range(), Some((17, 19)));
     }
 }

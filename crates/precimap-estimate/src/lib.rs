@@ -27,4 +27,4 @@ pub use prepare::{
 };
 pub use solve::{solve_trajectory, TrajectorySolution};
 pub use stats::{ResidualHistogram, TileStats};
-pub use tile::{estimate_tile, EstimateError, TileEstimate};
+pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, TileEstimate, UsedPoint};

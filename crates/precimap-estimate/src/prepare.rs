@@ -607,6 +607,7 @@ fn emit_tiles(
                     local_of(links.down[k]),
                     nrm.edge_limit,
                     segment[k],
+                    g,
                 );
             }
             for &g in &globals {

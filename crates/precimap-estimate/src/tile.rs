@@ -201,6 +201,28 @@ pub fn estimate_tile(
     params: &Parameters,
     step: &IterationStep,
 ) -> Result<TileEstimate, EstimateError> {
+    estimate_tile_recording(tile, chunks, corrections, params, step, None)
+}
+
+/// A point of a tile's core that became an observation: its strip, its index in the strip file
+/// and the tile's surface model it was compared with (ids are per tile and per call).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UsedPoint {
+    pub strip: u32,
+    pub source: u32,
+    pub model: u32,
+}
+
+/// [`estimate_tile`], also appending to `used` every point that became an observation (what the
+/// assignment audit compares with the simulator's true surfaces).
+pub fn estimate_tile_recording(
+    tile: TileKey,
+    chunks: &[TileChunk],
+    corrections: &[TrajectoryCorrections],
+    params: &Parameters,
+    step: &IterationStep,
+    mut used: Option<&mut Vec<UsedPoint>>,
+) -> Result<TileEstimate, EstimateError> {
     for c in chunks {
         if c.tile != tile {
             return Err(EstimateError::WrongTile { strip: c.strip, expected: tile, found: c.tile });
@@ -372,6 +394,9 @@ pub fn estimate_tile(
                 continue;
             }
             stats.points_used += 1;
+            if let Some(used) = used.as_deref_mut() {
+                used.push(UsedPoint { strip: chunk.strip, source: chunk.source[k], model: id });
+            }
             stats.residual_sum_m += e;
             stats.residual_sum2_m2 += e * e;
             let w = m.w;
@@ -1045,6 +1070,7 @@ mod tests {
                 c.down.push(if row + 1 < rows { (k + cols) as u32 } else { NO_NEIGHBOUR });
                 c.edge_limit.push(1.0);
                 c.segment.push(0);
+                c.source.push(k as u32);
             }
         }
         c

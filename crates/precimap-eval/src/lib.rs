@@ -14,11 +14,13 @@
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
 
+mod assignments;
 mod normals;
 mod segments;
 mod stats;
 mod trajectory;
 
+pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
 pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
@@ -134,6 +136,11 @@ pub struct Evaluation {
     pub surface_points_removed: Option<f64>,
     /// Share of foliage points (in the scan image) that are in no segment (0–1).
     pub foliage_points_removed: Option<f64>,
+    /// The assignment audit (when `OUT/assignments` exists): observations of the last map pass
+    /// compared with a surface model built mostly from another true surface.
+    pub assignments: Option<AssignmentEvaluation>,
+    /// `assignments.wrong_share`: share of the observations assigned to a wrong surface (0–1).
+    pub wrong_assignment_share: Option<f64>,
     /// After the adjustment, the tiles whose strips disagree most (see
     /// [`TileStripMeans::worst_tiles`]): where the remaining spread comes from.
     pub worst_tiles_after: Vec<TileDisagreement>,
@@ -239,6 +246,7 @@ struct StripOutcome {
     tiles_before: TileStripMeans,
     tiles_after: TileStripMeans,
     segments: Option<SegmentTally>,
+    assignments: Option<AssignmentTally>,
     surfaces_before: SurfaceStripMeans,
     surfaces_after: SurfaceStripMeans,
     shift_free_before: ShiftFreeMeans,
@@ -303,6 +311,7 @@ fn evaluate_strip(
         tiles_before: TileStripMeans::new(),
         tiles_after: TileStripMeans::new(),
         segments: None,
+        assignments: None,
         surfaces_before: SurfaceStripMeans::new(),
         surfaces_after: SurfaceStripMeans::new(),
         shift_free_before: ShiftFreeMeans::new(),
@@ -318,13 +327,27 @@ fn evaluate_strip(
     } else {
         None
     };
+    let assignment_path = result_dir.join("assignments").join(format!("{id}.asg"));
+    let assignment_ids = if assignment_path.is_file() {
+        let ids = precimap_formats::read_assignments(&assignment_path)?;
+        if ids.len() as u64 != expected {
+            return Err(count_error("assignment", &assignment_path, ids.len()));
+        }
+        Some(ids)
+    } else {
+        None
+    };
     let mut tally = SegmentTally::default();
+    let mut assigned = AssignmentTally::default();
     let mut i = 0usize;
     while let Some(t) = truth.next_point()? {
         let k = i;
         i += 1;
         if let Some(ids) = &segment_ids {
             tally.add(ids[k], t.surface_id, t.class, t.normal, t.position);
+        }
+        if let Some(ids) = &assignment_ids {
+            assigned.add(ids[k], t.surface_id, t.class);
         }
         if !t.class.is_surface() {
             continue;
@@ -355,6 +378,7 @@ fn evaluate_strip(
         out.shift_free_after.add(tile, index, ea, unit);
     }
     out.segments = segment_ids.map(|_| tally);
+    out.assignments = assignment_ids.map(|_| assigned);
     Ok(out)
 }
 
@@ -407,8 +431,14 @@ fn assemble(
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
     let mut segment_tallies = Vec::new();
+    let mut assignment_tally: Option<AssignmentTally> = None;
+    let mut assignment_files = 0;
     for ((id, _), s) in strip_jobs.iter().zip(strips) {
         points += s.points;
+        if let Some(t) = s.assignments {
+            assignment_files += 1;
+            assignment_tally.get_or_insert_with(AssignmentTally::default).merge(t);
+        }
         if let Some(t) = s.segments {
             segment_tallies.push(t);
         }
@@ -485,11 +515,15 @@ fn assemble(
     let surface_points = before.count();
     let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
         .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
+    // Only when every strip has its file: a partial audit would mislead.
+    let assignments = assignment_tally.filter(|_| assignment_files == strip_jobs.len()).map(|t| t.evaluate());
     Evaluation {
         segment_purity: segmentation.as_ref().map(|s| s.purity),
         surface_points_removed: segmentation.as_ref().map(|s| s.surface_points_removed),
         foliage_points_removed: segmentation.as_ref().map(|s| s.foliage_points_removed),
         segmentation,
+        wrong_assignment_share: assignments.as_ref().map(|a| a.wrong_share),
+        assignments,
         strip_offset_spread_m: metric(spread_before, spread_after),
         same_surface_spread_m: metric(surface_spread_before, surface_spread_after),
         spread_without_campaign_shift_m: metric(
@@ -548,6 +582,21 @@ impl Evaluation {
         );
         if let Some(share) = self.surface_points_used_share {
             let _ = writeln!(out, "points used in the last iteration: {:.1} % of surface points", 100.0 * share);
+        }
+        if let Some(a) = &self.assignments {
+            let classes: Vec<String> = a
+                .wrong_share_by_class
+                .iter()
+                .map(|(name, c)| format!("{name} {:.2} %", 100.0 * c.wrong_share))
+                .collect();
+            let _ = writeln!(
+                out,
+                "wrong assignments in the last map pass: {:.2} % of {} observations in {} surface models ({})",
+                100.0 * a.wrong_share,
+                a.points,
+                a.models,
+                classes.join(", ")
+            );
         }
         if !self.worst_tiles_after.is_empty() {
             let _ = writeln!(out, "tiles whose strips disagree most after adjustment (offset from the tile mean, mm):");

@@ -16,7 +16,7 @@ pub use manifest::{
     load_manifest, parse_manifest, resolve_uri, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
     TrajectoryRef,
 };
-pub use segments::{decode_segments, encode_segments, read_segments};
+pub use segments::{decode_segments, encode_assignments, encode_segments, read_assignments, read_segments};
 pub use strip::{
     read_strip, rewrite_strip, rewrite_strip_timed, strip_info, NewPoint, StripInfo, StripPoints, StripWriter,
 };

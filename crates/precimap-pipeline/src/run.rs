@@ -6,7 +6,8 @@ use crate::campaign::Campaign;
 use crate::error::PipelineError;
 use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use crate::tasks::{
-    estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task, solve_trajectory_task,
+    estimate_tile_task, export_strip_task, export_trajectory_task, load_tile, prepare_strip_task, segments_path,
+    solve_trajectory_task,
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
@@ -21,6 +22,10 @@ pub struct RunOptions {
     pub out_dir: PathBuf,
     /// Keep the tile chunks in `OUT/work` after the run.
     pub keep_work: bool,
+    /// After the last iteration, run one more map pass over the final corrections and write the
+    /// surface model every point was compared with to `OUT/assignments` (QC: `evaluate` measures
+    /// the share of wrong assignments against the simulator's true surfaces).
+    pub assignments: bool,
 }
 
 /// What the driver reports while it works.
@@ -238,6 +243,10 @@ pub fn run_campaign(
         export_trajectory_task(&campaign, t, c, out)?;
     }
     let export_s = t.elapsed().as_secs_f64();
+    if options.assignments {
+        let step = effective_step(&campaign.params, schedule.len() - 1, robust_sigma);
+        write_assignments(&campaign, &work, &prepared, &corrections, &step, out)?;
+    }
     // The segmentation is a result too (evaluate measures its purity against the truth).
     let segments = out.join("segments");
     if segments.exists() {
@@ -266,6 +275,70 @@ pub fn run_campaign(
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
     Ok(report)
+}
+
+/// One map pass over `corrections` on `step` that records, for every point that becomes an
+/// observation, the surface model it is compared with; written per strip to
+/// `OUT/assignments/{strip}.asg` with ids unique within the campaign (tiles in key order).
+fn write_assignments(
+    campaign: &Campaign,
+    work: &Path,
+    prepared: &Prepared,
+    corrections: &[TrajectoryCorrections],
+    step: &precimap_core::IterationStep,
+    out: &Path,
+) -> Result<(), PipelineError> {
+    let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
+    let used = tiles
+        .par_iter()
+        .map(|(tile, strips)| {
+            let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
+            let chunks = load_tile(work, **tile, &ids)?;
+            let mut used = Vec::new();
+            precimap_estimate::estimate_tile_recording(
+                **tile,
+                &chunks,
+                corrections,
+                &campaign.params,
+                step,
+                Some(&mut used),
+            )
+            .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })?;
+            Ok(used)
+        })
+        .collect::<Result<Vec<_>, PipelineError>>()?;
+    let mut per_strip: Vec<Vec<u32>> = Vec::with_capacity(campaign.strips.len());
+    for entry in &campaign.strips {
+        let path = segments_path(work, &entry.id);
+        let points = precimap_formats::read_segments(&path)?.len();
+        per_strip.push(vec![u32::MAX; points]);
+    }
+    let mut offset = 0u64;
+    for tile_used in &used {
+        let mut models = 0u64;
+        for u in tile_used {
+            let id = offset + u.model as u64;
+            let slot = per_strip.get_mut(u.strip as usize).and_then(|ids| ids.get_mut(u.source as usize)).ok_or_else(
+                || PipelineError::Input {
+                    what: format!("tile chunks of strip {}", u.strip),
+                    message: format!("point {} is beyond the strip's end; prepare the strips again", u.source),
+                },
+            )?;
+            *slot = u32::try_from(id).map_err(|_| PipelineError::Input {
+                what: "assignments".into(),
+                message: "more than 2³² surface models in the campaign; the assignment files cannot number them".into(),
+            })?;
+            models = models.max(u.model as u64 + 1);
+        }
+        offset += models;
+    }
+    let dir = out.join("assignments");
+    std::fs::create_dir_all(&dir).map_err(|e| PipelineError::io(&dir, e))?;
+    for (entry, ids) in campaign.strips.iter().zip(&per_strip) {
+        let path = dir.join(format!("{}.asg", entry.id));
+        std::fs::write(&path, precimap_formats::encode_assignments(ids)).map_err(|e| PipelineError::io(&path, e))?;
+    }
+    Ok(())
 }
 
 /// Per-trajectory statistics of a solution for `report.json`.
