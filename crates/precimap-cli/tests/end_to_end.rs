@@ -83,8 +83,8 @@ fn the_common_mode_field_beats_alternation_alone() {
 /// The assignment audit, and what the segment-aware latent map is for: on the same campaign,
 /// grouping a cell's points by normal alone puts sidewalk and road (12 cm apart across a curb,
 /// both facing up) into one surface model; forming models per scan-image segment keeps them
-/// apart. Measured on small seed 1: wrong assignments 7.40 % → 3.72 %, sidewalk 19.2 % → 0.3 %;
-/// here (tiny seed 3) 2.65 % → 1.79 %, sidewalk 6.0 % → 0.09 %.
+/// apart. Measured on small seed 1: wrong assignments 4.26 % → 0.54 %, sidewalk 19.2 % → 0.3 %;
+/// here (tiny seed 3) 1.34 % → 0.51 %, sidewalk 6.0 % → 0.07 %.
 #[test]
 fn segment_aware_models_assign_fewer_points_to_a_wrong_surface() {
     let dir = tempfile::tempdir().unwrap();
@@ -107,7 +107,7 @@ fn segment_aware_models_assign_fewer_points_to_a_wrong_surface() {
     };
     let segments = audit(&campaign.join("manifest.json"), &dir.path().join("segments"));
     let normals = audit(&by_normal, &dir.path().join("normals"));
-    assert!(segments.wrong_share < 0.85 * normals.wrong_share, "{} vs {}", segments.wrong_share, normals.wrong_share);
+    assert!(segments.wrong_share < 0.6 * normals.wrong_share, "{} vs {}", segments.wrong_share, normals.wrong_share);
     let sidewalk = |a: &precimap_eval::AssignmentEvaluation| a.wrong_share_by_class["sidewalk"].wrong_share;
     assert!(sidewalk(&segments) < 0.5 * sidewalk(&normals), "{} vs {}", sidewalk(&segments), sidewalk(&normals));
 }

@@ -26,11 +26,14 @@ impl AssignmentTally {
     }
 
     /// Every model's dominant true surface (most of its points), then the share of points on
-    /// another surface, overall and by the point's true class.
-    pub fn evaluate(&self) -> AssignmentEvaluation {
+    /// another surface, overall and by the point's true class. `canonical` maps simulator
+    /// surfaces to one id per coplanar group (as segment purity does: a pier flush with its wall
+    /// is the same plane to the estimation); ids it lacks stand for themselves.
+    pub fn evaluate(&self, canonical: &HashMap<u32, u32>) -> AssignmentEvaluation {
+        let surface_of = |s: u32| canonical.get(&s).copied().unwrap_or(s);
         let mut per_model: HashMap<u32, HashMap<u32, u64>> = HashMap::new();
         for &(model, surface, _) in &self.points {
-            *per_model.entry(model).or_default().entry(surface).or_default() += 1;
+            *per_model.entry(model).or_default().entry(surface_of(surface)).or_default() += 1;
         }
         // Ties go to the smaller surface id, so the figure does not depend on hash order.
         let dominant: HashMap<u32, u32> = per_model
@@ -44,7 +47,7 @@ impl AssignmentTally {
         for &(model, surface, class) in &self.points {
             let c = by_class.entry(class).or_default();
             c.0 += 1;
-            if dominant.get(&model) != Some(&surface) {
+            if dominant.get(&model) != Some(&surface_of(surface)) {
                 c.1 += 1;
             }
         }
@@ -88,6 +91,7 @@ mod tests {
 
     #[test]
     fn points_off_their_models_dominant_surface_are_wrong() {
+        use std::collections::HashMap;
         let mut t = AssignmentTally::default();
         // Model 0: three road points and one curb point; model 1: two curb points.
         for _ in 0..3 {
@@ -97,11 +101,14 @@ mod tests {
         t.add(1, 11, SurfaceClass::Curb);
         t.add(1, 11, SurfaceClass::Curb);
         t.add(u32::MAX, 12, SurfaceClass::Facade);
-        let e = t.evaluate();
+        let e = t.evaluate(&HashMap::new());
         assert_eq!((e.points, e.models), (6, 2));
         assert!((e.wrong_share - 1.0 / 6.0).abs() < 1e-12);
         assert_eq!(e.wrong_share_by_class["road"].wrong_share, 0.0);
         assert!((e.wrong_share_by_class["curb"].wrong_share - 1.0 / 3.0).abs() < 1e-12);
         assert!(!e.wrong_share_by_class.contains_key("facade"), "not an observation");
+        // Curb 11 coplanar with road 10: one surface, nothing wrong.
+        let e = t.evaluate(&HashMap::from([(11, 10)]));
+        assert_eq!(e.wrong_share, 0.0);
     }
 }

@@ -34,7 +34,7 @@ use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, resolve_u
 use precimap_sim::truth::{SurfaceClass, TruthError, TruthReader};
 use rayon::prelude::*;
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -516,7 +516,8 @@ fn assemble(
     let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
         .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
     // Only when every strip has its file: a partial audit would mislead.
-    let assignments = assignment_tally.filter(|_| assignment_files == strip_jobs.len()).map(|t| t.evaluate());
+    let coplanar = if segmentation.is_some() { segments::coplanar_surfaces(&segment_tallies) } else { HashMap::new() };
+    let assignments = assignment_tally.filter(|_| assignment_files == strip_jobs.len()).map(|t| t.evaluate(&coplanar));
     Evaluation {
         segment_purity: segmentation.as_ref().map(|s| s.purity),
         surface_points_removed: segmentation.as_ref().map(|s| s.surface_points_removed),

@@ -158,7 +158,7 @@ impl SegmentEvaluation {
 
 /// Maps every planar simulator surface id to the smallest id of its coplanar group (same class,
 /// normals within 1°, plane offsets within 1 cm).
-fn coplanar_surfaces(tallies: &[SegmentTally]) -> HashMap<u32, u32> {
+pub(crate) fn coplanar_surfaces(tallies: &[SegmentTally]) -> HashMap<u32, u32> {
     let mut sums: BTreeMap<u32, SurfaceSums> = BTreeMap::new();
     for t in tallies {
         for (&id, s) in &t.surfaces {
