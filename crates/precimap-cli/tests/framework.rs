@@ -123,6 +123,15 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         assert_eq!(status.tasks.dead, 0);
         client.results(submitted.id, &via_http).await.unwrap();
 
+        // The anchors' positions were read from the trajectory files once, by the first field
+        // task; every later field task read the object it wrote.
+        let stored = objects.list(&finished.object_prefix).await.unwrap();
+        let positions = stored.iter().filter(|k| k.contains("/anchors/positions.")).count();
+        let field_tasks =
+            status.iterations.iter().filter(|i| i["common_mode_field_max_m"].as_f64() > Some(0.0)).count();
+        assert!(field_tasks > 1, "{field_tasks} iterations solved the field");
+        assert_eq!(positions, 1, "one anchor positions object");
+
         // Deleting the campaign removes its objects.
         let prefix = finished.object_prefix.clone();
         assert!(!objects.list(&prefix).await.unwrap().is_empty());

@@ -9,6 +9,7 @@ use precimap_estimate::{AnchorBlock, FieldEquations};
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
 const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
 const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR01";
+const POSITIONS_MAGIC: &[u8; 8] = b"PMANPOS1";
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -208,6 +209,37 @@ pub fn decode_corrections(bytes: &[u8]) -> Result<(TrajectoryCorrections, Option
     Ok((TrajectoryCorrections { first_anchor, values }, (m > 0).then_some(sigma)))
 }
 
+/// Every trajectory's anchor positions (horizontal, metres), in trajectory order.
+pub fn encode_positions(positions: &[Vec<[f64; 2]>]) -> Vec<u8> {
+    let points: usize = positions.iter().map(Vec::len).sum();
+    let mut out = Vec::with_capacity(12 + positions.len() * 4 + points * 16);
+    out.extend_from_slice(POSITIONS_MAGIC);
+    out.extend_from_slice(&(positions.len() as u32).to_le_bytes());
+    for p in positions {
+        out.extend_from_slice(&(p.len() as u32).to_le_bytes());
+        for xy in p {
+            put_f64s(&mut out, xy);
+        }
+    }
+    out
+}
+
+pub fn decode_positions(bytes: &[u8]) -> Result<Vec<Vec<[f64; 2]>>, CodecError> {
+    let mut r = Reader::new(bytes, POSITIONS_MAGIC, "anchor positions")?;
+    let trajectories = r.count(4)?;
+    let mut out = Vec::with_capacity(trajectories);
+    for _ in 0..trajectories {
+        let n = r.count(16)?;
+        let mut p = Vec::with_capacity(n);
+        for _ in 0..n {
+            p.push(r.f64s::<2>()?);
+        }
+        out.push(p);
+    }
+    r.finish()?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -273,6 +305,21 @@ mod tests {
         let mut huge = encode_blocks(&[]);
         huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(matches!(decode_blocks(&huge), Err(CodecError::Truncated { .. })));
+    }
+
+    #[test]
+    fn positions_round_trip_bit_exact() {
+        let p = vec![vec![[549_795.25, 5_803_395.125], [-0.0, f64::MIN_POSITIVE]], vec![], vec![[1e300, -1e-300]]];
+        let bytes = encode_positions(&p);
+        let back = decode_positions(&bytes).unwrap();
+        let bits = |v: &[Vec<[f64; 2]>]| -> Vec<u64> { v.iter().flatten().flatten().map(|x| x.to_bits()).collect() };
+        assert_eq!(back.iter().map(Vec::len).collect::<Vec<_>>(), vec![2, 0, 1]);
+        assert_eq!(bits(&back), bits(&p));
+        assert!(decode_positions(&bytes[..bytes.len() - 1]).is_err());
+        assert!(matches!(
+            decode_positions(&encode_field(&FieldEquations::default())),
+            Err(CodecError::BadMagic { .. })
+        ));
     }
 
     #[test]

@@ -3,12 +3,16 @@
 //! (so a lost attempt can never overwrite a committed one), and returns what the job store
 //! records. CPU work runs on the blocking pool; nothing here touches the database.
 
-use crate::codec::{decode_blocks, decode_corrections, decode_field, encode_blocks, encode_corrections, encode_field};
+use crate::codec::{
+    decode_blocks, decode_corrections, decode_field, decode_positions, encode_blocks, encode_corrections, encode_field,
+    encode_positions,
+};
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
     CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult, StripInput, TaskInput,
-    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
+    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_POSITIONS, PREVIOUS_PREFIX,
+    SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
@@ -222,13 +226,39 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
-        TaskInput::SolveField { prefix, iteration, params, trajectories, current, previous, equations } => {
-            let mut positions = Vec::with_capacity(trajectories.len());
-            for (t, c) in trajectories.iter().zip(&current) {
-                let entry = read_trajectory(ctx, t).await?;
-                let (first, last) = c.anchors;
-                let count = (last.saturating_sub(first) + 1) as usize;
-                positions.push(entry.data.horizontal_positions_along(params.anchor_spacing_m, first, count));
+        TaskInput::SolveField { prefix, iteration, params, trajectories, positions, current, previous, equations } => {
+            let mut outputs = Vec::with_capacity(2 * current.len() + 1);
+            // The anchors' positions: read once from the trajectory files by the first field task
+            // of the campaign, then from the object it wrote.
+            let positions = match &positions {
+                Some(key) => {
+                    let bytes = ctx.get(key).await?;
+                    decode_positions(&bytes)
+                        .map_err(|e| TaskError::permanent(format!("anchor positions object {key}: {e}")))?
+                }
+                None => {
+                    let mut positions = Vec::with_capacity(trajectories.len());
+                    for (t, c) in trajectories.iter().zip(&current) {
+                        let entry = read_trajectory(ctx, t).await?;
+                        let (first, last) = c.anchors;
+                        let count = (last.saturating_sub(first) + 1) as usize;
+                        positions.push(entry.data.horizontal_positions_along(params.anchor_spacing_m, first, count));
+                    }
+                    let key = format!("{prefix}/anchors/positions.{tag}.bin");
+                    ctx.put(&key, encode_positions(&positions)).await?;
+                    outputs.push(OutputKey { name: OUTPUT_POSITIONS.into(), object_key: key });
+                    positions
+                }
+            };
+            let consistent = positions.len() == current.len()
+                && positions
+                    .iter()
+                    .zip(&current)
+                    .all(|(p, c)| p.len() as u64 == c.anchors.1 as u64 - c.anchors.0 as u64 + 1);
+            if !consistent {
+                return Err(TaskError::permanent(
+                    "anchor positions do not match the trajectories' anchor ranges; the campaign state is corrupt",
+                ));
             }
             let mut corrections = Vec::with_capacity(current.len());
             for c in &current {
@@ -263,7 +293,6 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 ))
             })?;
             let (start, before, max_m, nodes) = solved;
-            let mut outputs = Vec::with_capacity(start.len() + before.len());
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
                 for (t, c) in trajectories.iter().zip(list) {
                     let key = format!("{prefix}/it/{iteration}/{name}{}.{tag}.bin", t.index);

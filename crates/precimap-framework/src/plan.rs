@@ -46,6 +46,9 @@ pub const OUTPUT_FIELD: &str = "field";
 /// the corrections momentum measures from, shifted alike (`previous/{t}`).
 pub const START_PREFIX: &str = "start/";
 pub const PREVIOUS_PREFIX: &str = "previous/";
+/// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
+/// task (from the trajectory files) and read by the later ones instead of those files.
+pub const OUTPUT_POSITIONS: &str = "anchor_positions";
 /// A strip's per-point segment ids (a result, like the exported strips).
 pub const SEGMENTS_PREFIX: &str = "segments/";
 
@@ -107,8 +110,12 @@ pub enum TaskInput {
         prefix: String,
         iteration: u32,
         params: Parameters,
-        /// Every trajectory (its anchors' positions come from its file).
+        /// Every trajectory (its anchors' positions come from its file, unless `positions` names
+        /// them).
         trajectories: Vec<TrajectoryInput>,
+        /// The anchor positions object an earlier field task wrote.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        positions: Option<String>,
         current: Vec<CorrectionsRef>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         previous: Option<Vec<CorrectionsRef>>,
@@ -243,6 +250,9 @@ pub struct PlanState {
     pub started_from: Vec<Option<String>>,
     #[serde(default)]
     pub pending_field_max_m: f64,
+    /// The anchor positions object (see [`OUTPUT_POSITIONS`]), once a field task wrote it.
+    #[serde(default)]
+    pub anchor_positions: Option<String>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
     pub pending_seconds: f64,
@@ -312,6 +322,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_blocks: Vec::new(),
         started_from: Vec::new(),
         pending_field_max_m: 0.0,
+        anchor_positions: None,
         pending_stats: None,
         pending_seconds: 0.0,
         iterations: Vec::new(),
@@ -553,6 +564,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
         iteration: state.iteration,
         params: state.params.clone(),
         trajectories: state.trajectories.clone(),
+        positions: state.anchor_positions.clone(),
         current: refs(&state.corrections),
         previous: momentum.then(|| refs(&state.previous_corrections)),
         equations,
@@ -571,6 +583,10 @@ fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, St
     let mut previous = vec![None; n];
     let mut any_previous = false;
     for out in &task.outputs {
+        if out.name == OUTPUT_POSITIONS {
+            state.anchor_positions = Some(out.object_key.clone());
+            continue;
+        }
         let (slot, name) = if let Some(t) = out.name.strip_prefix(START_PREFIX) {
             (&mut start, t)
         } else if let Some(t) = out.name.strip_prefix(PREVIOUS_PREFIX) {
