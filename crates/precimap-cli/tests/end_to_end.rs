@@ -14,6 +14,16 @@ fn run(manifest: &Path, out: &Path) -> Result<precimap_pipeline::Report, Pipelin
     run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false, assignments: false }, &|_| {})
 }
 
+/// A copy of the campaign's manifest (`manifest-{name}.json`) with `parameters` set.
+fn manifest_with(campaign: &Path, name: &str, parameters: serde_json::Value) -> PathBuf {
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
+    manifest["parameters"] = parameters;
+    let path = campaign.join(format!("manifest-{name}.json"));
+    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    path
+}
+
 #[test]
 fn tiny_campaign_is_adjusted_towards_the_truth() {
     let dir = tempfile::tempdir().unwrap();
@@ -61,11 +71,7 @@ fn tiny_campaign_is_adjusted_towards_the_truth() {
 fn the_common_mode_field_beats_alternation_alone() {
     let dir = tempfile::tempdir().unwrap();
     let campaign = simulate_tiny(dir.path(), 3);
-    let mut manifest: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
-    manifest["parameters"] = serde_json::json!({ "common_mode_field_m": 0.0 });
-    let without = campaign.join("manifest-without-field.json");
-    std::fs::write(&without, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let without = manifest_with(&campaign, "without-field", serde_json::json!({ "common_mode_field_m": 0.0 }));
     let (on, off) = (dir.path().join("on"), dir.path().join("off"));
     let report = run(&campaign.join("manifest.json"), &on).unwrap();
     assert!(report.iterations.iter().any(|i| i.common_mode_field_max_m > 0.0));
@@ -89,11 +95,7 @@ fn the_common_mode_field_beats_alternation_alone() {
 fn segment_aware_models_assign_fewer_points_to_a_wrong_surface() {
     let dir = tempfile::tempdir().unwrap();
     let campaign = simulate_tiny(dir.path(), 3);
-    let mut manifest: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
-    manifest["parameters"] = serde_json::json!({ "segment_surfaces": false });
-    let by_normal = campaign.join("manifest-by-normal.json");
-    std::fs::write(&by_normal, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let by_normal = manifest_with(&campaign, "by-normal", serde_json::json!({ "segment_surfaces": false }));
     let audit = |manifest: &Path, out: &Path| {
         let options = RunOptions { out_dir: out.to_path_buf(), keep_work: false, assignments: true };
         let report = run_campaign(manifest, &options, &|_| {}).unwrap();

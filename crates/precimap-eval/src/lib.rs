@@ -317,26 +317,21 @@ fn evaluate_strip(
         shift_free_before: ShiftFreeMeans::new(),
         shift_free_after: ShiftFreeMeans::new(),
     };
-    let segment_path = result_dir.join("segments").join(format!("{id}.seg"));
-    let segment_ids = if segment_path.is_file() {
-        let ids = precimap_formats::read_segments(&segment_path)?;
-        if ids.len() as u64 != expected {
-            return Err(count_error("segment", &segment_path, ids.len()));
-        }
-        Some(ids)
-    } else {
-        None
-    };
-    let assignment_path = result_dir.join("assignments").join(format!("{id}.asg"));
-    let assignment_ids = if assignment_path.is_file() {
-        let ids = precimap_formats::read_assignments(&assignment_path)?;
-        if ids.len() as u64 != expected {
-            return Err(count_error("assignment", &assignment_path, ids.len()));
-        }
-        Some(ids)
-    } else {
-        None
-    };
+    // Per-point id files next to the result (optional), each checked against the point count.
+    let per_point_ids =
+        |folder: &str, extension: &str, which: &'static str, read: fn(&Path) -> Result<Vec<u32>, FormatError>| {
+            let path = result_dir.join(folder).join(format!("{id}.{extension}"));
+            if !path.is_file() {
+                return Ok(None);
+            }
+            let ids = read(&path)?;
+            if ids.len() as u64 != expected {
+                return Err(count_error(which, &path, ids.len()));
+            }
+            Ok(Some(ids))
+        };
+    let segment_ids = per_point_ids("segments", "seg", "segment", precimap_formats::read_segments)?;
+    let assignment_ids = per_point_ids("assignments", "asg", "assignment", precimap_formats::read_assignments)?;
     let mut tally = SegmentTally::default();
     let mut assigned = AssignmentTally::default();
     let mut i = 0usize;
