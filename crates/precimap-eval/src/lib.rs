@@ -510,8 +510,8 @@ fn assemble(
     let surface_points = before.count();
     let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
         .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
-    // Only when every strip has its file: a partial audit would mislead.
     let coplanar = if segmentation.is_some() { segments::coplanar_surfaces(&segment_tallies) } else { HashMap::new() };
+    // Only when every strip has its file: a partial audit would mislead.
     let assignments = assignment_tally.filter(|_| assignment_files == strip_jobs.len()).map(|t| t.evaluate(&coplanar));
     Evaluation {
         segment_purity: segmentation.as_ref().map(|s| s.purity),

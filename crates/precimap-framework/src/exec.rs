@@ -254,10 +254,11 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 && positions
                     .iter()
                     .zip(&current)
-                    .all(|(p, c)| p.len() as u64 == c.anchors.1 as u64 - c.anchors.0 as u64 + 1);
+                    .all(|(p, c)| p.len() == (c.anchors.1.saturating_sub(c.anchors.0) + 1) as usize);
             if !consistent {
                 return Err(TaskError::permanent(
-                    "anchor positions do not match the trajectories' anchor ranges; the campaign state is corrupt",
+                    "anchor positions do not match the trajectories' anchor ranges; the campaign state is corrupt: \
+                     submit the campaign again",
                 ));
             }
             let mut corrections = Vec::with_capacity(current.len());
