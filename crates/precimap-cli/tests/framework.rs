@@ -200,13 +200,19 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         sweeper.reconcile().await.unwrap();
         for (id, key) in [bad_id, good_id].into_iter().zip(&planted) {
             assert!(!objects.exists(key).await.unwrap(), "{key} swept");
-            let prefix = jobs.campaign(id).await.unwrap().unwrap().object_prefix;
-            let mut stored = objects.list(&prefix).await.unwrap();
-            stored.sort();
-            assert_eq!(stored, jobs.recorded_keys(id).await.unwrap(), "only recorded outputs remain");
+            let (stored, recorded) = stored_and_recorded(&jobs, &objects, id).await;
+            assert_eq!(stored, recorded, "only recorded outputs remain");
         }
         assert_eq!(jobs.claim_sweep(Duration::ZERO, Duration::ZERO).await.unwrap(), None, "both marked swept");
     });
+}
+
+/// The objects under a campaign's prefix and the object keys its tasks recorded, both sorted.
+async fn stored_and_recorded(jobs: &JobStore, objects: &Objects, id: uuid::Uuid) -> (Vec<String>, Vec<String>) {
+    let campaign = jobs.campaign(id).await.unwrap().unwrap();
+    let mut stored = objects.list(&campaign.object_prefix).await.unwrap();
+    stored.sort();
+    (stored, jobs.recorded_keys(id).await.unwrap())
 }
 
 /// PostgreSQL and the S3 server, as `scripts/services.sh` provides them. The test command always
@@ -338,13 +344,9 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
     let orphans = || {
         rt.block_on(async {
             let jobs = JobStore::connect(&db).await.unwrap();
-            let objects = Objects::from_url(&store).unwrap();
-            let campaign = jobs.campaign(id).await.unwrap().unwrap();
-            let recorded: std::collections::HashSet<String> =
-                jobs.recorded_keys(id).await.unwrap().into_iter().collect();
-            let stored = objects.list(&campaign.object_prefix).await.unwrap();
+            let (stored, recorded) = stored_and_recorded(&jobs, &Objects::from_url(&store).unwrap(), id).await;
             jobs.close().await;
-            stored.iter().filter(|k| !recorded.contains(*k)).count()
+            stored.iter().filter(|k| recorded.binary_search(k).is_err()).count()
         })
     };
     let waited = Instant::now();
@@ -371,11 +373,8 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
     // left under the campaign's prefix is a recorded output.
     rt.block_on(async {
         let jobs = JobStore::connect(&db).await.unwrap();
-        let objects = Objects::from_url(&store).unwrap();
-        let campaign = jobs.campaign(id).await.unwrap().unwrap();
-        let recorded: std::collections::HashSet<String> = jobs.recorded_keys(id).await.unwrap().into_iter().collect();
-        let stored = objects.list(&campaign.object_prefix).await.unwrap();
-        let orphans: Vec<_> = stored.iter().filter(|k| !recorded.contains(*k)).collect();
+        let (stored, recorded) = stored_and_recorded(&jobs, &Objects::from_url(&store).unwrap(), id).await;
+        let orphans: Vec<_> = stored.iter().filter(|k| recorded.binary_search(k).is_err()).collect();
         assert!(orphans.is_empty(), "{} orphaned objects, e.g. {:?}", orphans.len(), orphans.first());
         assert_eq!(stored.len(), recorded.len());
         jobs.close().await;

@@ -20,7 +20,7 @@ use precimap_core::Vec3;
 use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
-use precimap_pipeline::tasks::{export_strip_file, export_trajectory_file, prepare_strip_chunks};
+use precimap_pipeline::tasks::{anchor_positions, export_strip_file, export_trajectory_file, prepare_strip_chunks};
 use precimap_pipeline::PipelineError;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -240,9 +240,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     let mut positions = Vec::with_capacity(trajectories.len());
                     for (t, c) in trajectories.iter().zip(&current) {
                         let entry = read_trajectory(ctx, t).await?;
-                        let (first, last) = c.anchors;
-                        let count = (last.saturating_sub(first) + 1) as usize;
-                        positions.push(entry.data.horizontal_positions_along(params.anchor_spacing_m, first, count));
+                        positions.push(anchor_positions(&entry, params.anchor_spacing_m, c.anchors));
                     }
                     let key = format!("{prefix}/anchors/positions.{tag}.bin");
                     ctx.put(&key, encode_positions(&positions)).await?;

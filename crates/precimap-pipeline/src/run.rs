@@ -6,7 +6,7 @@ use crate::campaign::Campaign;
 use crate::error::PipelineError;
 use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use crate::tasks::{
-    estimate_tile_task, export_strip_task, export_trajectory_task, load_tile, prepare_strip_task, segments_path,
+    anchor_positions, estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task,
     solve_trajectory_task,
 };
 use precimap_core::corrections::TrajectoryCorrections;
@@ -89,9 +89,7 @@ pub fn prepare_all(
         .trajectories
         .iter()
         .zip(&anchor_ranges)
-        .map(|(t, &(a, b))| {
-            t.data.horizontal_positions_along(campaign.params.anchor_spacing_m, a, (b - a + 1) as usize)
-        })
+        .map(|(t, &range)| anchor_positions(t, campaign.params.anchor_spacing_m, range))
         .collect();
     Ok(Prepared { tiles, anchor_ranges, anchor_positions, strips, points_total })
 }
@@ -124,7 +122,7 @@ pub fn iterate(
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-            estimate_tile_task(work, **tile, &ids, corrections, campaign, step)
+            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, None)
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
@@ -294,26 +292,12 @@ fn write_assignments(
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-            let chunks = load_tile(work, **tile, &ids)?;
             let mut used = Vec::new();
-            precimap_estimate::estimate_tile_recording(
-                **tile,
-                &chunks,
-                corrections,
-                &campaign.params,
-                step,
-                Some(&mut used),
-            )
-            .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })?;
+            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Some(&mut used))?;
             Ok(used)
         })
         .collect::<Result<Vec<_>, PipelineError>>()?;
-    let mut per_strip: Vec<Vec<u32>> = Vec::with_capacity(campaign.strips.len());
-    for entry in &campaign.strips {
-        let path = segments_path(work, &entry.id);
-        let points = precimap_formats::read_segments(&path)?.len();
-        per_strip.push(vec![u32::MAX; points]);
-    }
+    let mut per_strip: Vec<Vec<u32>> = prepared.strips.iter().map(|s| vec![u32::MAX; s.points as usize]).collect();
     let mut offset = 0u64;
     for tile_used in &used {
         let mut models = 0u64;

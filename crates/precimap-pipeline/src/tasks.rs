@@ -8,8 +8,8 @@ use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile, prepare_strip_observed, AnchorBlock, GeometryCursor, PreparePhase, PrepareStats, PreparedStrip,
-    SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution,
+    estimate_tile_recording, prepare_strip_observed, AnchorBlock, GeometryCursor, PreparePhase, PrepareStats,
+    PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution, UsedPoint,
 };
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -154,7 +154,8 @@ pub fn load_tile(work: &Path, tile: TileKey, strip_ids: &[&str]) -> Result<Vec<T
         .collect()
 }
 
-/// `estimate_tile` over chunk files.
+/// `estimate_tile` over chunk files; with `used`, also every observation's surface model
+/// ([`precimap_estimate::estimate_tile_recording`], the assignment audit).
 pub fn estimate_tile_task(
     work: &Path,
     tile: TileKey,
@@ -162,10 +163,22 @@ pub fn estimate_tile_task(
     corrections: &[TrajectoryCorrections],
     campaign: &Campaign,
     step: &IterationStep,
+    used: Option<&mut Vec<UsedPoint>>,
 ) -> Result<TileEstimate, PipelineError> {
     let chunks = load_tile(work, tile, strip_ids)?;
-    estimate_tile(tile, &chunks, corrections, &campaign.params, step)
+    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, used)
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
+}
+
+/// The horizontal positions of a trajectory's anchors `first..=last` (where the common-mode
+/// field acts on them).
+pub fn anchor_positions(
+    trajectory: &TrajectoryEntry,
+    anchor_spacing_m: f64,
+    (first, last): (u32, u32),
+) -> Vec<[f64; 2]> {
+    let count = (last.saturating_sub(first) + 1) as usize;
+    trajectory.data.horizontal_positions_along(anchor_spacing_m, first, count)
 }
 
 /// `solve_trajectory` over the blocks every tile emitted for one trajectory.
