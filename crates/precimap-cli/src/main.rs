@@ -102,7 +102,7 @@ enum Command {
     },
     /// Compare a result with the simulator's truth, before and after.
     Evaluate {
-        /// The campaign's truth folder (CAMPAIGN/truth).
+        /// The campaign's truth folder (CAMPAIGN/truth), or the campaign folder itself.
         #[arg(long)]
         truth: PathBuf,
         /// The folder `precimap run` wrote.
@@ -144,9 +144,23 @@ pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
 
 fn main() {
     if let Err(e) = real_main() {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }
+}
+
+/// The error and its causes joined by ": ", leaving out a cause whose text the message already
+/// carries (many library errors put their source into their own message).
+fn error_chain(e: &anyhow::Error) -> String {
+    let mut out = e.to_string();
+    for cause in e.chain().skip(1) {
+        let text = cause.to_string();
+        if !out.contains(&text) {
+            out.push_str(": ");
+            out.push_str(&text);
+        }
+    }
+    out
 }
 
 fn real_main() -> Result<()> {

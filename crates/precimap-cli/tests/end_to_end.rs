@@ -61,6 +61,18 @@ fn tiny_campaign_is_adjusted_towards_the_truth() {
     assert!(e.foliage_points_removed.unwrap() > 0.5);
     let last = report.iterations.last().unwrap();
     assert!(last.residual_std_m < 0.006, "final residual σ {}", last.residual_std_m);
+    // The datum (the input's mean position error, unobservable to relative data) stays where the
+    // input put it, and the spread is close to what that datum alone causes (seed 3: 16.32 mm
+    // after, 16.17 mm from the input's datum error alone: two passes leave a large datum error).
+    let (datum_before, datum_after) = (e.datum_error_m.before, e.datum_error_m.after);
+    for a in 0..3 {
+        assert!((datum_after[a] - datum_before[a]).abs() < 0.005, "datum {datum_before:?} → {datum_after:?}");
+    }
+    let floor = e.spread_from_datum_m.before;
+    assert!(e.strip_offset_spread_m.after < 1.25 * floor, "spread {:?}, datum floor {floor}", e.strip_offset_spread_m);
+    // The campaign folder is taken for its truth folder.
+    let from_campaign = precimap_eval::evaluate(&campaign, &out).unwrap();
+    assert_eq!(from_campaign.strip_offset_spread_m, e.strip_offset_spread_m);
 }
 
 /// The two-level estimation against alternation alone, on the same campaign: with the
@@ -210,6 +222,8 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(out.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("/nonexistent/manifest.json") && !stderr.contains("panicked"), "{stderr}");
+    // The cause is said once, not once per error layer that carries it.
+    assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
 }
 
 /// A truncated LAZ strip fails its own preparation task with an error naming the file and where

@@ -27,9 +27,9 @@ pub use stats::{
     signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, ShiftFreeMeans,
     SurfaceStripMeans, TileStripMeans,
 };
-pub use trajectory::{trajectory_errors, TrajectoryErrors};
+pub use trajectory::{position_error_at, trajectory_errors, TrajectoryErrors};
 
-use precimap_core::TileKey;
+use precimap_core::{TileKey, Trajectory};
 use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, resolve_uri, FormatError, ManifestError};
 use precimap_sim::truth::{SurfaceClass, TruthError, TruthReader};
 use rayon::prelude::*;
@@ -53,6 +53,13 @@ const GPS_TIME_TOLERANCE_S: f64 = 1e-6;
 pub struct Metric {
     pub before: f64,
     pub after: f64,
+}
+
+/// A vector (x, y, z) before and after estimation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct VectorMetric {
+    pub before: [f64; 3],
+    pub after: [f64; 3],
 }
 
 /// Surface error of the points of one class.
@@ -104,6 +111,26 @@ pub struct Evaluation {
     /// points: the disagreement between strips that no common motion at a place explains. The
     /// gap to `strip_offset_spread_m` is error shared by all passes at a place.
     pub spread_without_tile_shift_m: Metric,
+    /// The translation removed for `spread_without_campaign_shift_m` (x, y, z metres): the
+    /// least-squares shift of all surface points against the truth.
+    pub campaign_shift_m: VectorMetric,
+    /// Mean position error of all trajectories per arc length (x, y, z metres), the absolute
+    /// datum error. `before` is the input's, which no relative adjustment can observe: moving
+    /// every pass and the map together changes no residual, so only the GNSS/IMU prior places
+    /// the result and its mean stays where the input's was.
+    pub datum_error_m: VectorMetric,
+    /// `strip_offset_spread_m` of strips that would differ from the truth by nothing but
+    /// `datum_error_m`: the part of the spread the datum alone explains. `before` is about the
+    /// least spread a relative adjustment of this campaign reaches without absolute control (its
+    /// result keeps that datum; other errors add to it, rarely cancel it).
+    pub spread_from_datum_m: Metric,
+    /// As `spread_from_datum_m` with each tile's own datum: the mean trajectory position error
+    /// of its surface points (at their times), the error every pass at that place shares;
+    /// attitude errors are left out. `after` tells how much of the result's spread is absolute
+    /// error shared by all passes at a place rather than strips disagreeing. `before` is not a
+    /// floor: the prior and smoothness pool each pass's GNSS/IMU positions along its length, so
+    /// the result's shared error varies far less from place to place than the input's.
+    pub spread_from_local_datum_m: Metric,
     /// RMS of the signed normal error `(p − p_true)·n_true` over all surface points.
     pub surface_error_rms_m: Metric,
     /// Mean signed normal error over all surface points: a common (datum) shift.
@@ -187,8 +214,15 @@ pub enum EvalError {
 }
 
 /// Evaluates the result folder `result_dir` of `precimap run` against the truth folder
-/// `truth_dir` (`CAMP/truth`; the manifest is `CAMP/manifest.json`).
+/// `truth_dir` (`CAMP/truth`; the manifest is `CAMP/manifest.json`). The campaign folder `CAMP`
+/// itself is taken as well: it is what people pass first.
 pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalError> {
+    let nested = truth_dir.join("truth");
+    let truth_dir = if !truth_dir.join("truth.json").is_file() && nested.join("truth.json").is_file() {
+        nested.as_path()
+    } else {
+        truth_dir
+    };
     let truth_dir =
         std::fs::canonicalize(truth_dir).map_err(|source| EvalError::TruthDir { path: truth_dir.into(), source })?;
     // Canonical, so `..` of a symlinked or relative `truth` folder is the campaign folder.
@@ -215,15 +249,26 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         trajectory_jobs.push((t.id.clone(), input_uri("trajectory", &t.id, &t.uri)?));
     }
 
+    // Trajectories first: they are small, and each strip's points look up their own
+    // trajectory's error (for the local datum).
+    let loaded: Vec<LoadedTrajectory> = trajectory_jobs
+        .par_iter()
+        .map(|(id, input)| load_trajectory(id, input, &truth_dir, result_dir))
+        .collect::<Result<_, _>>()?;
+    let strip_trajectory: Vec<Option<&LoadedTrajectory>> = manifest
+        .strips
+        .iter()
+        .map(|s| trajectory_jobs.iter().position(|(id, _)| *id == s.trajectory).map(|t| &loaded[t]))
+        .collect();
     let strips: Vec<StripOutcome> = strip_jobs
         .par_iter()
         .enumerate()
-        .map(|(k, (id, input))| evaluate_strip(id, k as u32, input, &truth_dir, result_dir))
+        .map(|(k, (id, input))| evaluate_strip(id, k as u32, input, strip_trajectory[k], &truth_dir, result_dir))
         .collect::<Result<_, _>>()?;
-    let trajectories: Vec<(TrajectoryErrors, TrajectoryErrors)> = trajectory_jobs
-        .par_iter()
-        .map(|(id, input)| evaluate_trajectory(id, input, &truth_dir, result_dir))
-        .collect::<Result<_, _>>()?;
+    let trajectories: Vec<(TrajectoryErrors, TrajectoryErrors)> = loaded
+        .iter()
+        .map(|t| (trajectory_errors(&t.input, &t.truth), trajectory_errors(&t.result, &t.truth)))
+        .collect();
     let report = read_report(&result_dir.join("report.json"))?;
 
     Ok(assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, report))
@@ -269,6 +314,7 @@ fn evaluate_strip(
     id: &str,
     index: u32,
     input: &Path,
+    trajectory: Option<&LoadedTrajectory>,
     truth_dir: &Path,
     result_dir: &Path,
 ) -> Result<StripOutcome, EvalError> {
@@ -371,27 +417,35 @@ fn evaluate_strip(
         let unit = t.normal.map(|c| c as f64 / len);
         out.shift_free_before.add(tile, index, eb, unit);
         out.shift_free_after.add(tile, index, ea, unit);
+        if let Some(tr) = trajectory {
+            let time = before.gps_time[k];
+            if let Some(g) = position_error_at(&tr.input, &tr.truth, time) {
+                out.shift_free_before.add_datum_sample(tile, g);
+            }
+            if let Some(g) = position_error_at(&tr.result, &tr.truth, time) {
+                out.shift_free_after.add_datum_sample(tile, g);
+            }
+        }
     }
     out.segments = segment_ids.map(|_| tally);
     out.assignments = assignment_ids.map(|_| assigned);
     Ok(out)
 }
 
-/// Errors of the input and of the corrected trajectory against the truth.
-fn evaluate_trajectory(
-    id: &str,
-    input: &Path,
-    truth_dir: &Path,
-    result_dir: &Path,
-) -> Result<(TrajectoryErrors, TrajectoryErrors), EvalError> {
+/// One trajectory's input, truth and result.
+struct LoadedTrajectory {
+    input: Trajectory,
+    truth: Trajectory,
+    result: Trajectory,
+}
+
+fn load_trajectory(id: &str, input: &Path, truth_dir: &Path, result_dir: &Path) -> Result<LoadedTrajectory, EvalError> {
     let truth = read_trajectory_csv(&truth_dir.join("trajectories").join(format!("{id}.csv")))?;
     let result_path = result_dir.join("trajectories").join(format!("{id}.csv"));
     if !result_path.is_file() {
         return Err(EvalError::MissingResultTrajectory { trajectory: id.to_string(), path: result_path });
     }
-    let before = trajectory_errors(&read_trajectory_csv(input)?, &truth);
-    let after = trajectory_errors(&read_trajectory_csv(&result_path)?, &truth);
-    Ok((before, after))
+    Ok(LoadedTrajectory { input: read_trajectory_csv(input)?, truth, result: read_trajectory_csv(&result_path)? })
 }
 
 /// `points_used` of the last iteration in report.json; `None` without a report or that field.
@@ -507,6 +561,7 @@ fn assemble(
         })
         .collect();
 
+    let (datum_before, datum_after) = (traj_before.mean_position_error_m(), traj_after.mean_position_error_m());
     let surface_points = before.count();
     let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
         .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
@@ -529,6 +584,19 @@ fn assemble(
         spread_without_tile_shift_m: metric(
             shift_free_before.spread_without_tile_shift(SPREAD_MIN_POINTS).0,
             shift_free_after.spread_without_tile_shift(SPREAD_MIN_POINTS).0,
+        ),
+        campaign_shift_m: VectorMetric {
+            before: shift_free_before.campaign_shift(),
+            after: shift_free_after.campaign_shift(),
+        },
+        datum_error_m: VectorMetric { before: datum_before, after: datum_after },
+        spread_from_datum_m: metric(
+            shift_free_before.spread_of_shift(datum_before, SPREAD_MIN_POINTS).0,
+            shift_free_after.spread_of_shift(datum_after, SPREAD_MIN_POINTS).0,
+        ),
+        spread_from_local_datum_m: metric(
+            shift_free_before.spread_of_local_datum(SPREAD_MIN_POINTS).0,
+            shift_free_after.spread_of_local_datum(SPREAD_MIN_POINTS).0,
         ),
         surface_error_rms_m: metric(before.rms(), after.rms()),
         surface_error_mean_m: metric(before.mean(), after.mean()),
@@ -561,6 +629,8 @@ impl Evaluation {
         row("  same-surface spread", &self.same_surface_spread_m, 1e3, "mm");
         row("  without the campaign's shift", &self.spread_without_campaign_shift_m, 1e3, "mm");
         row("  without each tile's shift", &self.spread_without_tile_shift_m, 1e3, "mm");
+        row("  from the datum error alone", &self.spread_from_datum_m, 1e3, "mm");
+        row("  from each tile's datum alone", &self.spread_from_local_datum_m, 1e3, "mm");
         row("surface error RMS", &self.surface_error_rms_m, 1e3, "mm");
         row("surface error mean", &self.surface_error_mean_m, 1e3, "mm");
         row("surface |error| 95th percentile", &self.surface_error_p95_abs_m, 1e3, "mm");
@@ -571,6 +641,15 @@ impl Evaluation {
         }
         let mut out = format!("{:<34} {:>12} {:>12}\n", "metric", "before", "after");
         out.push_str(&s);
+        let mm = |v: [f64; 3]| format!("({:+.1}, {:+.1}, {:+.1})", v[0] * 1e3, v[1] * 1e3, v[2] * 1e3);
+        let _ = writeln!(
+            out,
+            "datum error (mean trajectory position error, x y z): {} → {} mm; campaign's shift {} → {} mm",
+            mm(self.datum_error_m.before),
+            mm(self.datum_error_m.after),
+            mm(self.campaign_shift_m.before),
+            mm(self.campaign_shift_m.after)
+        );
         let _ = writeln!(
             out,
             "{} strips, {} points, {} surface points, {} tile-strip pairs, {} trajectory samples",

@@ -216,6 +216,8 @@ impl GroupStripMeans<TileKey> {
 pub struct ShiftFreeMeans {
     pairs: HashMap<(TileKey, u32), (u64, f64, [f64; 3])>,
     tiles: HashMap<TileKey, ([[f64; 3]; 3], [f64; 3])>,
+    /// Per tile Σ of the trajectory position error at each surface point's time, and the count.
+    datum: HashMap<TileKey, ([f64; 3], u64)>,
 }
 
 impl ShiftFreeMeans {
@@ -238,7 +240,20 @@ impl ShiftFreeMeans {
         }
     }
 
+    /// The position error of the trajectory that measured a surface point of `tile`, at the
+    /// point's time (for [`Self::spread_of_local_datum`]).
+    pub fn add_datum_sample(&mut self, tile: TileKey, error: [f64; 3]) {
+        let d = self.datum.entry(tile).or_insert(([0.0; 3], 0));
+        (0..3).for_each(|a| d.0[a] += error[a]);
+        d.1 += 1;
+    }
+
     pub fn merge(&mut self, other: Self) {
+        for (k, (s, n)) in other.datum {
+            let d = self.datum.entry(k).or_insert(([0.0; 3], 0));
+            (0..3).for_each(|a| d.0[a] += s[a]);
+            d.1 += n;
+        }
         for (k, (n, e, sn)) in other.pairs {
             let p = self.pairs.entry(k).or_insert((0, 0.0, [0.0; 3]));
             p.0 += n;
@@ -285,15 +300,46 @@ impl ShiftFreeMeans {
         )
     }
 
+    /// The spread of strips that differ from the truth by nothing but the translation `d` shared
+    /// by every point: what an absolute (datum) error alone puts into the spread.
+    pub fn spread_of_shift(&self, d: [f64; 3], min_points: usize) -> (f64, usize) {
+        self.spread_with(|_, _, sn| d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2], min_points)
+    }
+
+    /// The spread of strips that differ from the truth, in every tile, by nothing but the mean
+    /// trajectory position error of the tile's surface points (the error every pass there
+    /// shares, which relative data cannot see). Tiles without samples contribute no shift.
+    pub fn spread_of_local_datum(&self, min_points: usize) -> (f64, usize) {
+        let shift = |tile: TileKey| {
+            self.datum.get(&tile).filter(|d| d.1 > 0).map_or([0.0; 3], |(s, n)| s.map(|v| v / *n as f64))
+        };
+        self.spread_with(
+            |tile, _, sn| {
+                let d = shift(tile);
+                d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]
+            },
+            min_points,
+        )
+    }
+
     fn spread_without(&self, shift: impl Fn(TileKey) -> [f64; 3], min_points: usize) -> (f64, usize) {
-        let mut acc = TileStripMeans::new();
         let mut shifts: HashMap<TileKey, [f64; 3]> = HashMap::new();
+        self.spread_with(
+            |tile, e, sn| {
+                let d = *shifts.entry(tile).or_insert_with(|| shift(tile));
+                e - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2])
+            },
+            min_points,
+        )
+    }
+
+    /// The spread with each (tile, strip) pair's error sum replaced by `sum(tile, Σe, Σn)`.
+    fn spread_with(&self, mut sum: impl FnMut(TileKey, f64, [f64; 3]) -> f64, min_points: usize) -> (f64, usize) {
+        let mut acc = TileStripMeans::new();
         for (&(tile, strip), &(n, e, sn)) in &self.pairs {
-            let d = *shifts.entry(tile).or_insert_with(|| shift(tile));
-            let sum = e - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]);
             let c = acc.cells.entry((tile, strip)).or_insert((0, 0.0));
             c.0 += n;
-            c.1 += sum;
+            c.1 += sum(tile, e, sn);
         }
         acc.spread(min_points)
     }
@@ -419,6 +465,7 @@ mod tests {
         };
         let mut acc = ShiftFreeMeans::new();
         let mut plain = TileStripMeans::new();
+        let mut shift_only = TileStripMeans::new();
         // Strip 0 sees face 0 and the road, strip 1 face 1 and the road; strip 2 is 4 mm off on the road.
         for (strip, face, extra) in [(0u32, 0usize, 0.0), (1, 1, 0.0), (2, 2, 0.004)] {
             for k in 0..400 {
@@ -428,6 +475,9 @@ mod tests {
                 plain.add(T0, strip, e);
                 // A second tile with another shift, seen by all strips alike.
                 acc.add(T1, strip, 0.05 * n[2], n);
+                for tile in [T0, T1] {
+                    shift_only.add(tile, strip, d[0] * n[0] + d[1] * n[1] + d[2] * n[2]);
+                }
             }
         }
         assert!(plain.spread(200).0 > 0.03);
@@ -439,6 +489,18 @@ mod tests {
         assert!((tile_free - 0.001).abs() < 1e-6, "{tile_free}");
         let campaign = acc.spread_without_campaign_shift(200).0;
         assert!(campaign < plain.spread(200).0 && campaign > tile_free, "{campaign}");
+        // What the shift alone contributes: strips that differ from the truth by d only.
+        let (of_shift, pairs) = acc.spread_of_shift(d, 200);
+        assert_eq!(pairs, 6);
+        assert!(of_shift > 0.03 && (of_shift - shift_only.spread(200).0).abs() < 1e-12, "{of_shift}");
+        // The same shift as every tile's local datum gives the same spread; a tile without
+        // samples contributes none.
+        let mut local = acc.clone();
+        local.add_datum_sample(T0, [2.0 * d[0], 2.0 * d[1], 2.0 * d[2]]);
+        local.add_datum_sample(T0, [0.0; 3]);
+        local.add_datum_sample(T1, d);
+        assert!((local.spread_of_local_datum(200).0 - of_shift).abs() < 1e-12);
+        assert!(acc.spread_of_local_datum(200).0 < 1e-12);
     }
 
     #[test]
