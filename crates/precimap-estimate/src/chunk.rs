@@ -134,19 +134,28 @@ impl TileChunk {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&(n as u64).to_le_bytes());
+        // The body is sized once and filled column by column: pushing value by value checked the
+        // capacity every 4 bytes (~290 instructions per point; this is a few stores).
+        out.resize(HEADER_BYTES + n * BYTES_PER_POINT, 0);
+        let mut body = &mut out[HEADER_BYTES..];
+        let mut take = |len: usize| {
+            let (head, rest) = std::mem::take(&mut body).split_at_mut(len);
+            body = rest;
+            head
+        };
         for a in [&self.t0, &self.r, &self.normal] {
-            for v in a.iter().flatten() {
-                out.extend_from_slice(&v.to_le_bytes());
+            for (dst, v) in take(12 * n).chunks_exact_mut(4).zip(a.iter().flatten()) {
+                dst.copy_from_slice(&v.to_le_bytes());
             }
         }
         for a in [&self.anchor, &self.right, &self.down, &self.segment, &self.source] {
-            for v in a.iter() {
-                out.extend_from_slice(&v.to_le_bytes());
+            for (dst, v) in take(4 * n).chunks_exact_mut(4).zip(a) {
+                dst.copy_from_slice(&v.to_le_bytes());
             }
         }
         for a in [&self.lambda, &self.edge_limit] {
-            for v in a.iter() {
-                out.extend_from_slice(&v.to_le_bytes());
+            for (dst, v) in take(4 * n).chunks_exact_mut(4).zip(a) {
+                dst.copy_from_slice(&v.to_le_bytes());
             }
         }
         out

@@ -149,6 +149,9 @@ pub fn estimate_normals(
     }
     offsets.retain(|o| (o.dr.unsigned_abs() as usize) < rows);
     let pairs = structured_pairs(&offsets);
+    // Pixel-index step of each offset, for windows that neither wrap nor leave the image.
+    let steps: Vec<isize> = offsets.iter().map(|o| (o.dc * rows as i64 + o.dr) as isize).collect();
+    let mut pixel = vec![OUTSIDE; offsets.len()];
     let (rows_i, columns_i) = (rows as i64, columns as i64);
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = Candidates::new();
@@ -175,21 +178,33 @@ pub fn estimate_normals(
         let tol = params.inlier_base_m + params.inlier_per_range * range;
         cand.m = 0;
         let (mut has_along, mut has_across) = (false, false);
+        // The window's pixels: away from the image's edges (nearly every pixel) a fixed step from
+        // the centre's, else with the columns checked and the rows wrapped.
+        let centre = c as usize * rows + r as usize;
+        if c >= w && c + w < columns_i && r >= w && r + w < rows_i {
+            for (px, &step) in pixel.iter_mut().zip(&steps) {
+                *px = centre.wrapping_add_signed(step);
+            }
+        } else {
+            for (px, o) in pixel.iter_mut().zip(&offsets) {
+                let cc = c + o.dc;
+                let mut rr = r + o.dr;
+                if rr < 0 {
+                    rr += rows_i;
+                } else if rr >= rows_i {
+                    rr -= rows_i;
+                }
+                *px = if cc < 0 || cc >= columns_i { OUTSIDE } else { cc as usize * rows + rr as usize };
+            }
+        }
         for (index, o) in offsets.iter().enumerate() {
-            let cc = c + o.dc;
-            if cc < 0 || cc >= columns_i {
+            if pixel[index] == OUTSIDE {
                 cand.slot[index] = ABSENT;
                 continue;
             }
-            let mut rr = r + o.dr;
-            if rr < 0 {
-                rr += rows_i;
-            } else if rr >= rows_i {
-                rr -= rows_i;
-            }
             // Without branches on the data (holes and gaps are hard to predict): a hole reads the
             // centre itself, and every neighbour is written, but only a kept one advances `m`.
-            let j = grid[cc as usize * rows + rr as usize];
+            let j = grid[pixel[index]];
             let present = j != NO_POINT;
             let j = if present { j as usize } else { k };
             let d = [geo.x[j] - p[0], geo.y[j] - p[1], geo.z[j] - p[2]];
@@ -365,6 +380,8 @@ fn ransac(
 
 /// Marks an offset of the window without a candidate.
 const ABSENT: u8 = u8::MAX;
+/// Marks a window pixel outside the image (its column does not exist).
+const OUTSIDE: usize = usize::MAX;
 
 /// Well-conditioned pairs of window offsets for the first hypotheses, as indices into `offsets`:
 /// one neighbour along the profile (same column) and one across (same row), at distance 2 (the
