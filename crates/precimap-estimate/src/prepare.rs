@@ -8,7 +8,7 @@ use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use precimap_core::geom::rotate_small;
 use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
 pub use precimap_segment::{PixelNormal, ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
-use precimap_segment::{StripGeometry, DROPPED, NO_POINT};
+use precimap_segment::{StripGeometry, NO_POINT};
 use std::collections::HashMap;
 
 /// A strip's points in acquisition order (struct of arrays, as read from LAS).
@@ -309,10 +309,10 @@ pub fn prepare_strip_observed(
         return Err(PrepareError::Empty);
     }
     let geometry = strip_geometry(samples, ctx)?;
-    let head: Vec<[f64; 3]> = geometry.iter().map(|g| g.t0).collect();
+    let head = &geometry.head;
     phase_done(PreparePhase::Geometry);
     let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
-        reconstructed_scan_angles(&geometry, samples, ctx.trajectory_data)
+        reconstructed_scan_angles(head, samples, ctx.trajectory_data)
     } else {
         None
     };
@@ -320,22 +320,21 @@ pub fn prepare_strip_observed(
     let angles = reconstructed.as_deref().unwrap_or(samples.scan_angle_deg);
     let mut image = ScanImage::build(angles, samples.gps_time, samples.channel);
     drop(reconstructed);
-    image.thin_standstill(&head, ctx.params.min_revolution_advance_m);
+    image.thin_standstill(head, ctx.params.min_revolution_advance_m);
     let grid = image.grid();
     phase_done(PreparePhase::ScanImage);
-    let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head: &head };
+    let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head };
     let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
     phase_done(PreparePhase::Normals);
     let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
     phase_done(PreparePhase::Segmentation);
-    drop(head);
-    let links = Links::build(&image, &grid);
-    drop(grid);
+    let links = Links { image: &image, grid: &grid };
     let chunks = emit_tiles(samples, ctx, &geometry, &links, &segmentation.normals, &segmentation.segment);
+    drop(grid);
     phase_done(PreparePhase::Tiling);
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
-    let first_anchor = geometry.iter().map(|g| g.anchor).min().unwrap_or(0);
-    let last_anchor = geometry.iter().map(|g| g.anchor).max().unwrap_or(0) + 1;
+    let first_anchor = geometry.anchor.iter().copied().min().unwrap_or(0);
+    let last_anchor = geometry.anchor.iter().copied().max().unwrap_or(0) + 1;
     Ok(PreparedStrip {
         chunks,
         stats: PrepareStats {
@@ -358,12 +357,29 @@ pub fn prepare_strip_observed(
     })
 }
 
-fn strip_geometry(
-    samples: &StripSamples<'_>,
-    ctx: &StripContext<'_>,
-) -> Result<Vec<MeasurementGeometry>, PrepareError> {
+/// What preparation keeps of each point's [`MeasurementGeometry`], struct of arrays: the
+/// scan-head positions are the segmentation's input as they are, and `r = p − t0` is recomputed
+/// where needed (the same subtraction) rather than stored (a third of the bytes per point).
+struct HeadGeometry {
+    head: Vec<[f64; 3]>,
+    anchor: Vec<u32>,
+    lambda: Vec<f32>,
+}
+
+impl HeadGeometry {
+    /// The measurement vector `p − t0` of point `k`, as [`GeometryCursor::at`] computes it.
+    #[inline]
+    fn r(&self, samples: &StripSamples<'_>, k: usize) -> [f64; 3] {
+        let t0 = self.head[k];
+        [samples.x[k] - t0[0], samples.y[k] - t0[1], samples.z[k] - t0[2]]
+    }
+}
+
+fn strip_geometry(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<HeadGeometry, PrepareError> {
     let (start, end) = ctx.trajectory_data.time_span();
-    let mut out = Vec::with_capacity(samples.len());
+    let n = samples.len();
+    let mut out =
+        HeadGeometry { head: Vec::with_capacity(n), anchor: Vec::with_capacity(n), lambda: Vec::with_capacity(n) };
     let mut previous = f64::NEG_INFINITY;
     let mut cursor = GeometryCursor::new(ctx.trajectory_data, &ctx.lever_arm, ctx.params.anchor_spacing_m);
     for k in 0..samples.len() {
@@ -382,7 +398,9 @@ fn strip_geometry(
         }
         previous = t;
         let g = cursor.at(t, p).ok_or(PrepareError::NotCovered { index: k, time: t, start, end })?;
-        out.push(g);
+        out.head.push(g.t0);
+        out.anchor.push(g.anchor);
+        out.lambda.push(g.lambda);
     }
     Ok(out)
 }
@@ -403,16 +421,17 @@ fn scan_angles_missing(angles: &[f32]) -> bool {
 /// beams do not lie in a plane (not a rotating line scanner: the smallest spread is over 5 % of
 /// the largest), so the strip keeps no scan-image neighbourhood.
 pub fn reconstructed_scan_angles(
-    geometry: &[MeasurementGeometry],
+    head: &[[f64; 3]],
     samples: &StripSamples<'_>,
     trajectory: &Trajectory,
 ) -> Option<Vec<f32>> {
-    let n = geometry.len();
+    let n = head.len();
     // Unit beam directions in the body frame.
     let mut body = Vec::with_capacity(n);
-    for (k, g) in geometry.iter().enumerate() {
+    for (k, t0) in head.iter().enumerate() {
         let pose = trajectory.pose_at(samples.gps_time[k])?;
-        let u = pose.rotation.transpose() * Vec3::from(g.r);
+        let r = [samples.x[k] - t0[0], samples.y[k] - t0[1], samples.z[k] - t0[2]];
+        let u = pose.rotation.transpose() * Vec3::from(r);
         let norm = u.norm();
         body.push(if norm > 0.0 { u / norm } else { Vec3::zeros() });
     }
@@ -511,43 +530,36 @@ pub fn reconstructed_scan_angles(
 }
 
 /// Scan-image neighbour links: next row in the same revolution (wrapping round), same row in the
-/// next revolution.
-#[derive(Debug)]
-struct Links {
-    right: Vec<u32>,
-    down: Vec<u32>,
+/// next revolution. Looked up in the pixel grid for the emitted points only, rather than stored
+/// for every point.
+struct Links<'a> {
+    image: &'a ScanImage,
+    grid: &'a [u32],
 }
 
-impl Links {
-    fn build(image: &ScanImage, grid: &[u32]) -> Self {
-        let n = image.row.len();
-        let mut right = vec![NO_NEIGHBOUR; n];
-        let mut down = vec![NO_NEIGHBOUR; n];
-        let rows = image.rows as usize;
-        for k in 0..n {
-            let c = image.column[k];
-            if c == DROPPED {
-                continue;
-            }
-            let px = c as usize * rows + image.row[k] as usize;
-            // Rows wrap around: the revolution is a circle.
-            let next = if (image.row[k] as usize) + 1 < rows { px + 1 } else { px + 1 - rows };
-            if rows > 2 && grid[next] != NO_POINT {
-                right[k] = grid[next];
-            }
-            if px + rows < grid.len() && grid[px + rows] != NO_POINT {
-                down[k] = grid[px + rows];
-            }
-        }
-        Self { right, down }
+// Links are read straight from the grid: its empty pixels must read as "no neighbour".
+const _: () = assert!(NO_POINT == NO_NEIGHBOUR);
+
+impl Links<'_> {
+    /// `(right, down)` of point `k` (in the image: not dropped), or [`NO_NEIGHBOUR`].
+    #[inline]
+    fn of(&self, k: usize) -> (u32, u32) {
+        let rows = self.image.rows as usize;
+        let row = self.image.row[k] as usize;
+        let px = self.image.column[k] as usize * rows + row;
+        // Rows wrap around: the revolution is a circle.
+        let next = if row + 1 < rows { px + 1 } else { px + 1 - rows };
+        let right = if rows > 2 { self.grid[next] } else { NO_NEIGHBOUR };
+        let down = self.grid.get(px + rows).copied().unwrap_or(NO_NEIGHBOUR);
+        (right, down)
     }
 }
 
 fn emit_tiles(
     samples: &StripSamples<'_>,
     ctx: &StripContext<'_>,
-    geometry: &[MeasurementGeometry],
-    links: &Links,
+    geometry: &HeadGeometry,
+    links: &Links<'_>,
     normals: &[Option<PixelNormal>],
     segment: &[u32],
 ) -> Vec<TileChunk> {
@@ -559,7 +571,7 @@ fn emit_tiles(
     let mut recent: [(TileKey, usize); 4] = [(TileKey { tx: i32::MIN, ty: i32::MIN }, 0); 4];
     let max_range2 = params.max_range_m * params.max_range_m;
     for k in 0..samples.len() {
-        let r = geometry[k].r;
+        let r = geometry.r(samples, k);
         if segment[k] >= DROPPED_SEGMENT || normals[k].is_none() || r[0] * r[0] + r[1] * r[1] + r[2] * r[2] > max_range2
         {
             continue;
@@ -595,16 +607,17 @@ fn emit_tiles(
             let local_of = |g: u32| if g == NO_NEIGHBOUR { NO_NEIGHBOUR } else { local[g as usize] };
             for &g in &globals {
                 let k = g as usize;
-                let geo = &geometry[k];
                 let Some(nrm) = normals[k] else { continue };
+                let (t0, r) = (geometry.head[k], geometry.r(samples, k));
+                let (right, down) = links.of(k);
                 chunk.push(
-                    [(geo.t0[0] - ox) as f32, (geo.t0[1] - oy) as f32, geo.t0[2] as f32],
-                    [geo.r[0] as f32, geo.r[1] as f32, geo.r[2] as f32],
+                    [(t0[0] - ox) as f32, (t0[1] - oy) as f32, t0[2] as f32],
+                    [r[0] as f32, r[1] as f32, r[2] as f32],
                     nrm.normal,
-                    geo.anchor,
-                    geo.lambda,
-                    local_of(links.right[k]),
-                    local_of(links.down[k]),
+                    geometry.anchor[k],
+                    geometry.lambda[k],
+                    local_of(right),
+                    local_of(down),
                     nrm.edge_limit,
                     segment[k],
                     g,
@@ -771,7 +784,7 @@ mod tests {
         let traj = Trajectory::new(times, positions, vec![[0.0; 3]; 11]).unwrap();
         let mut cursor = GeometryCursor::new(&traj, &Vec3::zeros(), 0.5);
         let (mut x, mut y, mut z, mut t) = (vec![], vec![], vec![], vec![]);
-        let mut geometry = vec![];
+        let mut head = vec![];
         for k in 0..500 {
             let time = k as f64 * 0.001;
             // Directions spread over a sphere (golden-angle spiral).
@@ -779,7 +792,7 @@ mod tests {
             let r = (1.0 - h * h).sqrt();
             let phi = k as f64 * 2.399_963;
             let p = [time + 5.0 * r * phi.cos(), 5.0 * r * phi.sin(), 5.0 * h];
-            geometry.push(cursor.at(time, p).unwrap());
+            head.push(cursor.at(time, p).unwrap().t0);
             x.push(p[0]);
             y.push(p[1]);
             z.push(p[2]);
@@ -789,7 +802,7 @@ mod tests {
         let channel = vec![0u8; x.len()];
         let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &zeros, channel: &channel };
         assert!(scan_angles_missing(&zeros));
-        assert!(reconstructed_scan_angles(&geometry, &samples, &traj).is_none());
+        assert!(reconstructed_scan_angles(&head, &samples, &traj).is_none());
     }
 
     /// The cursor gives what the full interpolation gives (pose at t, rotation times lever arm,
