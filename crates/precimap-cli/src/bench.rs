@@ -25,9 +25,6 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
-    /// Strip pre-processing (LAZ decoding, geometry, scan image, RANSAC normals, segmentation,
-    /// tiling and chunk encoding) on a simulated LAZ campaign: per-core throughput on all cores,
-    /// cost per point for growing strip counts, peak memory, and the segmentation against truth.
     /// Queue throughput (claim + complete cycles with 1, 4, 16 claimers on SQLite and PostgreSQL)
     /// and the job framework's overhead against the in-process driver on a simulated campaign.
     Queue {
@@ -56,6 +53,9 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Strip pre-processing (LAZ decoding, geometry, scan image, RANSAC normals, segmentation,
+    /// tiling and chunk encoding) on a simulated LAZ campaign: per-core throughput on all cores,
+    /// cost per point for growing strip counts, peak memory, and the segmentation against truth.
     Preprocess {
         #[arg(long, default_value = "small")]
         scale: precimap_sim::Scale,

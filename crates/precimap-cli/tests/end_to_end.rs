@@ -254,6 +254,14 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(out.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("/nonexistent/manifest.json") && !stderr.contains("panicked"), "{stderr}");
+    // Every benchmark says what it measures (a misplaced doc comment once left one blank).
+    let out = std::process::Command::new(exe).args(["bench", "--help"]).output().unwrap();
+    let help = String::from_utf8_lossy(&out.stdout);
+    for name in ["estimate", "queue", "preprocess", "solve"] {
+        let line = help.lines().find(|l| l.trim_start().starts_with(name)).unwrap_or_default();
+        assert!(line.trim().len() > name.len() + 10, "bench {name} has no description:\n{help}");
+    }
+    assert!(help.contains("preprocess  Strip pre-processing"), "{help}");
     // The cause is said once, not once per error layer that carries it.
     assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
 }
