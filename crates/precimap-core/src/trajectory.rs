@@ -138,8 +138,18 @@ impl Trajectory {
         Some(self.pose_in_segment(i, lambda))
     }
 
+    /// Interpolated position alone (no rotation): what [`Self::pose_at`] gives as its position.
+    pub fn position_at(&self, t: f64) -> Option<Vec3> {
+        let (i, lambda) = self.locate(t)?;
+        Some(self.position_in_segment(i, lambda))
+    }
+
+    fn position_in_segment(&self, i: usize, lambda: f64) -> Vec3 {
+        self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda
+    }
+
     pub fn pose_in_segment(&self, i: usize, lambda: f64) -> Pose {
-        let position = self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda;
+        let position = self.position_in_segment(i, lambda);
         let rotation = self.rotations[i] * so3_exp(&(self.segment_rotations[i] * lambda));
         Pose { position, rotation }
     }

@@ -419,11 +419,13 @@ fn evaluate_strip(
         out.shift_free_after.add(tile, index, ea, unit);
         if let Some(tr) = trajectory {
             let time = before.gps_time[k];
-            if let Some(g) = position_error_at(&tr.input, &tr.truth, time) {
-                out.shift_free_before.add_datum_sample(tile, g);
-            }
-            if let Some(g) = position_error_at(&tr.result, &tr.truth, time) {
-                out.shift_free_after.add_datum_sample(tile, g);
+            if let Some(truth_position) = tr.truth.position_at(time) {
+                if let Some(g) = position_error_at(&tr.input, truth_position, time) {
+                    out.shift_free_before.add_datum_sample(tile, g);
+                }
+                if let Some(g) = position_error_at(&tr.result, truth_position, time) {
+                    out.shift_free_after.add_datum_sample(tile, g);
+                }
             }
         }
     }

@@ -2,7 +2,7 @@
 //! stamps.
 
 use precimap_core::geom::so3_log;
-use precimap_core::Trajectory;
+use precimap_core::{Trajectory, Vec3};
 
 /// Sums of squared errors of one trajectory against the truth.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -50,15 +50,10 @@ impl TrajectoryErrors {
     }
 }
 
-/// Position error `eval − truth` at time `t` (both interpolated linearly); `None` outside either
-/// time span.
-pub fn position_error_at(eval: &Trajectory, truth: &Trajectory, t: f64) -> Option<[f64; 3]> {
-    let at = |tr: &Trajectory| {
-        let (i, lambda) = tr.locate(t)?;
-        let p = tr.positions();
-        Some(p[i] + (p[i + 1] - p[i]) * lambda)
-    };
-    let d = at(eval)? - at(truth)?;
+/// Position error `eval − truth_position` at time `t` (`eval` interpolated linearly); `None`
+/// outside its time span.
+pub fn position_error_at(eval: &Trajectory, truth_position: Vec3, t: f64) -> Option<[f64; 3]> {
+    let d = eval.position_at(t)? - truth_position;
     Some([d.x, d.y, d.z])
 }
 
@@ -87,7 +82,6 @@ pub fn trajectory_errors(eval: &Trajectory, truth: &Trajectory) -> TrajectoryErr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use precimap_core::Vec3;
 
     fn line(t0: f64, n: usize, shift: Vec3, yaw_offset_deg: f64) -> Trajectory {
         let times: Vec<f64> = (0..n).map(|i| t0 + i as f64 * 0.005).collect();
@@ -106,9 +100,11 @@ mod tests {
         assert!((e.rotation_rms_deg() - 0.02).abs() < 1e-6, "{}", e.rotation_rms_deg());
         let same = trajectory_errors(&truth, &truth);
         assert!(same.position_rms_m() < 1e-12 && same.rotation_rms_deg() < 1e-6);
-        let at = position_error_at(&line(100.0, 200, Vec3::new(0.03, 0.0, 0.04), 0.0), &truth, 100.3).unwrap();
+        let at_truth = truth.position_at(100.3).unwrap();
+        assert!((at_truth - truth.pose_at(100.3).unwrap().position).norm() < 1e-12);
+        let at = position_error_at(&line(100.0, 200, Vec3::new(0.03, 0.0, 0.04), 0.0), at_truth, 100.3).unwrap();
         assert!((at[0] - 0.03).abs() < 1e-9 && at[1].abs() < 1e-9 && (at[2] - 0.04).abs() < 1e-9, "{at:?}");
-        assert!(position_error_at(&truth, &truth, 99.0).is_none());
+        assert!(truth.position_at(99.0).is_none() && position_error_at(&truth, at_truth, 99.0).is_none());
         let mean = e.mean_position_error_m();
         assert!((mean[0] - 0.03).abs() < 1e-9 && mean[1].abs() < 1e-9 && (mean[2] - 0.04).abs() < 1e-9, "{mean:?}");
         assert!((e.length_m - 199.0 * 0.05).abs() < 1e-6, "{}", e.length_m);

@@ -152,6 +152,14 @@ async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<Traje
     }
 }
 
+/// The anchor positions object does not fit the campaign's trajectories (`detail` says how).
+fn corrupt_positions(detail: String) -> TaskError {
+    TaskError::permanent(format!(
+        "anchor positions ({detail}) do not match the trajectories' anchor ranges; the campaign state is corrupt: \
+         submit the campaign again"
+    ))
+}
+
 /// Runs a task; `token` is its lease token (part of every output key).
 pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result<TaskOutcome, TaskError> {
     let started = Instant::now();
@@ -248,16 +256,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     positions
                 }
             };
-            let consistent = positions.len() == current.len()
-                && positions
-                    .iter()
-                    .zip(&current)
-                    .all(|(p, c)| p.len() == (c.anchors.1.saturating_sub(c.anchors.0) + 1) as usize);
-            if !consistent {
-                return Err(TaskError::permanent(
-                    "anchor positions do not match the trajectories' anchor ranges; the campaign state is corrupt: \
-                     submit the campaign again",
-                ));
+            // One list per trajectory (solve_field checks each list's length against its anchors).
+            if positions.len() != current.len() {
+                return Err(corrupt_positions(format!("{} trajectories for {}", positions.len(), current.len())));
             }
             let mut corrections = Vec::with_capacity(current.len());
             for c in &current {
@@ -286,10 +287,12 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 Ok::<_, precimap_estimate::field::FieldError>((start, before, max_m, field.nodes.len()))
             })
             .await?
-            .map_err(|e| {
-                TaskError::permanent(format!(
+            .map_err(|e| match e {
+                // solve_field checks the positions against the corrections it is given.
+                precimap_estimate::field::FieldError::Positions { .. } => corrupt_positions(e.to_string()),
+                e => TaskError::permanent(format!(
                     "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
-                ))
+                )),
             })?;
             let (start, before, max_m, nodes) = solved;
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
