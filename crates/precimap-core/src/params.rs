@@ -147,6 +147,13 @@ pub struct Parameters {
     /// along, and added to every trajectory at its anchors. It moves the shift every pass at a
     /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
     pub common_mode_field_m: f64,
+    /// Whether momentum, in steps that solve the field, carries only the part of the last step
+    /// that no field on the same nodes represents (the field re-solves the rest itself, so
+    /// carrying it too makes the two levels fight). Off by default: it halves the last
+    /// iterations' changes and makes small campaigns agree better without the campaign's shift
+    /// (seed 1: 1.199 → 1.131 mm, seed 2: 0.621 → 0.572 mm), but medium agrees worse (2.90 →
+    /// 2.99 mm; ARCHITECTURE.md, "Field-free momentum").
+    pub field_free_momentum: bool,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,
     /// Converged when no anchor moves a point at 10 m range by more than this between iterations.
@@ -176,6 +183,7 @@ impl Default for Parameters {
             threshold_floor_sigmas: 4.0,
             momentum: 0.85,
             common_mode_field_m: 30.0,
+            field_free_momentum: false,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
         }

@@ -228,6 +228,73 @@ impl FieldSolution {
     }
 }
 
+/// `previous` moved so that `current − previous` (the step momentum carries on) loses its
+/// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
+/// next iteration, so carrying it as well overshoots and the two levels fight.
+/// `trajectories` hold the current corrections and their anchors' positions.
+pub fn remove_field_share(
+    trajectories: &[FieldTrajectory],
+    previous: &[TrajectoryCorrections],
+    spacing: f64,
+) -> Result<Vec<TrajectoryCorrections>, FieldError> {
+    let mut index: BTreeMap<FieldNode, usize> = BTreeMap::new();
+    for (t, tr) in trajectories.iter().enumerate() {
+        if tr.positions.len() != tr.corrections.values.len() || previous[t].values.len() != tr.positions.len() {
+            return Err(FieldError::Positions {
+                trajectory: t,
+                positions: tr.positions.len(),
+                anchors: tr.corrections.values.len(),
+            });
+        }
+        for p in tr.positions {
+            for (n, phi) in bilinear(p[0], p[1], spacing) {
+                if phi > 0.0 {
+                    index.insert(n, 0);
+                }
+            }
+        }
+    }
+    for (i, v) in index.values_mut().enumerate() {
+        *v = i;
+    }
+    let nodes = index.len();
+    if nodes > MAX_FIELD_NODES {
+        return Err(FieldError::TooManyNodes { nodes, limit: MAX_FIELD_NODES });
+    }
+    // One scalar system for the three axes: Σ φφᵀ g = Σ φ d, with a small ridge for nodes that
+    // anchors touch only at their far corner.
+    let mut a = nalgebra::DMatrix::<f64>::zeros(nodes, nodes);
+    let mut b = nalgebra::DMatrix::<f64>::zeros(nodes, 3);
+    for (tr, before) in trajectories.iter().zip(previous) {
+        for ((p, now), was) in tr.positions.iter().zip(&tr.corrections.values).zip(&before.values) {
+            let row: Vec<(usize, f64)> = bilinear(p[0], p[1], spacing)
+                .iter()
+                .filter(|(_, phi)| *phi > 0.0)
+                .map(|(n, phi)| (index[n], *phi))
+                .collect();
+            for &(i, pi) in &row {
+                for &(j, pj) in &row {
+                    a[(i, j)] += pi * pj;
+                }
+                for c in 0..3 {
+                    b[(i, c)] += pi * (now[c] - was[c]);
+                }
+            }
+        }
+    }
+    for i in 0..nodes {
+        a[(i, i)] += 1e-3;
+    }
+    let g = nalgebra::Cholesky::new(a).ok_or(FieldError::Singular { nodes })?.solve(&b);
+    let fit = FieldSolution {
+        spacing_m: spacing,
+        nodes: index.keys().copied().collect(),
+        values: (0..nodes).map(|i| [g[(i, 0)], g[(i, 1)], g[(i, 2)]]).collect(),
+        observations: 0,
+    };
+    Ok(trajectories.iter().zip(previous).map(|(tr, before)| fit.apply(tr.positions, before)).collect())
+}
+
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FieldError {
     #[error("trajectory {trajectory}: {positions} anchor positions for {anchors} anchors")]
@@ -426,6 +493,39 @@ mod tests {
         }
         // A constant field does not change the row's value: the coefficients sum to zero.
         assert!(row.values().sum::<f64>().abs() < 1e-12);
+    }
+
+    #[test]
+    fn field_share_of_a_step_is_removed_and_the_rest_kept() {
+        // Two passes along the same street; their last step is a smooth shared drift (a field)
+        // plus a per-anchor zigzag no field on 20 m nodes can represent.
+        let spacing = 20.0;
+        let positions: Vec<[f64; 2]> = (0..240).map(|k| [1000.0 + 0.5 * k as f64, 2003.0]).collect();
+        let drift = |p: &[f64; 2]| [0.002 * (p[0] - 1000.0) / 120.0, -0.001, 0.0005];
+        let zigzag = |k: usize| if k.is_multiple_of(2) { 1e-4 } else { -1e-4 };
+        let previous = TrajectoryCorrections { first_anchor: 0, values: vec![[0.01, 0.02, 0.0, 0.0, 0.0, 0.0]; 240] };
+        let mut current = previous.clone();
+        for (k, (v, p)) in current.values.iter_mut().zip(&positions).enumerate() {
+            let d = drift(p);
+            for c in 0..3 {
+                v[c] += d[c];
+            }
+            v[0] += zigzag(k);
+        }
+        let trajectories = [
+            FieldTrajectory { positions: &positions, corrections: &current },
+            FieldTrajectory { positions: &positions, corrections: &current },
+        ];
+        let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing).unwrap();
+        for before in &moved {
+            for (k, (now, was)) in current.values.iter().zip(&before.values).enumerate() {
+                // What momentum would carry: the zigzag only (the ridge leaves a trace of the drift).
+                assert!((now[0] - was[0] - zigzag(k)).abs() < 2e-5, "anchor {k}: {}", now[0] - was[0]);
+                assert!((now[1] - was[1]).abs() < 2e-5 && (now[2] - was[2]).abs() < 2e-5);
+                // Rotations are untouched.
+                assert_eq!(now[3..], was[3..]);
+            }
+        }
     }
 
     #[test]

@@ -281,6 +281,16 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     .map(|(c, p)| precimap_estimate::FieldTrajectory { positions: p, corrections: c })
                     .collect();
                 let field = precimap_estimate::solve_field(decoded.iter(), &field_trajectories, &params)?;
+                // Momentum carries only what the field cannot represent (as in the in-process driver).
+                let before = if params.field_free_momentum && !before.is_empty() {
+                    precimap_estimate::field::remove_field_share(
+                        &field_trajectories,
+                        &before,
+                        params.common_mode_field_m,
+                    )?
+                } else {
+                    before
+                };
                 let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let max_m = positions.iter().map(|p| field.max_at(p)).fold(0.0, f64::max);

@@ -144,6 +144,13 @@ pub fn iterate(
             .collect();
         let solved = solve_field(estimates.iter().filter_map(|e| e.field.as_ref()), &trajectories, &campaign.params)
             .map_err(PipelineError::Field)?;
+        if campaign.params.field_free_momentum {
+            if let Some(p) = previous.as_mut() {
+                *p =
+                    precimap_estimate::field::remove_field_share(&trajectories, p, campaign.params.common_mode_field_m)
+                        .map_err(PipelineError::Field)?;
+            }
+        }
         for (t, positions) in prepared.anchor_positions.iter().enumerate() {
             started_from[t] = solved.apply(positions, &corrections[t]);
             // Momentum carries the last fine step only, not this field step.
