@@ -63,6 +63,22 @@ impl TaskContext {
         self.objects.get(key).await.map_err(TaskError::from_store)
     }
 
+    async fn get_many(&self, keys: &[String]) -> Result<Vec<Bytes>, TaskError> {
+        self.objects.get_many(keys).await.map_err(TaskError::from_store)
+    }
+
+    /// Writes `objects` and returns their output records (`name`, key) in the same order.
+    async fn put_many(&self, objects: Vec<(String, String, Vec<u8>)>) -> Result<Vec<OutputKey>, TaskError> {
+        let mut outputs = Vec::with_capacity(objects.len());
+        let mut payloads = Vec::with_capacity(objects.len());
+        for (name, key, bytes) in objects {
+            outputs.push(OutputKey { name, object_key: key.clone() });
+            payloads.push((key, Bytes::from(bytes)));
+        }
+        self.objects.put_many(payloads).await.map_err(TaskError::from_store)?;
+        Ok(outputs)
+    }
+
     async fn put(&self, key: &str, bytes: Vec<u8>) -> Result<(), TaskError> {
         self.objects.put(key, Bytes::from(bytes)).await.map_err(TaskError::from_store)
     }
@@ -152,6 +168,28 @@ async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<Traje
     }
 }
 
+/// Several trajectories' corrections, read together (see [`Objects::get_many`]).
+async fn read_corrections_many(
+    ctx: &TaskContext,
+    refs: &[CorrectionsRef],
+) -> Result<Vec<TrajectoryCorrections>, TaskError> {
+    let keys: Vec<String> = refs.iter().filter_map(|c| c.key.clone()).collect();
+    let mut stored = ctx.get_many(&keys).await?.into_iter().zip(keys);
+    let mut out = Vec::with_capacity(refs.len());
+    for c in refs {
+        out.push(match &c.key {
+            None => TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1),
+            Some(_) => {
+                let (bytes, key) = stored.next().expect("one object per key");
+                decode_corrections(&bytes)
+                    .map(|(c, _)| c)
+                    .map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))?
+            }
+        });
+    }
+    Ok(out)
+}
+
 /// The anchor positions object does not fit the campaign's trajectories (`detail` says how).
 fn corrupt_positions(detail: String) -> TaskError {
     TaskError::permanent(format!(
@@ -197,17 +235,15 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::EstimateTile { prefix, iteration, tile, step, params, trajectories, chunks, corrections } => {
-            let mut decoded = Vec::with_capacity(chunks.len());
-            for c in &chunks {
-                let bytes = ctx.get(&c.key).await?;
-                decoded.push((c.key.clone(), bytes));
-            }
+            let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
+            let decoded: Vec<(String, Bytes)> =
+                chunk_keys.iter().cloned().zip(ctx.get_many(&chunk_keys).await?).collect();
             let mut all = vec![TrajectoryCorrections::zeros(0, 0); trajectories as usize];
-            for c in &corrections {
+            for (c, read) in corrections.iter().zip(read_corrections_many(ctx, &corrections).await?) {
                 let slot = all
                     .get_mut(c.trajectory as usize)
                     .ok_or_else(|| TaskError::permanent(format!("tile {tile}: unknown trajectory {}", c.trajectory)))?;
-                *slot = read_corrections(ctx, c).await?;
+                *slot = read;
             }
             let estimate = blocking(move || {
                 let chunks = decoded
@@ -220,17 +256,16 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))
             })
             .await??;
-            let mut outputs = Vec::with_capacity(estimate.blocks.len());
+            let mut objects = Vec::with_capacity(estimate.blocks.len() + 1);
             for tb in &estimate.blocks {
                 let key = format!("{prefix}/it/{iteration}/blocks/{}/{tile}.{tag}.blk", tb.trajectory);
-                ctx.put(&key, encode_blocks(&tb.blocks)).await?;
-                outputs.push(OutputKey { name: format!("{BLOCKS_PREFIX}{}", tb.trajectory), object_key: key });
+                objects.push((format!("{BLOCKS_PREFIX}{}", tb.trajectory), key, encode_blocks(&tb.blocks)));
             }
             if let Some(field) = &estimate.field {
                 let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");
-                ctx.put(&key, encode_field(field)).await?;
-                outputs.push(OutputKey { name: OUTPUT_FIELD.into(), object_key: key });
+                objects.push((OUTPUT_FIELD.into(), key, encode_field(field)));
             }
+            let outputs = ctx.put_many(objects).await?;
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
@@ -260,17 +295,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             if positions.len() != current.len() {
                 return Err(corrupt_positions(format!("{} trajectories for {}", positions.len(), current.len())));
             }
-            let mut corrections = Vec::with_capacity(current.len());
-            for c in &current {
-                corrections.push(read_corrections(ctx, c).await?);
-            }
-            let mut before = Vec::new();
-            for c in previous.iter().flatten() {
-                before.push(read_corrections(ctx, c).await?);
-            }
+            let corrections = read_corrections_many(ctx, &current).await?;
+            let before = read_corrections_many(ctx, previous.as_deref().unwrap_or_default()).await?;
             let mut decoded = Vec::with_capacity(equations.len());
-            for key in &equations {
-                let bytes = ctx.get(key).await?;
+            for (key, bytes) in equations.iter().zip(ctx.get_many(&equations).await?) {
                 decoded
                     .push(decode_field(&bytes).map_err(|e| TaskError::permanent(format!("field object {key}: {e}")))?);
             }
@@ -305,13 +333,14 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 )),
             })?;
             let (start, before, max_m, nodes) = solved;
+            let mut objects = Vec::with_capacity(start.len() + before.len());
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
                 for (t, c) in trajectories.iter().zip(list) {
                     let key = format!("{prefix}/it/{iteration}/{name}{}.{tag}.bin", t.index);
-                    ctx.put(&key, encode_corrections(c, None)).await?;
-                    outputs.push(OutputKey { name: format!("{name}{}", t.index), object_key: key });
+                    objects.push((format!("{name}{}", t.index), key, encode_corrections(c, None)));
                 }
             }
+            outputs.extend(ctx.put_many(objects).await?);
             let result = FieldResult { max_m, nodes, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
@@ -326,14 +355,13 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             previous,
             blocks,
         } => {
-            let current = read_corrections(ctx, &current).await?;
-            let previous = match &previous {
-                Some(p) => Some(read_corrections(ctx, p).await?),
-                None => None,
-            };
+            let mut refs = vec![current];
+            refs.extend(previous);
+            let mut read = read_corrections_many(ctx, &refs).await?.into_iter();
+            let current = read.next().expect("the current corrections");
+            let previous = read.next();
             let mut all = Vec::new();
-            for key in &blocks {
-                let bytes = ctx.get(key).await?;
+            for (key, bytes) in blocks.iter().zip(ctx.get_many(&blocks).await?) {
                 all.extend(
                     decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?,
                 );

@@ -7,7 +7,7 @@
 
 use crate::error::FrameworkError;
 use bytes::Bytes;
-use futures::TryStreamExt;
+use futures::{StreamExt, TryStreamExt};
 use object_store::aws::AmazonS3Builder;
 use object_store::local::LocalFileSystem;
 use object_store::path::Path as StorePath;
@@ -120,6 +120,84 @@ impl Objects {
         let path = store_path(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
         result.bytes().await.map_err(|e| FrameworkError::store(key, e))
+    }
+
+    /// Several objects, in order. A `file://` store reads them all in one blocking call (each
+    /// `get` through `object_store` costs two thread hand-offs, which measured as a third of the
+    /// framework's CPU overhead on small); a remote store fetches up to 8 at a time.
+    pub async fn get_many(&self, keys: &[String]) -> Result<Vec<Bytes>, FrameworkError> {
+        if self.local_root.is_some() {
+            let mut paths = Vec::with_capacity(keys.len());
+            for key in keys {
+                store_path(key)?;
+                let path =
+                    self.local_path(key).ok_or_else(|| FrameworkError::Internal(format!("{key}: no local path")))?;
+                paths.push((key.clone(), path));
+            }
+            return tokio::task::spawn_blocking(move || {
+                paths
+                    .into_iter()
+                    .map(|(key, path)| match std::fs::read(&path) {
+                        Ok(bytes) => Ok(Bytes::from(bytes)),
+                        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(FrameworkError::store(
+                            &key,
+                            object_store::Error::NotFound { path: key.clone(), source: Box::new(e) },
+                        )),
+                        Err(e) => Err(FrameworkError::io(&path, e)),
+                    })
+                    .collect()
+            })
+            .await
+            .map_err(|e| FrameworkError::Internal(format!("object read thread stopped: {e}")))?;
+        }
+        // Owned futures: borrowed ones in a stream combinator are not `Send` for every lifetime.
+        let requests: Vec<_> = keys
+            .iter()
+            .map(|key| {
+                let (store, key) = (self.clone(), key.clone());
+                async move { store.get(&key).await }
+            })
+            .collect();
+        futures::stream::iter(requests).buffered(8).try_collect().await
+    }
+
+    /// Several objects written, each visible only once complete. A `file://` store writes them
+    /// all in one blocking call (through a temporary name each, renamed into place); a remote
+    /// store uploads up to 8 at a time.
+    pub async fn put_many(&self, objects: Vec<(String, Bytes)>) -> Result<(), FrameworkError> {
+        if self.local_root.is_some() {
+            let mut files = Vec::with_capacity(objects.len());
+            for (key, bytes) in objects {
+                store_path(&key)?;
+                let path =
+                    self.local_path(&key).ok_or_else(|| FrameworkError::Internal(format!("{key}: no local path")))?;
+                files.push((path, bytes));
+            }
+            return tokio::task::spawn_blocking(move || {
+                for (path, bytes) in files {
+                    if let Some(dir) = path.parent() {
+                        std::fs::create_dir_all(dir).map_err(|e| FrameworkError::io(dir, e))?;
+                    }
+                    // Keys are attempt-specific, so the temporary name is too.
+                    let mut name = path.file_name().unwrap_or_default().to_os_string();
+                    name.push(".partial");
+                    let tmp = path.with_file_name(name);
+                    std::fs::write(&tmp, &bytes).map_err(|e| FrameworkError::io(&tmp, e))?;
+                    std::fs::rename(&tmp, &path).map_err(|e| FrameworkError::io(&path, e))?;
+                }
+                Ok(())
+            })
+            .await
+            .map_err(|e| FrameworkError::Internal(format!("object write thread stopped: {e}")))?;
+        }
+        let requests: Vec<_> = objects
+            .into_iter()
+            .map(|(key, bytes)| {
+                let store = self.clone();
+                async move { store.put(&key, bytes).await }
+            })
+            .collect();
+        futures::stream::iter(requests).buffer_unordered(8).try_collect::<Vec<()>>().await.map(|_| ())
     }
 
     pub async fn exists(&self, key: &str) -> Result<bool, FrameworkError> {
@@ -322,5 +400,35 @@ mod tests {
         assert!(objects.get("../x").await.is_err());
         assert!(Objects::from_url("file://relative/path").is_err());
         assert!(Objects::from_url("http://example.com").is_err());
+    }
+
+    #[tokio::test]
+    async fn batched_reads_and_writes_match_single_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().display())).unwrap();
+        let written: Vec<(String, Bytes)> =
+            (0..5).map(|i| (format!("c/it/{i}/x.{i}.blk"), Bytes::from(vec![i as u8; 1000 * i + 1]))).collect();
+        objects.put_many(written.clone()).await.unwrap();
+        // Visible to the store's own listing and reads, with no temporary file left behind.
+        let mut listed = objects.list("c").await.unwrap();
+        listed.sort();
+        assert_eq!(listed, written.iter().map(|(k, _)| k.clone()).collect::<Vec<_>>());
+        for (key, bytes) in &written {
+            assert_eq!(&objects.get(key).await.unwrap(), bytes);
+        }
+        // In the order asked, duplicates included.
+        let keys = vec![written[3].0.clone(), written[0].0.clone(), written[3].0.clone()];
+        let read = objects.get_many(&keys).await.unwrap();
+        assert_eq!(read, vec![written[3].1.clone(), written[0].1.clone(), written[3].1.clone()]);
+        assert!(objects.get_many(&[]).await.unwrap().is_empty());
+        // A missing object is "not found" (a permanent task error), as for a single read.
+        let missing = objects.get_many(&[written[0].0.clone(), "c/none".into()]).await.unwrap_err();
+        assert!(missing.is_not_found(), "{missing}");
+        assert!(objects.get("c/none").await.unwrap_err().is_not_found());
+        // Keys outside the store are refused before anything is read or written.
+        assert!(matches!(objects.get_many(&["../x".into()]).await, Err(FrameworkError::BadKey { .. })));
+        let refused = objects.put_many(vec![("c/ok".into(), Bytes::new()), ("/etc/x".into(), Bytes::new())]).await;
+        assert!(matches!(refused, Err(FrameworkError::BadKey { .. })));
+        assert!(!objects.exists("c/ok").await.unwrap());
     }
 }
