@@ -237,14 +237,15 @@ pub fn remove_field_share(
     previous: &[TrajectoryCorrections],
     spacing: f64,
 ) -> Result<Vec<TrajectoryCorrections>, FieldError> {
+    if previous.len() != trajectories.len() {
+        return Err(FieldError::Trajectories { expected: trajectories.len(), found: previous.len() });
+    }
     let mut index: BTreeMap<FieldNode, usize> = BTreeMap::new();
-    for (t, tr) in trajectories.iter().enumerate() {
-        if tr.positions.len() != tr.corrections.values.len() || previous[t].values.len() != tr.positions.len() {
-            return Err(FieldError::Positions {
-                trajectory: t,
-                positions: tr.positions.len(),
-                anchors: tr.corrections.values.len(),
-            });
+    for (t, (tr, before)) in trajectories.iter().zip(previous).enumerate() {
+        for anchors in [tr.corrections.values.len(), before.values.len()] {
+            if anchors != tr.positions.len() {
+                return Err(FieldError::Positions { trajectory: t, positions: tr.positions.len(), anchors });
+            }
         }
         for p in tr.positions {
             for (n, phi) in bilinear(p[0], p[1], spacing) {
@@ -299,6 +300,8 @@ pub fn remove_field_share(
 pub enum FieldError {
     #[error("trajectory {trajectory}: {positions} anchor positions for {anchors} anchors")]
     Positions { trajectory: usize, positions: usize, anchors: usize },
+    #[error("{found} trajectories' previous corrections for {expected} trajectories")]
+    Trajectories { expected: usize, found: usize },
     #[error("the common-mode field's normal equations are not positive definite ({nodes} nodes)")]
     Singular { nodes: usize },
     #[error(
@@ -517,6 +520,16 @@ mod tests {
             FieldTrajectory { positions: &positions, corrections: &current },
         ];
         let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing).unwrap();
+        // Inconsistent inputs are errors, not panics.
+        assert!(matches!(
+            remove_field_share(&trajectories, std::slice::from_ref(&previous), spacing),
+            Err(FieldError::Trajectories { expected: 2, found: 1 })
+        ));
+        let short = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 10] };
+        assert!(matches!(
+            remove_field_share(&trajectories, &[previous.clone(), short], spacing),
+            Err(FieldError::Positions { trajectory: 1, anchors: 10, .. })
+        ));
         for before in &moved {
             for (k, (now, was)) in current.values.iter().zip(&before.values).enumerate() {
                 // What momentum would carry: the zigzag only (the ridge leaves a trace of the drift).

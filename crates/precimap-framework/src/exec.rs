@@ -326,8 +326,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             })
             .await?
             .map_err(|e| match e {
-                // solve_field checks the positions against the corrections it is given.
-                precimap_estimate::field::FieldError::Positions { .. } => corrupt_positions(e.to_string()),
+                // solve_field and remove_field_share check the positions against the corrections.
+                precimap_estimate::field::FieldError::Positions { .. }
+                | precimap_estimate::field::FieldError::Trajectories { .. } => corrupt_positions(e.to_string()),
                 e => TaskError::permanent(format!(
                     "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
                 )),
