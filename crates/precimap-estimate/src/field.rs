@@ -228,6 +228,32 @@ impl FieldSolution {
     }
 }
 
+/// Numbers, in grid order, the nodes of `seed` and every node an anchor of `trajectories`
+/// touches; more than [`MAX_FIELD_NODES`] is an error.
+fn number_nodes(
+    seed: impl IntoIterator<Item = FieldNode>,
+    trajectories: &[FieldTrajectory],
+    spacing: f64,
+) -> Result<BTreeMap<FieldNode, usize>, FieldError> {
+    let mut index: BTreeMap<FieldNode, usize> = seed.into_iter().map(|n| (n, 0)).collect();
+    for tr in trajectories {
+        for p in tr.positions {
+            for (n, phi) in bilinear(p[0], p[1], spacing) {
+                if phi > 0.0 {
+                    index.insert(n, 0);
+                }
+            }
+        }
+    }
+    if index.len() > MAX_FIELD_NODES {
+        return Err(FieldError::TooManyNodes { nodes: index.len(), limit: MAX_FIELD_NODES });
+    }
+    for (i, v) in index.values_mut().enumerate() {
+        *v = i;
+    }
+    Ok(index)
+}
+
 /// `previous` moved so that `current − previous` (the step momentum carries on) loses its
 /// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
 /// next iteration, so carrying it as well overshoots and the two levels fight.
@@ -240,28 +266,15 @@ pub fn remove_field_share(
     if previous.len() != trajectories.len() {
         return Err(FieldError::Trajectories { expected: trajectories.len(), found: previous.len() });
     }
-    let mut index: BTreeMap<FieldNode, usize> = BTreeMap::new();
     for (t, (tr, before)) in trajectories.iter().zip(previous).enumerate() {
         for anchors in [tr.corrections.values.len(), before.values.len()] {
             if anchors != tr.positions.len() {
                 return Err(FieldError::Positions { trajectory: t, positions: tr.positions.len(), anchors });
             }
         }
-        for p in tr.positions {
-            for (n, phi) in bilinear(p[0], p[1], spacing) {
-                if phi > 0.0 {
-                    index.insert(n, 0);
-                }
-            }
-        }
     }
-    for (i, v) in index.values_mut().enumerate() {
-        *v = i;
-    }
+    let index = number_nodes(std::iter::empty(), trajectories, spacing)?;
     let nodes = index.len();
-    if nodes > MAX_FIELD_NODES {
-        return Err(FieldError::TooManyNodes { nodes, limit: MAX_FIELD_NODES });
-    }
     // One scalar system for the three axes: Σ φφᵀ g = Σ φ d, with a small ridge for nodes that
     // anchors touch only at their far corner.
     let mut a = nalgebra::DMatrix::<f64>::zeros(nodes, nodes);
@@ -333,29 +346,9 @@ pub fn solve_field<'a>(
         }
     }
     let equations: Vec<&FieldEquations> = equations.into_iter().collect();
-    // Node numbering: every node a tile or an anchor touches, in grid order.
-    let mut index: BTreeMap<FieldNode, usize> = BTreeMap::new();
-    for e in &equations {
-        for &n in &e.nodes {
-            index.insert(n, 0);
-        }
-    }
-    for tr in trajectories {
-        for p in tr.positions {
-            for (n, phi) in bilinear(p[0], p[1], spacing) {
-                if phi > 0.0 {
-                    index.insert(n, 0);
-                }
-            }
-        }
-    }
-    for (i, v) in index.values_mut().enumerate() {
-        *v = i;
-    }
+    // Node numbering: every node a tile or an anchor touches.
+    let index = number_nodes(equations.iter().flat_map(|e| e.nodes.iter().copied()), trajectories, spacing)?;
     let nodes = index.len();
-    if nodes > MAX_FIELD_NODES {
-        return Err(FieldError::TooManyNodes { nodes, limit: MAX_FIELD_NODES });
-    }
     let dim = 3 * nodes;
     let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
     let mut rhs = nalgebra::DVector::<f64>::zeros(dim);
