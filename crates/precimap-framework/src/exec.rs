@@ -157,15 +157,8 @@ fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
 }
 
 async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<TrajectoryCorrections, TaskError> {
-    match &c.key {
-        None => Ok(TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1)),
-        Some(key) => {
-            let bytes = ctx.get(key).await?;
-            decode_corrections(&bytes)
-                .map(|(c, _)| c)
-                .map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))
-        }
-    }
+    let mut read = read_corrections_many(ctx, std::slice::from_ref(c)).await?;
+    Ok(read.pop().expect("one corrections per reference"))
 }
 
 /// Several trajectories' corrections, read together (see [`Objects::get_many`]).
@@ -236,8 +229,8 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         }
         TaskInput::EstimateTile { prefix, iteration, tile, step, params, trajectories, chunks, corrections } => {
             let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
-            let decoded: Vec<(String, Bytes)> =
-                chunk_keys.iter().cloned().zip(ctx.get_many(&chunk_keys).await?).collect();
+            let bytes = ctx.get_many(&chunk_keys).await?;
+            let decoded: Vec<(String, Bytes)> = chunk_keys.into_iter().zip(bytes).collect();
             let mut all = vec![TrajectoryCorrections::zeros(0, 0); trajectories as usize];
             for (c, read) in corrections.iter().zip(read_corrections_many(ctx, &corrections).await?) {
                 let slot = all

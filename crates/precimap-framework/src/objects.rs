@@ -122,18 +122,21 @@ impl Objects {
         result.bytes().await.map_err(|e| FrameworkError::store(key, e))
     }
 
+    /// The file of `key` in a `file://` store; a key outside the store is `BadKey`.
+    fn local_file(&self, key: &str) -> Result<PathBuf, FrameworkError> {
+        store_path(key)?;
+        self.local_path(key).ok_or_else(|| FrameworkError::Internal(format!("{key}: not a file store")))
+    }
+
     /// Several objects, in order. A `file://` store reads them all in one blocking call (each
     /// `get` through `object_store` costs two thread hand-offs, which measured as a third of the
     /// framework's CPU overhead on small); a remote store fetches up to 8 at a time.
     pub async fn get_many(&self, keys: &[String]) -> Result<Vec<Bytes>, FrameworkError> {
         if self.local_root.is_some() {
-            let mut paths = Vec::with_capacity(keys.len());
-            for key in keys {
-                store_path(key)?;
-                let path =
-                    self.local_path(key).ok_or_else(|| FrameworkError::Internal(format!("{key}: no local path")))?;
-                paths.push((key.clone(), path));
-            }
+            let paths = keys
+                .iter()
+                .map(|key| Ok((key.clone(), self.local_file(key)?)))
+                .collect::<Result<Vec<_>, FrameworkError>>()?;
             return tokio::task::spawn_blocking(move || {
                 paths
                     .into_iter()
@@ -166,13 +169,10 @@ impl Objects {
     /// store uploads up to 8 at a time.
     pub async fn put_many(&self, objects: Vec<(String, Bytes)>) -> Result<(), FrameworkError> {
         if self.local_root.is_some() {
-            let mut files = Vec::with_capacity(objects.len());
-            for (key, bytes) in objects {
-                store_path(&key)?;
-                let path =
-                    self.local_path(&key).ok_or_else(|| FrameworkError::Internal(format!("{key}: no local path")))?;
-                files.push((path, bytes));
-            }
+            let files = objects
+                .into_iter()
+                .map(|(key, bytes)| Ok((self.local_file(&key)?, bytes)))
+                .collect::<Result<Vec<_>, FrameworkError>>()?;
             return tokio::task::spawn_blocking(move || {
                 for (path, bytes) in files {
                     if let Some(dir) = path.parent() {
