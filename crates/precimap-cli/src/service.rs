@@ -78,7 +78,7 @@ pub fn run_framework(manifest: &Path, out: &Path, keep_work: bool) -> Result<pre
         .block_on(run_embedded(manifest, &options, |s: &RunStatus| {
             let stage = &s.campaign.stage;
             if *stage != last_stage && (stage == "prepare" || stage == "export") {
-                display.permanent(&format!("{stage}: {} tasks", s.counts.stage.total()));
+                display.permanent(&format!("{stage}: {} tasks", s.stage_counts.total()));
             }
             last_stage.clone_from(stage);
             for it in s.iterations.iter().skip(shown) {
@@ -93,9 +93,9 @@ pub fn run_framework(manifest: &Path, out: &Path, keep_work: bool) -> Result<pre
                 "{} {}: {} done, {} running, {} queued",
                 s.campaign.stage,
                 if s.campaign.iteration > 0 { format!("{}", s.campaign.iteration) } else { String::new() },
-                s.counts.stage.done,
-                s.counts.stage.leased,
-                s.counts.stage.queued
+                s.stage_counts.done,
+                s.stage_counts.leased,
+                s.stage_counts.queued
             ));
         }))
         .with_context(|| format!("running {}", manifest.display()))?;

@@ -190,8 +190,10 @@ pub async fn upload_local_inputs(objects: &Objects, manifest_path: &Path) -> Res
 /// What the embedded runner reports while it works.
 #[derive(Clone, Debug)]
 pub struct RunStatus {
-    pub campaign: CampaignRecord,
-    pub counts: precimap_jobs::TaskCounts,
+    pub campaign: precimap_jobs::CampaignProgress,
+    /// Task counts of the current stage.
+    pub stage_counts: precimap_jobs::StateCounts,
+    /// Every iteration recorded so far.
     pub iterations: Vec<precimap_jobs::IterationRecord>,
 }
 
@@ -231,26 +233,36 @@ pub async fn run_embedded(
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let concurrency = options.concurrency;
     let workers = tokio::spawn(async move { executor.work_loop(concurrency, stop_rx).await });
+    // The poll reads only what the display shows (state, the current stage's counts, iterations
+    // not seen yet): it runs beside the executors, so its CPU is theirs.
+    let mut iterations: Vec<precimap_jobs::IterationRecord> = Vec::new();
     let finished = loop {
         tokio::time::sleep(Duration::from_millis(200)).await;
         if workers.is_finished() {
-            break None;
+            break false;
         }
-        let Some(campaign) = jobs.campaign(id).await? else { break None };
+        let Some(campaign) = jobs.campaign_progress(id).await? else { break false };
+        let seen = iterations.last().map_or(0, |i| i.iteration);
+        iterations.extend(jobs.iterations_after(id, seen).await?);
         let status = RunStatus {
-            counts: jobs.task_counts(id).await?,
-            iterations: jobs.iterations(id).await?,
-            campaign: campaign.clone(),
+            stage_counts: jobs.stage_counts(id, &campaign.stage, campaign.iteration).await?,
+            iterations,
+            campaign,
         };
         progress(&status);
-        if campaign.state != CampaignState::Running {
-            break Some(campaign);
+        if status.campaign.state != CampaignState::Running {
+            break true;
         }
+        iterations = status.iterations;
     };
     let _ = stop_tx.send(true);
     let joined = workers.await.map_err(|e| FrameworkError::Internal(e.to_string()))?;
     joined?;
-    let campaign = finished.ok_or_else(|| FrameworkError::Internal("the campaign disappeared".into()))?;
+    let campaign = match finished {
+        true => jobs.campaign(id).await?,
+        false => None,
+    }
+    .ok_or_else(|| FrameworkError::Internal("the campaign disappeared".into()))?;
     if campaign.state != CampaignState::Succeeded {
         return Err(FrameworkError::CampaignFailed {
             id,

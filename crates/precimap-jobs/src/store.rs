@@ -450,6 +450,46 @@ impl JobStore {
         })
     }
 
+    /// What a progress display polls: the campaign's state and position without its spec and
+    /// plan state (JSON that grows with the campaign: on medium the plan state lists every tile's
+    /// chunks, and decoding it several times a second cost the embedded runner CPU its executors
+    /// could have used).
+    pub async fn campaign_progress(&self, id: Uuid) -> Result<Option<CampaignProgress>, JobError> {
+        let q = "SELECT id, name, state, stage, iteration, iterations_planned, error FROM campaigns WHERE id = $1";
+        with_pool!(self, p => {
+            match sqlx::query(q).bind(id).fetch_optional(p).await? {
+                Some(r) => {
+                    let state: String = r.try_get("state")?;
+                    Ok(Some(CampaignProgress {
+                        id: r.try_get("id")?,
+                        name: r.try_get("name")?,
+                        state: CampaignState::parse(&state)
+                            .ok_or_else(|| JobError::Corrupt(format!("campaign state `{state}`")))?,
+                        stage: r.try_get("stage")?,
+                        iteration: r.try_get("iteration")?,
+                        iterations_planned: r.try_get("iterations_planned")?,
+                        error: r.try_get("error")?,
+                    }))
+                }
+                None => Ok(None),
+            }
+        })
+    }
+
+    /// Task counts by state of one stage (served by the prefix of the unique index on
+    /// `(campaign, stage, iteration, kind, key)`: no scan of the campaign's other stages, no sort).
+    pub async fn stage_counts(&self, id: Uuid, stage: &str, iteration: i32) -> Result<StateCounts, JobError> {
+        let q = "SELECT state, count(*) AS n FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
+                 GROUP BY state";
+        let rows: Vec<(String, i64)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).bind(stage).bind(iteration).fetch_all(p).await?);
+        let mut counts = StateCounts::default();
+        for (state, n) in rows {
+            add_count(&mut counts, &state, n)?;
+        }
+        Ok(counts)
+    }
+
     /// Newest first.
     pub async fn list_campaigns(&self, limit: i64) -> Result<Vec<CampaignRecord>, JobError> {
         let q = format!("SELECT {CAMPAIGN_COLS} FROM campaigns ORDER BY created_at_ms DESC, id LIMIT $1");
@@ -490,6 +530,14 @@ impl JobStore {
             stage,
         };
         Ok(counts)
+    }
+
+    /// The iterations recorded after iteration `after`, in order (a poller keeps the earlier ones).
+    pub async fn iterations_after(&self, id: Uuid, after: i32) -> Result<Vec<IterationRecord>, JobError> {
+        let q = "SELECT iteration, stats FROM iterations WHERE campaign = $1 AND iteration > $2 ORDER BY iteration";
+        let rows: Vec<(i32, Json<Value>)> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).bind(after).fetch_all(p).await?);
+        Ok(rows.into_iter().map(|(iteration, stats)| IterationRecord { iteration, stats: stats.0 }).collect())
     }
 
     pub async fn iterations(&self, id: Uuid) -> Result<Vec<IterationRecord>, JobError> {

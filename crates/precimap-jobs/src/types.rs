@@ -162,6 +162,18 @@ pub struct CampaignRecord {
     pub finished_at_ms: Option<i64>,
 }
 
+/// A campaign's state and position, without its spec and plan state ([`crate::JobStore::campaign_progress`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CampaignProgress {
+    pub id: Uuid,
+    pub name: String,
+    pub state: CampaignState,
+    pub stage: String,
+    pub iteration: i32,
+    pub iterations_planned: i32,
+    pub error: Option<String>,
+}
+
 /// One task to enqueue. `(stage, iteration, kind, key)` is unique within a campaign.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NewTask {

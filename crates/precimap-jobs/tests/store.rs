@@ -335,6 +335,18 @@ async fn records_round_trip(store: JobStore, _url: String) {
     );
     let counts = store.task_counts(id).await.unwrap();
     assert_eq!((counts.done, counts.queued, counts.stage.queued, counts.stage.done), (1, 1, 1, 0));
+    // The light view a progress display polls agrees with the full record and counts.
+    let progress = store.campaign_progress(id).await.unwrap().unwrap();
+    assert_eq!(
+        (progress.id, progress.name.as_str(), progress.state, progress.stage.as_str(), progress.iteration),
+        (id, "newer", CampaignState::Running, "s1", 1)
+    );
+    let full = store.campaign(id).await.unwrap().unwrap();
+    assert_eq!((progress.iterations_planned, progress.error), (full.iterations_planned, full.error));
+    assert_eq!(store.stage_counts(id, "s1", 1).await.unwrap(), counts.stage);
+    assert_eq!(store.stage_counts(id, "s0", 0).await.unwrap(), StateCounts { done: 1, ..Default::default() });
+    assert_eq!(store.stage_counts(id, "nope", 0).await.unwrap(), StateCounts::default());
+    assert!(store.campaign_progress(Uuid::new_v4()).await.unwrap().is_none());
     let t = store.claim("w", LONG).await.unwrap().unwrap();
     assert_eq!((t.stage.as_str(), t.iteration), ("s1", 1));
     store.complete(&t, outcome(&t), &planner).await.unwrap();
@@ -342,6 +354,10 @@ async fn records_round_trip(store: JobStore, _url: String) {
         store.iterations(id).await.unwrap(),
         vec![IterationRecord { iteration: 1, stats: json!({ "tasks": 1 }) }]
     );
+    assert_eq!(store.iterations_after(id, 0).await.unwrap(), store.iterations(id).await.unwrap());
+    assert!(store.iterations_after(id, 1).await.unwrap().is_empty());
+    let done = store.campaign_progress(id).await.unwrap().unwrap();
+    assert_eq!((done.state, done.error), (CampaignState::Succeeded, None));
 
     let events = store.events(id, 0, 1000).await.unwrap();
     assert!(events.windows(2).all(|w| w[0].id < w[1].id));
