@@ -379,7 +379,7 @@ pub struct CampaignPlanner;
 
 impl StagePlanner for CampaignPlanner {
     fn plan(&self, campaign: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String> {
-        let mut state: PlanState = serde_json::from_value(campaign.plan_state.clone())
+        let mut state = PlanState::deserialize(&campaign.plan_state)
             .map_err(|e| format!("the campaign's plan state is unreadable ({e}); it was written by another version"))?;
         let mut tiles = Vec::new();
         let mut iteration = None;
@@ -412,8 +412,7 @@ impl StagePlanner for CampaignPlanner {
 }
 
 fn parse<T: serde::de::DeserializeOwned>(task: &FinishedTask) -> Result<T, String> {
-    serde_json::from_value(task.result.clone())
-        .map_err(|e| format!("{} {}: unreadable result ({e})", task.kind, task.key))
+    T::deserialize(&task.result).map_err(|e| format!("{} {}: unreadable result ({e})", task.kind, task.key))
 }
 
 fn seconds_of<T: serde::de::DeserializeOwned>(tasks: &[FinishedTask], f: impl Fn(&T) -> f64) -> Result<f64, String> {

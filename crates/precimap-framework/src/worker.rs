@@ -7,6 +7,7 @@ use crate::error::{FrameworkError, TaskError};
 use crate::exec::{execute, TaskContext};
 use crate::plan::{CampaignPlanner, TaskInput};
 use precimap_jobs::{CampaignState, ClaimedTask, FailOutcome, JobError, JobStore};
+use serde::Deserialize;
 use std::future::Future;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
@@ -189,7 +190,7 @@ impl Executor {
         let patience = self.config.database_patience;
         let (kind, key) = (task.kind.clone(), task.key.clone());
         debug!(%kind, %key, attempt = task.attempt, "running");
-        let input: TaskInput = match serde_json::from_value(task.input.clone()) {
+        let input = match TaskInput::deserialize(&task.input) {
             Ok(i) => i,
             Err(e) => {
                 let error = format!("unreadable task input ({e}); it was queued by another version");
