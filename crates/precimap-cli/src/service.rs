@@ -56,7 +56,7 @@ impl Backends {
     fn executor(&self, framework: &Framework) -> Executor {
         let scratch = std::env::temp_dir().join(format!("precimap-scratch-{}", std::process::id()));
         let config = ExecutorConfig { lease: Duration::from_secs(self.lease_s.max(3)), ..ExecutorConfig::default() };
-        Executor::new(framework.jobs.clone(), TaskContext { objects: framework.objects.clone(), scratch }, config)
+        Executor::new(framework.jobs.clone(), TaskContext::new(framework.objects.clone(), scratch), config)
     }
 }
 

@@ -103,7 +103,7 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
         let executor = Executor::new(
             jobs.clone(),
-            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            TaskContext::new(objects.clone(), dir.path().join("scratch")),
             ExecutorConfig::default(),
         );
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -193,7 +193,7 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         let good_id = framework.submit(&good_manifest).await.unwrap();
         let executor = Executor::new(
             jobs.clone(),
-            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            TaskContext::new(objects.clone(), dir.path().join("scratch")),
             ExecutorConfig::default(),
         );
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -222,7 +222,7 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         }
         let sweeper = Executor::new(
             jobs.clone(),
-            TaskContext { objects: objects.clone(), scratch: dir.path().join("scratch") },
+            TaskContext::new(objects.clone(), dir.path().join("scratch")),
             ExecutorConfig { lease: Duration::from_millis(20), ..ExecutorConfig::default() },
         );
         tokio::time::sleep(Duration::from_millis(50)).await;

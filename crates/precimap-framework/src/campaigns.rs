@@ -228,7 +228,7 @@ pub async fn run_embedded(
         Err(SubmitError::Framework(e)) => return Err(e),
         Err(e @ SubmitError::Invalid { .. }) => return Err(FrameworkError::Invalid(e.to_string())),
     };
-    let ctx = TaskContext { objects: objects.clone(), scratch: state.join("scratch") };
+    let ctx = TaskContext::new(objects.clone(), state.join("scratch"));
     let executor = Executor::new(jobs.clone(), ctx, ExecutorConfig::default());
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let concurrency = options.concurrency;

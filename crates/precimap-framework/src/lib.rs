@@ -16,7 +16,7 @@ pub use campaigns::{
     SubmitError,
 };
 pub use error::{FrameworkError, TaskError};
-pub use exec::TaskContext;
+pub use exec::{TaskContext, TrajectoryCache};
 pub use objects::{validate_key, Objects};
 pub use plan::CampaignPlanner;
 pub use worker::{Executor, ExecutorConfig, WorkOutcome};
