@@ -60,7 +60,7 @@ type CachedTrajectory = (TrajectoryFile, Arc<Trajectory>);
 
 /// What identifies one version of a trajectory file.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct TrajectoryFile {
+struct TrajectoryFile {
     key: String,
     len: u64,
     modified: Option<SystemTime>,
