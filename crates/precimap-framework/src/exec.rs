@@ -90,12 +90,9 @@ impl TrajectoryCache {
     }
 
     /// How many trajectories are held.
-    pub fn len(&self) -> usize {
+    #[cfg(test)]
+    fn len(&self) -> usize {
         self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
     }
 }
 
@@ -558,5 +555,7 @@ mod tests {
         objects.put(key, Bytes::from_static(b"time,x\n1,2\n")).await.unwrap();
         let e = read_trajectory(&ctx, &input).await.unwrap_err();
         assert!(e.message.contains(key), "{}", e.message);
+        let malformed = TrajectoryCache::identify(key, &dir.path().join(key)).unwrap();
+        assert!(ctx.trajectories.get(&malformed).is_none());
     }
 }

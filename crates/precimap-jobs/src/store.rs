@@ -189,11 +189,15 @@ macro_rules! with_tx {
     };
 }
 
-macro_rules! campaign_from_row {
+/// Columns of [`CampaignProgress`], a prefix of [`CAMPAIGN_COLS`] in content.
+const PROGRESS_COLS: &str = "id, name, state, stage, iteration, iterations_planned, error";
+
+/// A row with at least [`PROGRESS_COLS`] → [`CampaignProgress`].
+macro_rules! progress_from_row {
     ($row:expr) => {{
         let r = &$row;
         let state: String = r.try_get("state")?;
-        CampaignRecord {
+        CampaignProgress {
             id: r.try_get("id")?,
             name: r.try_get("name")?,
             state: CampaignState::parse(&state)
@@ -201,10 +205,26 @@ macro_rules! campaign_from_row {
             stage: r.try_get("stage")?,
             iteration: r.try_get("iteration")?,
             iterations_planned: r.try_get("iterations_planned")?,
+            error: r.try_get("error")?,
+        }
+    }};
+}
+
+macro_rules! campaign_from_row {
+    ($row:expr) => {{
+        let r = &$row;
+        let CampaignProgress { id, name, state, stage, iteration, iterations_planned, error } = progress_from_row!(r);
+        CampaignRecord {
+            id,
+            name,
+            state,
+            stage,
+            iteration,
+            iterations_planned,
             spec: r.try_get::<Json<Value>, _>("spec")?.0,
             plan_state: r.try_get::<Json<Value>, _>("plan_state")?.0,
             object_prefix: r.try_get("object_prefix")?,
-            error: r.try_get("error")?,
+            error,
             queue: QueueConfig {
                 max_attempts: r.try_get("max_attempts")?,
                 backoff_base: ms_duration(r.try_get("backoff_base_ms")?),
@@ -455,22 +475,10 @@ impl JobStore {
     /// chunks, and decoding it several times a second cost the embedded runner CPU its executors
     /// could have used).
     pub async fn campaign_progress(&self, id: Uuid) -> Result<Option<CampaignProgress>, JobError> {
-        let q = "SELECT id, name, state, stage, iteration, iterations_planned, error FROM campaigns WHERE id = $1";
+        let q = format!("SELECT {PROGRESS_COLS} FROM campaigns WHERE id = $1");
         with_pool!(self, p => {
-            match sqlx::query(q).bind(id).fetch_optional(p).await? {
-                Some(r) => {
-                    let state: String = r.try_get("state")?;
-                    Ok(Some(CampaignProgress {
-                        id: r.try_get("id")?,
-                        name: r.try_get("name")?,
-                        state: CampaignState::parse(&state)
-                            .ok_or_else(|| JobError::Corrupt(format!("campaign state `{state}`")))?,
-                        stage: r.try_get("stage")?,
-                        iteration: r.try_get("iteration")?,
-                        iterations_planned: r.try_get("iterations_planned")?,
-                        error: r.try_get("error")?,
-                    }))
-                }
+            match sqlx::query(&q).bind(id).fetch_optional(p).await? {
+                Some(row) => Ok(Some(progress_from_row!(row))),
                 None => Ok(None),
             }
         })
