@@ -184,7 +184,8 @@ pub struct WorkArgs {
     /// Claim one task, run it and exit: 0 done, 3 no work, 4 the task failed, 5 the lease was lost.
     #[arg(long)]
     pub once: bool,
-    /// Executor loops in this process.
+    /// Executor loops in this process. Their CPU work shares one pool of `--threads` threads
+    /// (default: all cores); more loops than threads overlap downloads and uploads with it.
     #[arg(long, default_value_t = 1)]
     pub concurrency: usize,
     /// Exit after this many seconds without any runnable task (default: run until stopped).

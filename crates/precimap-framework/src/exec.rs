@@ -175,7 +175,7 @@ impl TaskContext {
 }
 
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, TaskError> {
-    tokio::task::spawn_blocking(f)
+    crate::cpu::run(f)
         .await
         .map_err(|e| TaskError::transient(FrameworkError::Internal(format!("task thread stopped: {e}"))))
 }
@@ -277,8 +277,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let index = strip.index;
             let prepared = blocking(move || {
                 prepare_strip_chunks(&entry, index, &traj, &params, &SegmentParams::default()).map(|p| {
-                    let encoded: Vec<_> = p.chunks.iter().map(|c| (c.tile, c.encode())).collect();
-                    (p.stats, encoded, precimap_formats::encode_segments(&p.segment))
+                    let segments = precimap_formats::encode_segments(&p.segment);
+                    // Each decoded chunk is dropped once encoded: the strip is held once, not twice.
+                    let encoded: Vec<_> = p.chunks.into_iter().map(|c| (c.tile, c.encode())).collect();
+                    (p.stats, encoded, segments)
                 })
             })
             .await?
@@ -313,10 +315,11 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 *slot = read;
             }
             let estimate = blocking(move || {
+                // Each object's bytes are dropped once decoded, as the in-process driver reads them.
                 let chunks = decoded
-                    .iter()
+                    .into_iter()
                     .map(|(key, bytes)| {
-                        TileChunk::decode(bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
+                        TileChunk::decode(&bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
                     })
                     .collect::<Result<Vec<_>, _>>()?;
                 precimap_estimate::estimate_tile(tile, &chunks, &all, &params, &step)

@@ -5,6 +5,7 @@
 
 pub mod campaigns;
 pub mod codec;
+mod cpu;
 pub mod error;
 pub mod exec;
 pub mod objects;

@@ -137,7 +137,7 @@ impl Objects {
                 .iter()
                 .map(|key| Ok((key.clone(), self.local_file(key)?)))
                 .collect::<Result<Vec<_>, FrameworkError>>()?;
-            return tokio::task::spawn_blocking(move || {
+            return crate::cpu::run(move || {
                 paths
                     .into_iter()
                     .map(|(key, path)| match std::fs::read(&path) {
@@ -173,7 +173,7 @@ impl Objects {
                 .into_iter()
                 .map(|(key, bytes)| Ok((self.local_file(&key)?, bytes)))
                 .collect::<Result<Vec<_>, FrameworkError>>()?;
-            return tokio::task::spawn_blocking(move || {
+            return crate::cpu::run(move || {
                 for (path, bytes) in files {
                     if let Some(dir) = path.parent() {
                         std::fs::create_dir_all(dir).map_err(|e| FrameworkError::io(dir, e))?;
