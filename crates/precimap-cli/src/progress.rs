@@ -70,7 +70,7 @@ impl Display {
 
     pub fn finish(&self, report: &Report) {
         self.permanent(&format!(
-            "done: {} points, {} tiles, {} iterations{}, {:.1} s (prepare {:.1} s, estimate {:.1} s, export {:.1} s)",
+            "done: {} points, {} tiles, {} iterations{}, {:.1} s (prepare {:.1} s, estimate {:.1} s, export {:.1} s{})",
             report.points_total,
             report.tiles,
             report.iterations.len(),
@@ -78,7 +78,8 @@ impl Display {
             report.timings.total_s,
             report.timings.prepare_s,
             report.timings.estimate_s,
-            report.timings.export_s
+            report.timings.export_s,
+            report.timings.task_s.map(|s| format!("; {s:.1} task-seconds")).unwrap_or_default()
         ));
     }
 }

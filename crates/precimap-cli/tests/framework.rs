@@ -57,6 +57,24 @@ fn assert_same_results(a: &Path, b: &Path) {
     assert_eq!(ra["trajectories"], rb["trajectories"]);
 }
 
+/// The report's phases and iterations are wall-clock seconds on both paths (disjoint spans within
+/// the run), and the framework adds its summed task seconds.
+fn assert_wall_clock_timings(out: &Path, framework: bool) {
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let t = &report["timings"];
+    let [prepare, estimate, export, total] =
+        ["prepare_s", "estimate_s", "export_s", "total_s"].map(|k| t[k].as_f64().unwrap_or_else(|| panic!("{k}: {t}")));
+    assert!(prepare > 0.0 && estimate > 0.0 && export > 0.0, "{t}");
+    // Millisecond clocks: allow a few milliseconds per phase boundary.
+    assert!(prepare + estimate + export <= total + 0.05, "phases longer than the run: {t}");
+    let iterations: f64 = report["iterations"].as_array().unwrap().iter().map(|i| i["seconds"].as_f64().unwrap()).sum();
+    assert!((iterations - estimate).abs() < 0.05 + 1e-6 * estimate, "iterations {iterations} s, estimate {t}");
+    match t.get("task_s").and_then(serde_json::Value::as_f64) {
+        Some(task_s) => assert!(framework && task_s > 0.0, "{t}"),
+        None => assert!(!framework, "the framework reports its task seconds: {t}"),
+    }
+}
+
 async fn wait_finished(jobs: &JobStore, id: uuid::Uuid, limit: Duration) -> precimap_jobs::CampaignRecord {
     let started = Instant::now();
     loop {
@@ -90,6 +108,8 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
     assert_eq!(record.state, CampaignState::Succeeded);
     assert!(!embedded.join(".precimap").exists(), "the state folder is removed after the run");
     assert_same_results(&reference, &embedded);
+    assert_wall_clock_timings(&embedded, true);
+    assert_wall_clock_timings(&reference, false);
 
     // 2. Over a real port: `submit`, `status`, `results` through the HTTP client.
     let via_http = dir.path().join("via-http");

@@ -15,7 +15,7 @@ use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{
     CampaignRecord, FinishedStage, FinishedTask, IterationRecord, NewCampaign, NewTask, Next, QueueConfig,
-    StagePlanner, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
+    StagePlanner, StageSpan, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
 };
 use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use precimap_pipeline::{after_iteration, effective_step, iteration_report, AfterIteration};
@@ -256,6 +256,12 @@ pub struct PlanState {
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
     pub pending_seconds: f64,
+    /// When the current iteration's map stage was enqueued (database clock, ms).
+    #[serde(default)]
+    pub iteration_enqueued_at_ms: Option<i64>,
+    /// Task seconds summed over every finished task (the executors' work, however many shared it).
+    #[serde(default)]
+    pub task_s: f64,
     pub iterations: Vec<IterationReport>,
     pub converged: bool,
     pub trajectory_reports: Vec<TrajectoryReport>,
@@ -325,6 +331,8 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         anchor_positions: None,
         pending_stats: None,
         pending_seconds: 0.0,
+        iteration_enqueued_at_ms: None,
+        task_s: 0.0,
         iterations: Vec::new(),
         converged: false,
         trajectory_reports: Vec::new(),
@@ -386,6 +394,7 @@ impl StagePlanner for CampaignPlanner {
         let next = match finished.stage.as_str() {
             STAGE_PREPARE => {
                 tiles = after_prepare(&mut state, &finished.tasks)?;
+                state.prepare_s = wall_seconds(finished, state.prepare_s);
                 if state.tiles.is_empty() {
                     // Nothing overlaps: every correction stays zero.
                     export_stage(&state)
@@ -393,15 +402,20 @@ impl StagePlanner for CampaignPlanner {
                     estimate_stage(&mut state)
                 }
             }
-            STAGE_ESTIMATE => after_estimate(&mut state, &finished.tasks)?,
+            STAGE_ESTIMATE => {
+                state.iteration_enqueued_at_ms = finished.span_ms.map(|s| s.enqueued_at_ms);
+                after_estimate(&mut state, &finished.tasks)?
+            }
             STAGE_FIELD => after_field(&mut state, &finished.tasks)?,
             STAGE_SOLVE => {
-                let (record, next) = after_solve(&mut state, &finished.tasks)?;
+                let (record, next) = after_solve(&mut state, &finished.tasks, finished.span_ms)?;
                 iteration = Some(record);
                 next
             }
             STAGE_EXPORT => {
-                state.export_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
+                let task_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
+                state.task_s += task_s;
+                state.export_s = wall_seconds(finished, task_s);
                 report_stage(&state, campaign)
             }
             STAGE_REPORT => Next::Succeed,
@@ -409,6 +423,12 @@ impl StagePlanner for CampaignPlanner {
         };
         Ok(Transition { plan_state: serde_json::to_value(&state).map_err(|e| e.to_string())?, tiles, iteration, next })
     }
+}
+
+/// A stage's wall-clock seconds on the database's clock, or `fallback` where the store gave no
+/// span (a stage finished without tasks).
+fn wall_seconds(finished: &FinishedStage, fallback: f64) -> f64 {
+    finished.span_ms.map_or(fallback, |s| s.seconds())
 }
 
 fn parse<T: serde::de::DeserializeOwned>(task: &FinishedTask) -> Result<T, String> {
@@ -469,6 +489,7 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<Ti
     state.strip_reports = reports;
     state.points_total = points_total;
     state.prepare_s = seconds;
+    state.task_s += seconds;
     Ok(records)
 }
 
@@ -645,7 +666,11 @@ fn solve_stage(
     Next::Stage(StageSpec { stage: STAGE_SOLVE.to_string(), iteration: state.iteration as i32, tasks })
 }
 
-fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(IterationRecord, Next), String> {
+fn after_solve(
+    state: &mut PlanState,
+    tasks: &[FinishedTask],
+    span: Option<StageSpan>,
+) -> Result<(IterationRecord, Next), String> {
     let mut max_change = 0.0f64;
     let mut changes = precimap_core::ChangeHistogram::default();
     let mut reports = vec![None; state.trajectories.len()];
@@ -674,11 +699,18 @@ fn after_solve(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Iterati
     state.trajectory_reports = reports.into_iter().flatten().collect();
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, seconds);
+    state.task_s += seconds;
+    // Wall time from the map stage's enqueueing to the last solve, as the in-process driver
+    // reports it (task seconds where the store gave no span).
+    let wall = match (state.iteration_enqueued_at_ms.take(), span) {
+        (Some(enqueued_at_ms), Some(span)) => StageSpan { enqueued_at_ms, ..span }.seconds(),
+        _ => seconds,
+    };
+    let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();
-    state.estimate_s += seconds;
+    state.estimate_s += wall;
     state.iterations.push(report.clone());
     let record = IterationRecord {
         iteration: state.iteration as i32,
@@ -748,13 +780,14 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord) -> Next {
         converged: state.converged,
         trajectories: state.trajectory_reports.clone(),
         residual_histogram: state.histogram.clone(),
-        // Framework timings are the stages' summed task seconds (CPU-bound tasks: the work done,
-        // independent of how many executors shared it); total is wall time since submission.
+        // Wall-clock seconds on the database's clock, as the in-process driver reports them;
+        // `task_s` adds the executors' summed task seconds (the work, however many shared it).
         timings: Timings {
             prepare_s: state.prepare_s,
             estimate_s: state.estimate_s,
             export_s: state.export_s,
             total_s: (campaign.updated_at_ms - campaign.created_at_ms).max(0) as f64 / 1000.0,
+            task_s: Some(state.task_s),
         },
     };
     let task = TaskInput::WriteReport { prefix: state.prefix.clone(), report: Box::new(report) }.task("report".into());

@@ -942,9 +942,9 @@ impl JobStore {
             if !current || open {
                 Barrier { advanced: false, state: campaign.state }
             } else {
-                let rows: Vec<(i64, String, String, Option<Json<Value>>)> = sqlx::query_as(
-                    "SELECT id, kind, key, result FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3 \
-                     AND state = 'done'",
+                let rows: Vec<FinishedRow> = sqlx::query_as(
+                    "SELECT id, kind, key, result, created_at_ms, finished_at_ms FROM tasks \
+                     WHERE campaign = $1 AND stage = $2 AND iteration = $3 AND state = 'done'",
                 )
                 .bind(id)
                 .bind(stage)
@@ -960,8 +960,9 @@ impl JobStore {
                 .bind(iteration)
                 .fetch_all(&mut *tx)
                 .await?;
+                let span_ms = stage_span(&rows);
                 let mut finished =
-                    FinishedStage { stage: stage.to_string(), iteration, tasks: finished_tasks(rows, outs) };
+                    FinishedStage { stage: stage.to_string(), iteration, tasks: finished_tasks(rows, outs), span_ms };
                 if rescue {
                     let msg = format!("stage {stage} iteration {iteration}: all {} tasks done but the stage was not \
                         advanced (its last completer stopped before the barrier); advancing it", finished.tasks.len());
@@ -1054,7 +1055,12 @@ impl JobStore {
                             }
                             campaign.stage = spec.stage.clone();
                             campaign.iteration = spec.iteration;
-                            finished = FinishedStage { stage: spec.stage, iteration: spec.iteration, tasks: Vec::new() };
+                            finished = FinishedStage {
+                                stage: spec.stage,
+                                iteration: spec.iteration,
+                                tasks: Vec::new(),
+                                span_ms: None,
+                            };
                             planned = planner.plan(&campaign, &finished);
                         }
                     }
@@ -1341,19 +1347,26 @@ fn check_unique_tasks(spec: &StageSpec) -> Result<(), String> {
     }
 }
 
+/// A finished task's row: id, kind, key, result, enqueued and finished times.
+type FinishedRow = (i64, String, String, Option<Json<Value>>, i64, Option<i64>);
+
+/// From the first task's enqueueing to the last one's completion (`None` without tasks).
+fn stage_span(rows: &[FinishedRow]) -> Option<StageSpan> {
+    let enqueued_at_ms = rows.iter().map(|r| r.4).min()?;
+    let finished_at_ms = rows.iter().filter_map(|r| r.5).max().unwrap_or(enqueued_at_ms).max(enqueued_at_ms);
+    Some(StageSpan { enqueued_at_ms, finished_at_ms })
+}
+
 /// Joins the stage's done tasks with their outputs; tasks sorted by (kind, key) bytewise,
 /// outputs by name, so the planner sees the same input whatever the database's collation.
-fn finished_tasks(
-    rows: Vec<(i64, String, String, Option<Json<Value>>)>,
-    outs: Vec<(i64, String, String)>,
-) -> Vec<FinishedTask> {
+fn finished_tasks(rows: Vec<FinishedRow>, outs: Vec<(i64, String, String)>) -> Vec<FinishedTask> {
     let mut by_task: HashMap<i64, Vec<OutputKey>> = HashMap::new();
     for (task_id, name, object_key) in outs {
         by_task.entry(task_id).or_default().push(OutputKey { name, object_key });
     }
     let mut tasks: Vec<FinishedTask> = rows
         .into_iter()
-        .map(|(id, kind, key, result)| {
+        .map(|(id, kind, key, result, _, _)| {
             let mut outputs = by_task.remove(&id).unwrap_or_default();
             outputs.sort_by(|a, b| a.name.cmp(&b.name));
             FinishedTask { kind, key, result: result.map(|j| j.0).unwrap_or(Value::Null), outputs }

@@ -241,6 +241,25 @@ pub struct FinishedStage {
     pub iteration: i32,
     /// Sorted by (kind, key).
     pub tasks: Vec<FinishedTask>,
+    /// Wall-clock span of the stage on the database's clock: from its tasks' enqueueing to the
+    /// last one's completion (`None` for a stage without tasks).
+    #[serde(default)]
+    pub span_ms: Option<StageSpan>,
+}
+
+/// When a stage's tasks were enqueued and when its last task finished, in milliseconds since the
+/// Unix epoch on the database's clock (one clock, whichever executors ran the tasks).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StageSpan {
+    pub enqueued_at_ms: i64,
+    pub finished_at_ms: i64,
+}
+
+impl StageSpan {
+    /// The stage's wall-clock seconds.
+    pub fn seconds(&self) -> f64 {
+        (self.finished_at_ms - self.enqueued_at_ms).max(0) as f64 / 1000.0
+    }
 }
 
 /// What follows a finished stage.

@@ -373,9 +373,17 @@ struct GapPlanner;
 impl StagePlanner for GapPlanner {
     fn plan(&self, _: &CampaignRecord, finished: &FinishedStage) -> Result<Transition, String> {
         let next = match finished.stage.as_str() {
-            "s0" => Next::Stage(StageSpec { stage: "gap".into(), iteration: 1, tasks: vec![] }),
+            "s0" => {
+                // The stage's wall-clock span, on the database's clock.
+                let span = finished.span_ms.expect("a stage with tasks has a span");
+                let now_ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis();
+                assert!(span.enqueued_at_ms <= span.finished_at_ms, "{span:?}");
+                assert!((now_ms as i64 - span.finished_at_ms).abs() < 60_000, "{span:?} is not now");
+                Next::Stage(StageSpec { stage: "gap".into(), iteration: 1, tasks: vec![] })
+            }
             "gap" => {
                 assert!(finished.tasks.is_empty());
+                assert_eq!(finished.span_ms, None);
                 Next::Stage(stage("s2", 2, 1))
             }
             _ => Next::Fail("converged to nonsense".into()),

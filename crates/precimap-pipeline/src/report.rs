@@ -96,8 +96,13 @@ pub struct TrajectoryReport {
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct Timings {
+    /// Wall-clock seconds of each phase and in all.
     pub prepare_s: f64,
     pub estimate_s: f64,
     pub export_s: f64,
     pub total_s: f64,
+    /// Through the job framework: every task's seconds summed (the executors' work, however many
+    /// shared it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub task_s: Option<f64>,
 }

@@ -274,7 +274,7 @@ pub fn run_campaign(
         converged,
         trajectories,
         residual_histogram: histogram,
-        timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64() },
+        timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64(), task_s: None },
     };
     let path = out.join("report.json");
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
