@@ -48,8 +48,9 @@ pub enum BenchCommand {
         /// Skip the overhead measurement.
         #[arg(long)]
         no_overhead: bool,
-        /// Overhead runs: in-process and framework alternately this many times each; the figures
-        /// are the fastest of each (on a shared machine the least disturbed), every pair is listed.
+        /// Overhead pairs: in-process and framework this many times each, the order swapped every
+        /// pair (in-process first in odd pairs), so a machine that speeds up or slows down through
+        /// the runs biases neither; the ratio is the geometric mean over pairs.
         #[arg(long, default_value_t = 1)]
         overhead_runs: usize,
         #[arg(long, default_value = "target/bench")]
@@ -526,19 +527,40 @@ struct QueueBench {
 struct FrameworkOverhead {
     scale: String,
     points: u64,
+    /// The fastest run of each path.
     in_process_s: f64,
     framework_s: f64,
-    /// (framework − in-process) / in-process wall time.
+    /// Framework / in-process wall time − 1: the geometric mean of the pairs' ratios (orders
+    /// alternate, so a drift of the machine through the runs cancels over pairs of pairs).
     overhead_ratio: f64,
+    /// Standard error of `overhead_ratio` from the pairs' spread (0 with one pair).
+    overhead_ratio_se: f64,
     /// CPU seconds (all threads of this process: the embedded framework runs its executors
     /// in-process) of each run, and their ratio: the work the framework adds, independent of
     /// what else the machine is doing, whereas the wall-time ratio also holds stage tails (idle
     /// cores at barriers) and other load.
     in_process_cpu_s: f64,
     framework_cpu_s: f64,
+    /// As `overhead_ratio`, of CPU seconds.
     overhead_cpu_ratio: f64,
-    /// Every run in order: (in-process wall, framework wall, in-process CPU, framework CPU) seconds.
+    overhead_cpu_ratio_se: f64,
+    /// Every pair in order: (in-process wall, framework wall, in-process CPU, framework CPU)
+    /// seconds; `framework_first` says which ran first in each.
     runs: Vec<[f64; 4]>,
+    framework_first: Vec<bool>,
+}
+
+/// The geometric mean of `ratios` − 1 and its standard error (delta method on the log ratios).
+fn mean_ratio(ratios: impl Iterator<Item = f64>) -> (f64, f64) {
+    let logs: Vec<f64> = ratios.map(f64::ln).collect();
+    let n = logs.len() as f64;
+    let mean = logs.iter().sum::<f64>() / n;
+    let se = if logs.len() > 1 {
+        (logs.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / (n - 1.0) / n).sqrt()
+    } else {
+        0.0
+    };
+    (mean.exp() - 1.0, se * mean.exp())
 }
 
 fn bench_queue(
@@ -572,32 +594,48 @@ fn bench_queue(
             let (dir, manifest) = cached_campaign(cache, scale, 1, false)?;
             let mut points = 0;
             let mut measured = Vec::with_capacity(runs);
+            let mut framework_first = Vec::with_capacity(runs);
             for run in 1..=runs {
-                let started = Instant::now();
-                let cpu_started = cpu_seconds();
-                let report = precimap_pipeline::run_campaign(
-                    &manifest,
-                    &precimap_pipeline::RunOptions {
-                        out_dir: dir.join("out-in-process"),
-                        keep_work: false,
-                        assignments: false,
-                    },
-                    &|_| {},
-                )?;
-                points = report.points_total;
-                let in_process = (started.elapsed().as_secs_f64(), cpu_seconds() - cpu_started);
-                let started = Instant::now();
-                let cpu_started = cpu_seconds();
-                let options = precimap_framework::EmbeddedOptions {
-                    out_dir: dir.join("out-framework"),
-                    concurrency: rayon::current_num_threads(),
-                    keep_state: false,
+                let in_process_run = || -> Result<(f64, f64, u64)> {
+                    let started = Instant::now();
+                    let cpu_started = cpu_seconds();
+                    let report = precimap_pipeline::run_campaign(
+                        &manifest,
+                        &precimap_pipeline::RunOptions {
+                            out_dir: dir.join("out-in-process"),
+                            keep_work: false,
+                            assignments: false,
+                        },
+                        &|_| {},
+                    )?;
+                    Ok((started.elapsed().as_secs_f64(), cpu_seconds() - cpu_started, report.points_total))
                 };
-                rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {}))?;
-                let framework = (started.elapsed().as_secs_f64(), cpu_seconds() - cpu_started);
+                let framework_run = || -> Result<(f64, f64)> {
+                    let started = Instant::now();
+                    let cpu_started = cpu_seconds();
+                    let options = precimap_framework::EmbeddedOptions {
+                        out_dir: dir.join("out-framework"),
+                        concurrency: rayon::current_num_threads(),
+                        keep_state: false,
+                    };
+                    rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {}))?;
+                    Ok((started.elapsed().as_secs_f64(), cpu_seconds() - cpu_started))
+                };
+                let first = run % 2 == 0;
+                let ((ip_wall, ip_cpu, ip_points), framework) = if first {
+                    let f = framework_run()?;
+                    (in_process_run()?, f)
+                } else {
+                    let i = in_process_run()?;
+                    (i, framework_run()?)
+                };
+                points = ip_points;
+                let in_process = (ip_wall, ip_cpu);
+                framework_first.push(first);
                 if !json {
                     eprintln!(
-                        "  run {run}/{runs}: wall in-process {:.1} s, framework {:.1} s ({:+.1} %); CPU {:.1} s, {:.1} s ({:+.1} %)",
+                        "  pair {run}/{runs} ({} first): wall in-process {:.1} s, framework {:.1} s ({:+.1} %); CPU {:.1} s, {:.1} s ({:+.1} %)",
+                        if first { "framework" } else { "in-process" },
                         in_process.0,
                         framework.0,
                         100.0 * (framework.0 / in_process.0 - 1.0),
@@ -611,28 +649,34 @@ fn bench_queue(
             let fastest = |k: usize| measured.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min);
             let (in_process_s, framework_s) = (fastest(0), fastest(1));
             let (in_process_cpu_s, framework_cpu_s) = (fastest(2), fastest(3));
+            let (overhead_ratio, overhead_ratio_se) = mean_ratio(measured.iter().map(|r| r[1] / r[0]));
+            let (overhead_cpu_ratio, overhead_cpu_ratio_se) =
+                mean_ratio(measured.iter().map(|r| r[3] / r[2].max(1e-9)));
             let o = FrameworkOverhead {
                 scale: format!("{scale:?}").to_lowercase(),
                 points,
                 in_process_s,
                 framework_s,
-                overhead_ratio: (framework_s - in_process_s) / in_process_s,
+                overhead_ratio,
+                overhead_ratio_se,
                 in_process_cpu_s,
                 framework_cpu_s,
-                overhead_cpu_ratio: (framework_cpu_s - in_process_cpu_s) / in_process_cpu_s.max(1e-9),
+                overhead_cpu_ratio,
+                overhead_cpu_ratio_se,
                 runs: measured,
+                framework_first,
             };
             if !json {
                 eprintln!(
-                    "framework overhead on {} (fastest of {runs}): wall in-process {:.1} s, framework {:.1} s → {:+.1} %; \
-                     CPU in-process {:.1} s, framework {:.1} s → {:+.1} %",
+                    "framework overhead on {} over {runs} pairs (orders alternating): wall {:+.1} % (standard error \
+                     {:.1} %), CPU {:+.1} % ({:.1} %); fastest wall in-process {:.1} s, framework {:.1} s",
                     o.scale,
-                    o.in_process_s,
-                    o.framework_s,
                     100.0 * o.overhead_ratio,
-                    o.in_process_cpu_s,
-                    o.framework_cpu_s,
-                    100.0 * o.overhead_cpu_ratio
+                    100.0 * o.overhead_ratio_se,
+                    100.0 * o.overhead_cpu_ratio,
+                    100.0 * o.overhead_cpu_ratio_se,
+                    o.in_process_s,
+                    o.framework_s
                 );
             }
             Some(o)
@@ -682,4 +726,20 @@ fn cached_campaign(cache: &Path, scale: precimap_sim::Scale, seed: u64, laz: boo
         precimap_sim::simulate(&config, &dir.join("campaign"), laz).context("simulating")?;
     }
     Ok((dir, manifest))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::mean_ratio;
+
+    #[test]
+    fn alternating_pairs_cancel_a_drifting_machine() {
+        // True overhead 2 %; the machine gets 6 % faster with every run, so the pair whose
+        // framework runs second looks 6 % better and the other 6 % worse.
+        let (ratio, se) = mean_ratio([1.02 / 1.06, 1.02 * 1.06].into_iter());
+        assert!((ratio - 0.02).abs() < 1e-12, "{ratio}");
+        assert!(se > 0.05 && se < 0.07, "the pairs' spread shows in the error: {se}");
+        let (ratio, se) = mean_ratio([1.10].into_iter());
+        assert!((ratio - 0.10).abs() < 1e-12 && se == 0.0);
+    }
 }
