@@ -416,7 +416,9 @@ impl StagePlanner for CampaignPlanner {
                 let task_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
                 state.task_s += task_s;
                 state.export_s = wall_seconds(finished, task_s);
-                report_stage(&state, campaign)
+                // The campaign row was last updated when the export stage was enqueued.
+                let now_ms = finished.span_ms.map_or(campaign.updated_at_ms, |s| s.finished_at_ms);
+                report_stage(&state, campaign, now_ms)
             }
             STAGE_REPORT => Next::Succeed,
             other => return Err(format!("unknown stage {other:?}")),
@@ -769,7 +771,8 @@ fn corrections_or_zero(state: &PlanState, trajectory: u32) -> CorrectionsRef {
     }
 }
 
-fn report_stage(state: &PlanState, campaign: &CampaignRecord) -> Next {
+/// The report, written at `now_ms` (database clock) by its own task.
+fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Next {
     let report = Report {
         campaign: state.name.clone(),
         manifest: format!("campaign {}", campaign.id),
@@ -786,7 +789,7 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord) -> Next {
             prepare_s: state.prepare_s,
             estimate_s: state.estimate_s,
             export_s: state.export_s,
-            total_s: (campaign.updated_at_ms - campaign.created_at_ms).max(0) as f64 / 1000.0,
+            total_s: (now_ms - campaign.created_at_ms).max(0) as f64 / 1000.0,
             task_s: Some(state.task_s),
         },
     };
