@@ -3,7 +3,8 @@
 # environment they read (source it: `eval "$(scripts/services.sh)"`):
 #   - PostgreSQL on 127.0.0.1:5432 (the machine's cluster);
 #   - Garage, a single-node S3-compatible server on 127.0.0.1:3900 (DESIGN §5), installed with
-#     `cargo install garage` on first use (~8 min on 2 cores; the binary is cached in ~/.cargo/bin).
+#     `cargo install garage` on first use (~8 min on a fast machine; 65-77 min on this project's
+#     2-core machine beside other builds; the binary is cached in ~/.cargo/bin).
 set -euo pipefail
 log() { echo "services: $*" >&2; }
 
@@ -21,7 +22,7 @@ export PATH="$HOME/.cargo/bin:$PATH"
 port_open() { (exec 3<>/dev/tcp/127.0.0.1/3900) 2>/dev/null; }
 if ! port_open; then
     if ! command -v garage >/dev/null; then
-        log "installing garage 2.5.0 (first time only, ~8 min)"
+        log "installing garage 2.5.0 (first time only; ~8 min on a fast machine, up to an hour or more on 2 cores)"
         cargo install garage --version 2.5.0 --locked >&2
     fi
     mkdir -p "$GARAGE_DIR"
