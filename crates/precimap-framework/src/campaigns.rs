@@ -258,11 +258,8 @@ pub async fn run_embedded(
     let _ = stop_tx.send(true);
     let joined = workers.await.map_err(|e| FrameworkError::Internal(e.to_string()))?;
     joined?;
-    let campaign = match finished {
-        true => jobs.campaign(id).await?,
-        false => None,
-    }
-    .ok_or_else(|| FrameworkError::Internal("the campaign disappeared".into()))?;
+    let campaign = if finished { jobs.campaign(id).await? } else { None }
+        .ok_or_else(|| FrameworkError::Internal("the campaign disappeared".into()))?;
     if campaign.state != CampaignState::Succeeded {
         return Err(FrameworkError::CampaignFailed {
             id,

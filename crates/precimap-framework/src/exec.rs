@@ -206,7 +206,7 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
     Ok(TrajectoryEntry {
         id: t.id.clone(),
         path: PathBuf::from(&t.uri),
-        data: Arc::unwrap_or_clone(data),
+        data,
         mean_lever_arm: Vec3::from(t.mean_lever_arm),
     })
 }

@@ -393,8 +393,9 @@ impl StagePlanner for CampaignPlanner {
         let mut iteration = None;
         let next = match finished.stage.as_str() {
             STAGE_PREPARE => {
-                tiles = after_prepare(&mut state, &finished.tasks)?;
-                state.prepare_s = wall_seconds(finished, state.prepare_s);
+                let task_s;
+                (tiles, task_s) = after_prepare(&mut state, &finished.tasks)?;
+                state.prepare_s = wall_seconds(finished, task_s);
                 if state.tiles.is_empty() {
                     // Nothing overlaps: every correction stays zero.
                     export_stage(&state)
@@ -448,7 +449,8 @@ fn seconds_of<T: serde::de::DeserializeOwned>(tasks: &[FinishedTask], f: impl Fn
     Ok(total)
 }
 
-fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<TileRecord>, String> {
+/// The tiles to record, and the stage's task seconds.
+fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Vec<TileRecord>, f64), String> {
     let mut results: Vec<(SegmentResult, &FinishedTask)> =
         tasks.iter().map(|t| parse::<SegmentResult>(t).map(|r| (r, t))).collect::<Result<_, _>>()?;
     // Strip order, as the in-process driver combines them.
@@ -490,9 +492,8 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Vec<Ti
     state.anchor_ranges = ranges;
     state.strip_reports = reports;
     state.points_total = points_total;
-    state.prepare_s = seconds;
     state.task_s += seconds;
-    Ok(records)
+    Ok((records, seconds))
 }
 
 fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {

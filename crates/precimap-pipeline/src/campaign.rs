@@ -5,12 +5,14 @@ use crate::error::PipelineError;
 use precimap_core::{Parameters, Trajectory, Vec3};
 use precimap_formats::{load_manifest, read_trajectory_csv, resolve_uri, Manifest};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 #[derive(Debug)]
 pub struct TrajectoryEntry {
     pub id: String,
     pub path: PathBuf,
-    pub data: Trajectory,
+    /// Shared: an executor's tasks read it from its trajectory cache without a copy.
+    pub data: Arc<Trajectory>,
     /// Mean lever arm of the scanners whose strips use this trajectory: the corrected body pose
     /// is the one that moves these scan heads as the corrections say.
     pub mean_lever_arm: Vec3,
@@ -51,7 +53,12 @@ impl Campaign {
         for t in &manifest.trajectories {
             let path = resolve(&t.uri, &format!("trajectory {}", t.id))?;
             let data = read_trajectory_csv(&path)?;
-            trajectories.push(TrajectoryEntry { id: t.id.clone(), path, data, mean_lever_arm: Vec3::zeros() });
+            trajectories.push(TrajectoryEntry {
+                id: t.id.clone(),
+                path,
+                data: Arc::new(data),
+                mean_lever_arm: Vec3::zeros(),
+            });
         }
         let mut strips = Vec::with_capacity(manifest.strips.len());
         let mut lever_sums = vec![(Vec3::zeros(), 0usize); trajectories.len()];
