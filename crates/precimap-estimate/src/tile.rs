@@ -1110,15 +1110,18 @@ mod tests {
         }
     }
 
+    /// Deterministic uniform numbers in [0, 1) (a linear congruential generator).
+    fn uniform(seed: &mut u64) -> f64 {
+        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (*seed >> 11) as f64 / (1u64 << 53) as f64
+    }
+
     /// The branch-free accumulation changes no result: a masked-off candidate leaves a sample
     /// bit for bit as it was, and the taken ones add up exactly as plain sums do.
     #[test]
     fn masked_sample_adds_exactly_the_taken_candidates() {
         let mut seed = 5u64;
-        let mut rand = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rand = || uniform(&mut seed);
         let mut masked = Sample::default();
         let (mut sum, mut sum2, mut slope, mut vehicle, mut count) = (0.0, 0.0, [0.0; 2], [0.0; 2], 0u32);
         for _ in 0..5000 {
@@ -1155,10 +1158,7 @@ mod tests {
     #[test]
     fn scanline_matches_barycentric_reference() {
         let mut seed = 11u64;
-        let mut rand = |scale: f64| {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64) * scale
-        };
+        let mut rand = |scale: f64| uniform(&mut seed) * scale;
         for _ in 0..2000 {
             let x = [rand(20.0) - 2.0, rand(20.0) - 2.0, rand(20.0) - 2.0];
             let y = [rand(20.0) - 2.0, rand(20.0) - 2.0, rand(20.0) - 2.0];
