@@ -24,8 +24,8 @@ pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
 pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
-    signed_normal_error, strip_offset_spread, AbsHistogram, ErrorStats, GroupStripMeans, ShiftFreeMeans,
-    SurfaceStripMeans, TileStripMeans,
+    signed_normal_error, strip_offset_spread, AbsHistogram, ClassSurfaceStripMeans, ErrorStats, GroupStripMeans,
+    ShiftFreeMeans, SurfaceStripMeans, TileStripMeans,
 };
 pub use trajectory::{position_error_at, trajectory_errors, TrajectoryErrors};
 
@@ -44,6 +44,9 @@ pub const SPREAD_TILE_M: f64 = 15.0;
 /// A strip takes part in a tile's spread with at least this many surface points there: fewer give
 /// a mean dominated by noise and local surface detail.
 pub const SPREAD_MIN_POINTS: usize = 200;
+/// The same for the spreads of one surface class: a curb or a pole holds far fewer points of a
+/// strip in a tile than 200 (50 points of 5 mm noise still give a mean to 0.7 mm).
+pub const CLASS_SPREAD_MIN_POINTS: usize = 50;
 /// Points whose result GPS time differs from the input's by more than this are out of order.
 const GPS_TIME_TOLERANCE_S: f64 = 1e-6;
 
@@ -69,6 +72,17 @@ pub struct ClassEvaluation {
     pub rms_m: Metric,
     pub mean_m: Metric,
     pub p95_abs_m: Metric,
+    /// The strip offset spread over this class's points alone (per tile and strip with at least
+    /// [`CLASS_SPREAD_MIN_POINTS`] of them): how well strips agree on, say, curbs or poles.
+    pub spread_m: Metric,
+    /// The same per (tile, true surface id): a shift shared by all strips cancels where they see
+    /// the same face (not on a pole, whose sides face every way).
+    pub same_surface_spread_m: Metric,
+    /// `spread_m` after removing the campaign's shift (`campaign_shift_m`) from every point: the
+    /// disagreement on this class that the absolute datum does not explain.
+    pub spread_without_campaign_shift_m: Metric,
+    /// Tile–strip pairs in `spread_m` (after).
+    pub tile_strip_pairs: usize,
 }
 
 /// Surface error of one strip's surface points.
@@ -296,6 +310,9 @@ struct StripOutcome {
     surfaces_after: SurfaceStripMeans,
     shift_free_before: ShiftFreeMeans,
     shift_free_after: ShiftFreeMeans,
+    /// Per class, and per (class, tile, surface), before and after.
+    classes: [BTreeMap<u8, ShiftFreeMeans>; 2],
+    class_surfaces: [ClassSurfaceStripMeans; 2],
 }
 
 fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
@@ -362,6 +379,8 @@ fn evaluate_strip(
         surfaces_after: SurfaceStripMeans::new(),
         shift_free_before: ShiftFreeMeans::new(),
         shift_free_after: ShiftFreeMeans::new(),
+        classes: Default::default(),
+        class_surfaces: Default::default(),
     };
     // Per-point id files next to the result (optional), each checked against the point count.
     let per_point_ids =
@@ -415,6 +434,10 @@ fn evaluate_strip(
         out.surfaces_after.add((tile, t.surface_id), index, ea);
         let len = t.normal.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt();
         let unit = t.normal.map(|c| c as f64 / len);
+        for (k, e) in [eb, ea].into_iter().enumerate() {
+            out.classes[k].entry(t.class as u8).or_default().add(tile, index, e, unit);
+            out.class_surfaces[k].add((t.class as u8, tile, t.surface_id), index, e);
+        }
         out.shift_free_before.add(tile, index, eb, unit);
         out.shift_free_after.add(tile, index, ea, unit);
         if let Some(tr) = trajectory {
@@ -479,6 +502,8 @@ fn assemble(
     let (mut surfaces_before, mut surfaces_after) = (SurfaceStripMeans::new(), SurfaceStripMeans::new());
     let (mut shift_free_before, mut shift_free_after) = (ShiftFreeMeans::new(), ShiftFreeMeans::new());
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
+    let mut class_means: [BTreeMap<u8, ShiftFreeMeans>; 2] = Default::default();
+    let mut class_surface_means: [ClassSurfaceStripMeans; 2] = Default::default();
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
     let mut segment_tallies = Vec::new();
@@ -506,6 +531,14 @@ fn assemble(
         surfaces_after.merge(s.surfaces_after);
         shift_free_before.merge(s.shift_free_before);
         shift_free_after.merge(s.shift_free_after);
+        for (total, part) in class_means.iter_mut().zip(s.classes) {
+            for (class, means) in part {
+                total.entry(class).or_default().merge(means);
+            }
+        }
+        for (total, part) in class_surface_means.iter_mut().zip(s.class_surfaces) {
+            total.merge(part);
+        }
         per_strip.push(StripEvaluation {
             id: id.clone(),
             points: s.points,
@@ -531,15 +564,28 @@ fn assemble(
         })
         .collect();
 
+    let campaign_shifts = [shift_free_before.campaign_shift(), shift_free_after.campaign_shift()];
     let per_class = classes
         .into_iter()
         .map(|(class, (b, a))| {
             let name = SurfaceClass::from_u8(class).map_or_else(|| format!("class-{class}"), |c| c.name().to_string());
+            let spread_without = |k: usize, d: [f64; 3]| {
+                class_means[k].get(&class).map_or((f64::NAN, 0), |m| m.spread_without_shift(d, CLASS_SPREAD_MIN_POINTS))
+            };
+            let spread = |k: usize| spread_without(k, [0.0; 3]);
+            let same_surface = |k: usize| class_surface_means[k].spread_of(CLASS_SPREAD_MIN_POINTS, |g| g.0 == class).0;
             let eval = ClassEvaluation {
                 points: b.count(),
                 rms_m: metric(b.rms(), a.rms()),
                 mean_m: metric(b.mean(), a.mean()),
                 p95_abs_m: metric(b.abs_quantile(0.95), a.abs_quantile(0.95)),
+                spread_m: metric(spread(0).0, spread(1).0),
+                same_surface_spread_m: metric(same_surface(0), same_surface(1)),
+                spread_without_campaign_shift_m: metric(
+                    spread_without(0, campaign_shifts[0]).0,
+                    spread_without(1, campaign_shifts[1]).0,
+                ),
+                tile_strip_pairs: spread(1).1,
             };
             (name, eval)
         })
@@ -643,6 +689,21 @@ impl Evaluation {
         }
         let mut out = format!("{:<34} {:>12} {:>12}\n", "metric", "before", "after");
         out.push_str(&s);
+        let _ = writeln!(
+            out,
+            "strip offset spread per class, after (mm): {:>8} {:>13} {:>12} {:>6}",
+            "spread", "same-surface", "w/o shift", "pairs"
+        );
+        for (name, c) in &self.per_class {
+            let _ = writeln!(
+                out,
+                "  {name:<40} {:>8.3} {:>13.3} {:>12.3} {:>6}",
+                c.spread_m.after * 1e3,
+                c.same_surface_spread_m.after * 1e3,
+                c.spread_without_campaign_shift_m.after * 1e3,
+                c.tile_strip_pairs
+            );
+        }
         let mm = |v: [f64; 3]| format!("({:+.1}, {:+.1}, {:+.1})", v[0] * 1e3, v[1] * 1e3, v[2] * 1e3);
         let _ = writeln!(
             out,

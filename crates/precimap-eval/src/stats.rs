@@ -121,6 +121,10 @@ pub type TileStripMeans = GroupStripMeans<TileKey>;
 /// surface, so a shift shared by all strips cancels even where strips see differently oriented
 /// surfaces (e.g. the two faces of a building corner).
 pub type SurfaceStripMeans = GroupStripMeans<(TileKey, u32)>;
+/// Strip means per (surface class, tile, true surface id): the same-surface spread of one class's
+/// points alone (curbs, poles, cars: the thin and two-sided structures where the latent map's
+/// surface models are hardest to form).
+pub type ClassSurfaceStripMeans = GroupStripMeans<(u8, TileKey, u32)>;
 
 impl<K: Eq + std::hash::Hash> Default for GroupStripMeans<K> {
     fn default() -> Self {
@@ -152,9 +156,14 @@ impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
     /// carry no inter-strip information and are skipped); RMS over all remaining pairs. Returns
     /// `(spread, pairs)`, spread NaN when no pair counts. Deterministic (summed in key order).
     pub fn spread(&self, min_points: usize) -> (f64, usize) {
+        self.spread_of(min_points, |_| true)
+    }
+
+    /// [`Self::spread`] over the groups `keep` accepts only (e.g. the groups of one surface class).
+    pub fn spread_of(&self, min_points: usize, keep: impl Fn(&K) -> bool) -> (f64, usize) {
         let mut tiles: BTreeMap<K, Vec<(u32, f64)>> = BTreeMap::new();
         for (&(tile, strip), &(n, sum)) in &self.cells {
-            if n >= min_points as u64 && n > 0 {
+            if n >= min_points as u64 && n > 0 && keep(&tile) {
                 tiles.entry(tile).or_default().push((strip, sum / n as f64));
             }
         }
@@ -288,6 +297,13 @@ impl ShiftFreeMeans {
     /// Spread after removing one translation from every point of the campaign.
     pub fn spread_without_campaign_shift(&self, min_points: usize) -> (f64, usize) {
         let d = self.campaign_shift();
+        self.spread_without_shift(d, min_points)
+    }
+
+    /// Spread after removing the translation `d` from every point (zero: the plain spread). For
+    /// the points of one class, `d` is the whole campaign's shift: a class's own least-squares
+    /// shift would also absorb real disagreement where the class is seen from one side only.
+    pub fn spread_without_shift(&self, d: [f64; 3], min_points: usize) -> (f64, usize) {
         self.spread_without(|_| d, min_points)
     }
 
@@ -442,6 +458,24 @@ mod tests {
         let (surface_spread, pairs) = surfaces.spread(200);
         assert!(close(tile_spread, 0.05), "{tile_spread}");
         assert!(close(surface_spread, 0.0) && pairs == 4, "{surface_spread} {pairs}");
+    }
+
+    /// A class's spread counts that class's groups only: the road agrees, the curb does not.
+    #[test]
+    fn spread_of_one_class_ignores_the_other_classes() {
+        let (road, curb) = (1u8, 3u8);
+        let mut classes = GroupStripMeans::<(u8, TileKey)>::new();
+        for (strip, curb_offset) in [(0u32, 0.004), (1, -0.004)] {
+            for _ in 0..300 {
+                classes.add((road, T0), strip, 0.02);
+                classes.add((curb, T0), strip, curb_offset);
+            }
+        }
+        let (road_spread, road_pairs) = classes.spread_of(200, |k| k.0 == road);
+        let (curb_spread, curb_pairs) = classes.spread_of(200, |k| k.0 == curb);
+        assert!(close(road_spread, 0.0) && road_pairs == 2, "{road_spread} {road_pairs}");
+        assert!(close(curb_spread, 0.004) && curb_pairs == 2, "{curb_spread} {curb_pairs}");
+        assert!(classes.spread_of(301, |k| k.0 == road).0.is_nan(), "groups under the minimum do not count");
     }
 
     #[test]

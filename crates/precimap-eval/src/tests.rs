@@ -206,6 +206,18 @@ fn end_to_end_metrics_match_hand_computed_values() {
     assert_eq!(fac.points, 120);
     assert_metric(&fac.rms_m, 5e-4f64.sqrt(), 0.0);
     assert_metric(&fac.mean_m, 0.01, 0.0);
+    // Per-class spreads (≥ 50 points): the road in T1 and T2 (a +20 / b −20 mm before, +3 / +1
+    // after), the facade in T1 (+30 / −10 mm before, 0 / 0 after).
+    assert_metric(&road.spread_m, 0.02, 0.001);
+    assert_metric(&road.same_surface_spread_m, 0.02, 0.001);
+    assert_eq!(road.tile_strip_pairs, 4);
+    assert_metric(&fac.spread_m, 0.02, 0.0);
+    // Without the campaign's shift: after, the least-squares shift of all points is (0, 0, 2.2 mm)
+    // ((770·3 + 450·1)/1220 on the road; the facade, at 0, does not see z), so the road's strips
+    // are at +0.8 / −1.2 mm, still 1 mm from their tile means.
+    assert_close(road.spread_without_campaign_shift_m.after, 0.001, 1e-9);
+    assert_close(fac.spread_without_campaign_shift_m.after, 0.0, 1e-9);
+    assert_eq!(fac.tile_strip_pairs, 2);
     let a = &e.per_strip[0];
     assert_eq!((a.id.as_str(), a.points, a.surface_points), ("a", 850, 830));
     assert_metric(&a.rms_m, ((770.0 * 4e-4 + 60.0 * 9e-4) / 830.0f64).sqrt(), (770.0 * 9e-6 / 830.0f64).sqrt());
