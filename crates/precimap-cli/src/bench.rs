@@ -149,6 +149,9 @@ struct EstimateBench {
     /// Thread CPU of the fastest pass with the common-mode field's rows (the default) over a pass
     /// without them (`common_mode_field_m` 0): what the field costs the map task.
     field_cpu_ratio: f64,
+    /// Thread CPU of a single-thread pass with `consistent_gradient` on over one with it off:
+    /// what recording the covering triangles and their pulls costs the map task.
+    consistent_gradient_cpu_ratio: f64,
 }
 
 fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
@@ -165,6 +168,7 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
 
     // One pass over all tiles: returns (compute seconds summed over tiles, wall seconds, points).
     let without_field = precimap_core::Parameters { common_mode_field_m: 0.0, ..campaign.params.clone() };
+    let gradient = |on| precimap_core::Parameters { consistent_gradient: on, ..campaign.params.clone() };
     let pass_with =
         |pool: &rayon::ThreadPool, params: &precimap_core::Parameters| -> Result<(f64, f64, u64, u64, u64, f64)> {
             let started = Instant::now();
@@ -203,6 +207,8 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
     let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
     let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
     let (_, _, _, _, _, cpu_without) = pass_with(&single, &without_field)?;
+    let (_, _, _, _, _, cpu_consistent) = pass_with(&single, &gradient(true))?;
+    let (_, _, _, _, _, cpu_map_held) = pass_with(&single, &gradient(false))?;
     let wall_all = wn.min(wn2);
     let compute_all = cn2;
     let result = EstimateBench {
@@ -222,6 +228,7 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         largest_tile_points: largest,
         // The fastest pass with the field (the first one runs cold) against the one without.
         field_cpu_ratio: cpu1.min(cpu2).min(cpu3) / cpu_without,
+        consistent_gradient_cpu_ratio: cpu_consistent / cpu_map_held,
     };
     if json {
         outln!("{}", serde_json::to_string_pretty(&result)?);
@@ -230,7 +237,8 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
             "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
              peak RSS {:.0} MiB (largest tile {} point copies)\n  \
-             common-mode field rows: {:.3}× the CPU of the same pass without them",
+             common-mode field rows: {:.3}× the CPU of the same pass without them\n  \
+             consistent gradient: {:.3}× the CPU of the same pass with the map held",
             result.points_in_tiles,
             result.tiles,
             result.point_copies,
@@ -242,7 +250,8 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
             result.parallel_efficiency * 100.0,
             result.peak_rss_bytes as f64 / (1 << 20) as f64,
             result.largest_tile_points,
-            result.field_cpu_ratio
+            result.field_cpu_ratio,
+            result.consistent_gradient_cpu_ratio
         );
     }
     Ok(())

@@ -21,7 +21,8 @@
 //!
 //! The field's unknowns are dense (three per node, nodes every `common_mode_field_m` over the
 //! area the trajectories cover): 30 m nodes over 1 km² are ~3,400 unknowns, a Cholesky of a few
-//! seconds. A city-sized campaign needs a sparse factorisation or a coarser grid.
+//! seconds; the default 15 m nodes four times as many. A city-sized campaign needs a sparse
+//! factorisation or a coarser grid.
 
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::Parameters;
@@ -325,7 +326,8 @@ pub enum FieldError {
 }
 
 /// Most nodes the dense solve takes: 3 × 3,000 unknowns are a 650 MB matrix and a Cholesky of
-/// about a minute. 30 m nodes reach it at ~2.7 km².
+/// about a minute. Nodes are counted where tiles and anchors touch them: 15 m nodes (the default)
+/// reach the limit at ~0.7 km² of tiles, 30 m nodes at ~2.7 km².
 pub const MAX_FIELD_NODES: usize = 3_000;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,

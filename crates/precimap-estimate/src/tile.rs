@@ -14,7 +14,10 @@
 //!    strip passes carry inter-strip information; the others are skipped. A point's own strip is
 //!    part of the pixel mean, so strips step to the common mean instead of swapping places.
 //! 4. Observations within the outlier threshold are linearised and summed into per-anchor 6×6
-//!    normal-equation blocks, keyed by trajectory.
+//!    normal-equation blocks, keyed by trajectory. In point-sampled steps with
+//!    `consistent_gradient` (the default) a point also pulls on the passes whose triangles make
+//!    its latent height ([`CornerPulls`]), so the blocks carry the gradient of the cost the
+//!    common-mode field minimises and both levels share one fixed point.
 
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
@@ -359,11 +362,28 @@ pub fn estimate_tile_recording(
     stats.surface_models = models.len() as u64;
     let in_core = |p: &[f64; 3]| p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size;
     // 2. The latent height under every point of the tile's core (NaN: not observable).
-    let (latent, others) = if grid < params.point_latent_below_grid_m {
-        point_latent(&triangles, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats)
-    } else {
-        raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats)
+    let index = (grid < params.point_latent_below_grid_m).then(|| CoreIndex::new(&triangles, &in_core));
+    let mut covers = Vec::new();
+    let (latent, others, covering) = match &index {
+        Some(index) => {
+            let covers = params.consistent_gradient.then_some(&mut covers);
+            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), covers, &mut stats)
+        }
+        None => {
+            let (latent, others) =
+                raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats);
+            (latent, others, Vec::new())
+        }
     };
+    // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
+    //     the other passes' triangles that cover it.
+    let pulls = match &index {
+        Some(index) if params.consistent_gradient => {
+            Some(corner_pulls(&triangles, index, &covers, &latent, &covering, threshold, weight))
+        }
+        _ => None,
+    };
+    drop((index, covers));
     let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
@@ -375,6 +395,10 @@ pub fn estimate_tile_recording(
         let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
         for k in 0..chunk.len() {
             let a = base + k;
+            if let Some(pulls) = &pulls {
+                let interval = (chunk.anchor[k] - first) as usize;
+                pulls.add_to(a, &models, &model_of, &measurement, &mut intervals[interval], chunk.lambda[k] as f64);
+            }
             let p = &position[a];
             if !in_core(p) {
                 continue;
@@ -402,7 +426,13 @@ pub fn estimate_tile_recording(
             let w = m.w;
             let rw = cross(measurement[a], w);
             let g = [w[0], w[1], w[2], rw[0], rw[1], rw[2]];
-            intervals[(chunk.anchor[k] - first) as usize].add(&g, e, weight, chunk.lambda[k] as f64);
+            // With a consistent gradient the point pulls on its own pass by its share in the
+            // latent height; the covering passes get the rest (`corner_pulls`).
+            let own_weight = match &pulls {
+                Some(_) => weight * covering[a] as f64 / (covering[a] as f64 + 1.0),
+                None => weight,
+            };
+            intervals[(chunk.anchor[k] - first) as usize].add(&g, e, own_weight, chunk.lambda[k] as f64);
             if let Some(field) = field.as_mut() {
                 let [x, y, share] = others[a];
                 field.add(vehicle[a], [x, y], share, w, e, weight);
@@ -737,6 +767,199 @@ fn raster_vehicle_mean(r: &Raster, pixels: &[Pixel], vehicle: &[[f64; 2]], u: f6
     out
 }
 
+/// The core points of a tile sorted into a bucket grid per surface model (about
+/// [`POINTS_PER_BUCKET`] per bucket), in bucket order: the points a triangle may cover lie next
+/// to each other in memory.
+struct CoreIndex {
+    grids: Vec<Buckets>,
+    /// Per bucket, the first item; one more entry closes the last bucket.
+    start: Vec<u32>,
+    /// Point index (into the tile's points) per item.
+    items: Vec<u32>,
+    /// Plane coordinates of each item in its model's frame.
+    item_uv: Vec<[f64; 2]>,
+    /// Strip and anchor of each item (for the own-pass test).
+    item_owner: Vec<(u32, u32)>,
+    /// Plane coordinates and height of every point (NaN outside the core or without a model).
+    uvh: Vec<[f64; 3]>,
+}
+
+impl CoreIndex {
+    fn new(t: &Triangles, in_core: &impl Fn(&[f64; 3]) -> bool) -> Self {
+        let models = t.models;
+        let n = t.position.len();
+        let mut uvh = vec![[f64::NAN; 3]; n];
+        let mut owner = vec![(0u32, 0u32); n];
+        let mut bounds = vec![[f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, 0.0]; models.len()];
+        let mut base = 0usize;
+        for chunk in t.chunks {
+            for k in 0..chunk.len() {
+                let a = base + k;
+                let id = t.model_of[a];
+                if id == NONE || !in_core(&t.position[a]) {
+                    continue;
+                }
+                let (u, v, h) = models[id as usize].project(&t.position[a]);
+                uvh[a] = [u, v, h];
+                owner[a] = (chunk.strip, chunk.anchor[k]);
+                let b = &mut bounds[id as usize];
+                b[0] = b[0].min(u);
+                b[1] = b[1].max(u);
+                b[2] = b[2].min(v);
+                b[3] = b[3].max(v);
+                b[4] += 1.0;
+            }
+            base += chunk.len();
+        }
+        // Bucket grids (counting sort of the core points by model and bucket).
+        let mut grids: Vec<Buckets> = Vec::with_capacity(models.len());
+        let mut total = 0usize;
+        for b in &bounds {
+            let count = b[4];
+            if count == 0.0 {
+                grids.push(Buckets { u0: 0.0, v0: 0.0, inv: 0.0, nu: 0, nv: 0, offset: total });
+                continue;
+            }
+            let (du, dv) = (b[1] - b[0], b[3] - b[2]);
+            let size = (POINTS_PER_BUCKET * du.max(1e-3) * dv.max(1e-3) / count).sqrt().max(1e-3);
+            let nu = (du / size) as u32 + 1;
+            let nv = (dv / size) as u32 + 1;
+            grids.push(Buckets { u0: b[0], v0: b[2], inv: 1.0 / size, nu, nv, offset: total });
+            total += (nu * nv) as usize;
+        }
+        let mut start = vec![0u32; total + 1];
+        let bucket_of = |a: usize| -> Option<usize> {
+            let id = t.model_of[a];
+            if id == NONE || uvh[a][0].is_nan() {
+                return None;
+            }
+            let g = &grids[id as usize];
+            let i = (((uvh[a][0] - g.u0) * g.inv) as u32).min(g.nu - 1);
+            let j = (((uvh[a][1] - g.v0) * g.inv) as u32).min(g.nv - 1);
+            Some(g.offset + (j * g.nu + i) as usize)
+        };
+        for a in 0..n {
+            if let Some(b) = bucket_of(a) {
+                start[b + 1] += 1;
+            }
+        }
+        for b in 0..total {
+            start[b + 1] += start[b];
+        }
+        let count = start[total] as usize;
+        let mut fill = start.clone();
+        let mut items = vec![0u32; count];
+        for a in 0..n {
+            if let Some(b) = bucket_of(a) {
+                items[fill[b] as usize] = a as u32;
+                fill[b] += 1;
+            }
+        }
+        drop(fill);
+        let item_uv: Vec<[f64; 2]> = items.iter().map(|&a| [uvh[a as usize][0], uvh[a as usize][1]]).collect();
+        let item_owner: Vec<(u32, u32)> = items.iter().map(|&a| owner[a as usize]).collect();
+        Self { grids, start, items, item_uv, item_owner, uvh }
+    }
+
+    /// Calls `visit(triangle, item, take, l1, l2)` for every candidate item of every triangle
+    /// (barycentric coordinates `l1`, `l2`); `take` is whether the item lies inside the triangle
+    /// and belongs to another pass than the triangle. Candidates that are not taken are visited
+    /// too: callers add `take × value` without a branch (whether a candidate is taken is close to
+    /// a coin toss, and mispredictions cost more than the sums).
+    #[inline]
+    fn for_each_cover(
+        &self,
+        t: &Triangles,
+        vehicle: Option<&[[f64; 2]]>,
+        mut visit: impl FnMut(&CoveringTriangle, usize, bool, f64, f64),
+    ) {
+        let models = t.models;
+        t.for_each(|id, p, strip, anchor, first| {
+            let (m, g) = (&models[id as usize], &self.grids[id as usize]);
+            if g.nu == 0 {
+                return;
+            }
+            // Corners in bucket units.
+            let [(x0, y0, h0), (x1, y1, h1), (x2, y2, h2)] = p.map(|q| m.project(&q));
+            let (dx1, dy1, dh1) = (x1 - x0, y1 - y0, h1 - h0);
+            let (dx2, dy2, dh2) = (x2 - x0, y2 - y0, h2 - h0);
+            let area = dx1 * dy2 - dx2 * dy1;
+            if area.abs() < 1e-12 {
+                return;
+            }
+            let inv_area = 1.0 / area;
+            let tri = CoveringTriangle {
+                model: id,
+                first,
+                vehicle: vehicle.map_or([0.0; 2], |v| v[first]),
+                h0,
+                dh1,
+                dh2,
+                hx: (dh1 * dy2 - dh2 * dy1) * inv_area,
+                hy: (dh2 * dx1 - dh1 * dx2) * inv_area,
+            };
+            let bx = [(x0 - g.u0) * g.inv, (x1 - g.u0) * g.inv, (x2 - g.u0) * g.inv];
+            let by = [(y0 - g.v0) * g.inv, (y1 - g.v0) * g.inv, (y2 - g.v0) * g.inv];
+            let j0 = floor_i64(by[0].min(by[1]).min(by[2])).max(0);
+            let j1 = floor_i64(by[0].max(by[1]).max(by[2])).min(g.nv as i64 - 1);
+            const SLACK: f64 = -1e-9;
+            for j in j0..=j1 {
+                // The triangle's extent in u within the bucket row [j, j + 1): corners inside the
+                // row and the edges' crossings of its two boundaries.
+                let (lo_v, hi_v) = (j as f64, j as f64 + 1.0);
+                let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+                for k in 0..3 {
+                    let (xa, ya, xb, yb) = (bx[k], by[k], bx[(k + 1) % 3], by[(k + 1) % 3]);
+                    if (lo_v..=hi_v).contains(&ya) {
+                        lo = lo.min(xa);
+                        hi = hi.max(xa);
+                    }
+                    for line in [lo_v, hi_v] {
+                        if (ya - line) * (yb - line) < 0.0 {
+                            let x = xa + (xb - xa) * (line - ya) / (yb - ya);
+                            lo = lo.min(x);
+                            hi = hi.max(x);
+                        }
+                    }
+                }
+                if lo > hi {
+                    continue;
+                }
+                let i0 = floor_i64(lo).max(0);
+                let i1 = floor_i64(hi).min(g.nu as i64 - 1);
+                if i0 > i1 {
+                    continue;
+                }
+                let row = g.offset + (j as usize) * g.nu as usize;
+                let (s, e) = (self.start[row + i0 as usize] as usize, self.start[row + i1 as usize + 1] as usize);
+                for q in s..e {
+                    let (x, y) = (self.item_uv[q][0] - x0, self.item_uv[q][1] - y0);
+                    let l1 = (x * dy2 - dx2 * y) * inv_area;
+                    let l2 = (dx1 * y - x * dy1) * inv_area;
+                    let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
+                    let (s_q, a_q) = self.item_owner[q];
+                    let own_pass = (s_q == strip) & (a_q.abs_diff(anchor) < SAME_PASS_ANCHORS);
+                    visit(&tri, q, inside & !own_pass, l1, l2);
+                }
+            }
+        });
+    }
+}
+
+/// A triangle of [`CoreIndex::for_each_cover`] in its model's plane: the model, the corner it
+/// hangs off and that corner's scan head (zero without vehicle positions), and its height
+/// `h0 + l1·dh1 + l2·dh2` with slope `(hx, hy)`.
+struct CoveringTriangle {
+    model: u32,
+    first: usize,
+    vehicle: [f64; 2],
+    h0: f64,
+    dh1: f64,
+    dh2: f64,
+    hx: f64,
+    hy: f64,
+}
+
 /// Latent heights evaluated exactly at the points of the tile's core — the limit of an
 /// infinitely fine raster, at a cost that does not grow with the pixel count. Every triangle of
 /// another pass of any strip that covers a point (in its model's plane) contributes its height
@@ -744,165 +967,52 @@ fn raster_vehicle_mean(r: &Raster, pixels: &[Pixel], vehicle: &[[f64; 2]], u: f6
 /// of these, provided at least one other pass covers the point and the other passes' facets
 /// there are not steeper than [`MAX_SLOPE`] against the model plane.
 ///
-/// Points are found through a per-model bucket grid with about [`POINTS_PER_BUCKET`] core points per bucket.
+/// Also returns, per point, the number `c` of other passes' triangles its latent height averages
+/// (0 where it has none), and with `vehicle` (absolute horizontal scan-head positions) the mean
+/// scan-head position of those triangles and their share, `[x, y, c/(c+1)]` (what the
+/// common-mode field's observation row needs); otherwise that vector is empty.
 ///
-/// With `vehicle` (absolute horizontal scan-head positions) it also returns, per point, the mean
-/// scan-head position of the other passes' triangles and their count, `[x, y, n]` (what the
-/// common-mode field's observation row needs); otherwise the second vector is empty.
+/// With `covers`, every (point, triangle) pair taken is recorded there as
+/// `[item, corner the triangle hangs off, model]` (for [`corner_pulls`]).
 fn point_latent(
     t: &Triangles,
-    in_core: &impl Fn(&[f64; 3]) -> bool,
+    index: &CoreIndex,
     vehicle: Option<&[[f64; 2]]>,
+    covers: Option<&mut Vec<[u32; 3]>>,
     stats: &mut TileStats,
-) -> (Vec<f64>, Vec<[f64; 3]>) {
-    let models = t.models;
+) -> (Vec<f64>, Vec<[f64; 3]>, Vec<u32>) {
     let n = t.position.len();
-    // Plane coordinates of the core points, their strip and anchor (for the own-pass test).
-    let mut uvh = vec![[f64::NAN; 3]; n];
-    let mut owner = vec![(0u32, 0u32); n];
-    let mut bounds = vec![[f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, 0.0]; models.len()];
-    let mut base = 0usize;
-    for chunk in t.chunks {
-        for k in 0..chunk.len() {
-            let a = base + k;
-            let id = t.model_of[a];
-            if id == NONE || !in_core(&t.position[a]) {
-                continue;
-            }
-            let (u, v, h) = models[id as usize].project(&t.position[a]);
-            uvh[a] = [u, v, h];
-            owner[a] = (chunk.strip, chunk.anchor[k]);
-            let b = &mut bounds[id as usize];
-            b[0] = b[0].min(u);
-            b[1] = b[1].max(u);
-            b[2] = b[2].min(v);
-            b[3] = b[3].max(v);
-            b[4] += 1.0;
-        }
-        base += chunk.len();
-    }
-    // Bucket grids (counting sort of the core points by model and bucket).
-    let mut grids: Vec<Buckets> = Vec::with_capacity(models.len());
-    let mut total = 0usize;
-    for b in &bounds {
-        let count = b[4];
-        if count == 0.0 {
-            grids.push(Buckets { u0: 0.0, v0: 0.0, inv: 0.0, nu: 0, nv: 0, offset: total });
-            continue;
-        }
-        let (du, dv) = (b[1] - b[0], b[3] - b[2]);
-        let size = (POINTS_PER_BUCKET * du.max(1e-3) * dv.max(1e-3) / count).sqrt().max(1e-3);
-        let nu = (du / size) as u32 + 1;
-        let nv = (dv / size) as u32 + 1;
-        grids.push(Buckets { u0: b[0], v0: b[2], inv: 1.0 / size, nu, nv, offset: total });
-        total += (nu * nv) as usize;
-    }
-    let mut start = vec![0u32; total + 1];
-    let bucket_of = |a: usize| -> Option<usize> {
-        let id = t.model_of[a];
-        if id == NONE || uvh[a][0].is_nan() {
-            return None;
-        }
-        let g = &grids[id as usize];
-        let i = (((uvh[a][0] - g.u0) * g.inv) as u32).min(g.nu - 1);
-        let j = (((uvh[a][1] - g.v0) * g.inv) as u32).min(g.nv - 1);
-        Some(g.offset + (j * g.nu + i) as usize)
-    };
-    for a in 0..n {
-        if let Some(b) = bucket_of(a) {
-            start[b + 1] += 1;
-        }
-    }
-    for b in 0..total {
-        start[b + 1] += start[b];
-    }
-    // Bucket order: the points a triangle tests lie next to each other in memory.
-    let count = start[total] as usize;
-    let mut fill = start.clone();
-    let mut items = vec![0u32; count];
-    for a in 0..n {
-        if let Some(b) = bucket_of(a) {
-            items[fill[b] as usize] = a as u32;
-            fill[b] += 1;
-        }
-    }
-    drop(fill);
-    let item_uv: Vec<[f64; 2]> = items.iter().map(|&a| [uvh[a as usize][0], uvh[a as usize][1]]).collect();
-    let item_owner: Vec<(u32, u32)> = items.iter().map(|&a| owner[a as usize]).collect();
-
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
-    let mut acc = vec![Sample::default(); count];
-    t.for_each(|id, p, strip, anchor, first| {
-        let (m, g) = (&models[id as usize], &grids[id as usize]);
-        let from = vehicle.map_or([0.0; 2], |v| v[first]);
-        if g.nu == 0 {
-            return;
-        }
-        // Corners in bucket units.
-        let [(x0, y0, h0), (x1, y1, h1), (x2, y2, h2)] = p.map(|q| m.project(&q));
-        let (dx1, dy1, dh1) = (x1 - x0, y1 - y0, h1 - h0);
-        let (dx2, dy2, dh2) = (x2 - x0, y2 - y0, h2 - h0);
-        let area = dx1 * dy2 - dx2 * dy1;
-        if area.abs() < 1e-12 {
-            return;
-        }
-        let inv_area = 1.0 / area;
-        let hx = (dh1 * dy2 - dh2 * dy1) * inv_area;
-        let hy = (dh2 * dx1 - dh1 * dx2) * inv_area;
-        let bx = [(x0 - g.u0) * g.inv, (x1 - g.u0) * g.inv, (x2 - g.u0) * g.inv];
-        let by = [(y0 - g.v0) * g.inv, (y1 - g.v0) * g.inv, (y2 - g.v0) * g.inv];
-        let j0 = floor_i64(by[0].min(by[1]).min(by[2])).max(0);
-        let j1 = floor_i64(by[0].max(by[1]).max(by[2])).min(g.nv as i64 - 1);
-        const SLACK: f64 = -1e-9;
-        for j in j0..=j1 {
-            // The triangle's extent in u within the bucket row [j, j + 1): corners inside the
-            // row and the edges' crossings of its two boundaries.
-            let (lo_v, hi_v) = (j as f64, j as f64 + 1.0);
-            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-            for k in 0..3 {
-                let (xa, ya, xb, yb) = (bx[k], by[k], bx[(k + 1) % 3], by[(k + 1) % 3]);
-                if (lo_v..=hi_v).contains(&ya) {
-                    lo = lo.min(xa);
-                    hi = hi.max(xa);
+    let mut acc = vec![Sample::default(); index.items.len()];
+    match covers {
+        None => index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
+            acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
+        }),
+        Some(covers) => {
+            // Appended without a branch: every candidate is written, only a taken one is kept.
+            covers.clear();
+            let mut len = 0;
+            index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
+                acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
+                if len == covers.len() {
+                    covers.resize(2 * len + 1024, [0; 3]);
                 }
-                for line in [lo_v, hi_v] {
-                    if (ya - line) * (yb - line) < 0.0 {
-                        let x = xa + (xb - xa) * (line - ya) / (yb - ya);
-                        lo = lo.min(x);
-                        hi = hi.max(x);
-                    }
-                }
-            }
-            if lo > hi {
-                continue;
-            }
-            let i0 = floor_i64(lo).max(0);
-            let i1 = floor_i64(hi).min(g.nu as i64 - 1);
-            if i0 > i1 {
-                continue;
-            }
-            let row = g.offset + (j as usize) * g.nu as usize;
-            let (s, e) = (start[row + i0 as usize] as usize, start[row + i1 as usize + 1] as usize);
-            for q in s..e {
-                let (x, y) = (item_uv[q][0] - x0, item_uv[q][1] - y0);
-                let l1 = (x * dy2 - dx2 * y) * inv_area;
-                let l2 = (dx1 * y - x * dy1) * inv_area;
-                let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
-                let (s_q, a_q) = item_owner[q];
-                let own_pass = (s_q == strip) & (a_q.abs_diff(anchor) < SAME_PASS_ANCHORS);
-                acc[q].add_masked(inside & !own_pass, h0 + l1 * dh1 + l2 * dh2, hx, hy, from);
-            }
+                covers[len] = [q as u32, tri.first as u32, tri.model];
+                len += take as usize;
+            });
+            covers.truncate(len);
         }
-    });
+    }
     let mut latent = vec![f64::NAN; n];
+    let mut covering = vec![0u32; n];
     // [x, y, share of the other passes in the latent mean].
     let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
-    for (q, &a) in items.iter().enumerate() {
+    for (q, &a) in index.items.iter().enumerate() {
         let s = &acc[q];
         if s.count == 0 {
             continue;
         }
-        let h = uvh[a as usize][2];
+        let h = index.uvh[a as usize][2];
         let c = s.count as f64;
         let (gx, gy) = (s.slope[0] / c, s.slope[1] / c);
         let mean = (h + s.sum) / (c + 1.0);
@@ -911,13 +1021,100 @@ fn point_latent(
         stats.pixel_std_sum_m += var.sqrt();
         if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
             latent[a as usize] = mean;
+            covering[a as usize] = s.count;
             if let Some(o) = others.get_mut(a as usize) {
                 *o = [s.vehicle[0] / c, s.vehicle[1] / c, c / (c + 1.0)];
             }
         }
     }
-    stats.pixels = count as u64;
-    (latent, others)
+    stats.pixels = index.items.len() as u64;
+    (latent, others, covering)
+}
+
+/// What the used points' residuals pull on the triangles that cover them, gathered per corner
+/// point the triangles hang off ([`Parameters::consistent_gradient`]). A point `j` with `c`
+/// covering triangles and residual `e` has latent height `(own + Σ triangles)/(c+1)`, so moving a
+/// triangle's pass by `δ` changes `e` by `−g·δ/(c+1)`. Each covering triangle's pass therefore
+/// gets the observation "residual −e, weight ω/(c+1)" with the triangle's Jacobian, that of the
+/// corner it hangs off (the other two corners are one point or one revolution away).
+struct CornerPulls {
+    /// Per point: Σ weight and Σ weight × residual, for the point's own model.
+    sums: Vec<[f64; 2]>,
+    /// The same where a triangle lies on another model than its corner's: (corner, model, sums).
+    other_models: Vec<(usize, u32, [f64; 2])>,
+}
+
+impl CornerPulls {
+    /// Adds the pulls on point `a` (a triangle corner) to its interval's moments.
+    #[inline]
+    fn add_to(
+        &self,
+        a: usize,
+        models: &[SurfaceModel],
+        model_of: &[u32],
+        measurement: &[[f64; 3]],
+        moments: &mut IntervalMoments,
+        lambda: f64,
+    ) {
+        let add = |model: u32, [w_sum, we_sum]: [f64; 2], moments: &mut IntervalMoments| {
+            let w = models[model as usize].w;
+            let rw = cross(measurement[a], w);
+            moments.add(&[w[0], w[1], w[2], rw[0], rw[1], rw[2]], -we_sum / w_sum, w_sum, lambda);
+        };
+        let sums = self.sums[a];
+        if sums[0] > 0.0 {
+            // Corners always have a model (triangles are formed from modelled points only).
+            add(model_of[a], sums, moments);
+        }
+        let from = self.other_models.partition_point(|o| o.0 < a);
+        for &(_, model, sums) in self.other_models[from..].iter().take_while(|o| o.0 == a) {
+            if sums[0] > 0.0 {
+                add(model, sums, moments);
+            }
+        }
+    }
+}
+
+fn corner_pulls(
+    t: &Triangles,
+    index: &CoreIndex,
+    covers: &[[u32; 3]],
+    latent: &[f64],
+    covering: &[u32],
+    threshold: f64,
+    weight: f64,
+) -> CornerPulls {
+    // Per item: ω/(c+1) and ω/(c+1)·e of the points the observation loop will use, else zeros.
+    let pull: Vec<[f64; 2]> = index
+        .items
+        .iter()
+        .map(|&a| {
+            let a = a as usize;
+            let l = latent[a];
+            if l.is_nan() {
+                return [0.0; 2];
+            }
+            let m = &t.models[t.model_of[a] as usize];
+            let p = t.position[a];
+            let e = dot([p[0] - m.o[0], p[1] - m.o[1], p[2] - m.o[2]], m.w) - l;
+            if e.abs() > threshold {
+                return [0.0; 2];
+            }
+            let alpha = weight / (covering[a] as f64 + 1.0);
+            [alpha, alpha * e]
+        })
+        .collect();
+    let mut sums = vec![[0.0; 2]; t.position.len()];
+    let mut other: FxHashMap<(usize, u32), [f64; 2]> = FxHashMap::default();
+    for &[q, corner, model] in covers {
+        let (pull, corner) = (pull[q as usize], corner as usize);
+        let s = if model == t.model_of[corner] { &mut sums[corner] } else { other.entry((corner, model)).or_default() };
+        s[0] += pull[0];
+        s[1] += pull[1];
+    }
+    let mut other_models: Vec<(usize, u32, [f64; 2])> = other.into_iter().map(|((a, m), s)| (a, m, s)).collect();
+    other_models.sort_by_key(|o| (o.0, o.1));
+    CornerPulls { sums, other_models }
 }
 
 /// Mean number of core points per bucket of [`point_latent`]'s grids.
@@ -1052,20 +1249,25 @@ mod tests {
     /// A strip scanning a tilted plane (0.5 m × 0.1 m grid of points, scan-image links) `offset`
     /// metres above it, from a head 3 m above at the given x.
     fn plane_strip(tile: TileKey, strip: u32, offset: f64, shift: [f64; 2]) -> TileChunk {
-        let (cols, rows) = (12usize, 40usize);
+        plane_strip_every(tile, strip, offset, shift, 1)
+    }
+
+    /// [`plane_strip`] with `per_row` times as many revolutions (rows), as a slower pass has.
+    fn plane_strip_every(tile: TileKey, strip: u32, offset: f64, shift: [f64; 2], per_row: usize) -> TileChunk {
+        let (cols, rows) = (12usize, 40 * per_row);
         let mut c = TileChunk::with_capacity(tile, strip, strip, [0.0, 0.0, 0.0], cols * rows);
         let height = |x: f64, y: f64| 0.05 * x - 0.03 * y + offset;
         let n = normalize([-0.05, 0.03, 1.0]);
         for row in 0..rows {
             for col in 0..cols {
-                let (x, y) = (2.0 + shift[0] + 0.1 * row as f64, 2.0 + shift[1] + 0.5 * col as f64);
+                let (x, y) = (2.0 + shift[0] + 0.1 * row as f64 / per_row as f64, 2.0 + shift[1] + 0.5 * col as f64);
                 let head = [x, 2.0, 3.0];
                 let p = [x, y, height(x, y)];
                 c.t0.push(head.map(|v| v as f32));
                 c.r.push([(p[0] - head[0]) as f32, (p[1] - head[1]) as f32, (p[2] - head[2]) as f32]);
                 c.normal.push(n.map(|v| v as f32));
-                c.anchor.push((row / 5) as u32);
-                c.lambda.push((row % 5) as f32 / 5.0);
+                c.anchor.push((row / (5 * per_row)) as u32);
+                c.lambda.push((row % (5 * per_row)) as f32 / (5 * per_row) as f32);
                 let k = row * cols + col;
                 c.right.push(if col + 1 < cols { (k + 1) as u32 } else { NO_NEIGHBOUR });
                 c.down.push(if row + 1 < rows { (k + cols) as u32 } else { NO_NEIGHBOUR });
@@ -1108,6 +1310,64 @@ mod tests {
             let (ra, rb) = (pull(a), pull(b));
             assert!(ra.abs() > 1.0 && (ra - rb).abs() < 0.05 * ra.abs(), "{ra} vs {rb}");
         }
+    }
+
+    /// With a consistent gradient, a trajectory's blocks carry the gradient of the cost the
+    /// common-mode field minimises, `½ ω Σ e²` over the used points with the latent map moving
+    /// along: checked against a central difference on three passes over a plane, one of them
+    /// twice as dense and 4 mm off. Holding the map fixed gives another gradient there (the
+    /// passes' fixed points differ), which is what made the two levels fight.
+    #[test]
+    fn consistent_gradient_is_the_gradient_of_the_reduced_cost() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        // Half a metre up, so that no shift moves a point across a 1 m cell boundary.
+        let chunks = [
+            plane_strip(tile, 0, 0.5, [0.0, 0.0]),
+            plane_strip_every(tile, 1, 0.504, [0.033, 0.21], 2),
+            plane_strip(tile, 2, 0.5, [0.071, 0.37]),
+        ];
+        let step = IterationStep::new(0.01, 0.05);
+        let run = |consistent: bool, trajectory: usize, dz: f64| {
+            let params =
+                Parameters { point_latent_below_grid_m: 0.02, consistent_gradient: consistent, ..Default::default() };
+            let mut corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
+            corrections[trajectory].values.iter_mut().for_each(|c| c[2] = dz);
+            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
+        };
+        let weight = 1.0 / Parameters::default().sigma_distance_m.powi(2);
+        let cost = |e: &TileEstimate| 0.5 * weight * e.stats.residual_sum2_m2;
+        let h = 1e-6;
+        let (mut common_consistent, mut common_fixed_map) = (0.0, 0.0);
+        for trajectory in 0..3 {
+            let numeric = (cost(&run(true, trajectory, h)) - cost(&run(true, trajectory, -h))) / (2.0 * h);
+            let pull = |consistent: bool| -> f64 {
+                let e = run(consistent, trajectory, 0.0);
+                e.blocks
+                    .iter()
+                    .filter(|t| t.trajectory == trajectory as u32)
+                    .flat_map(|t| &t.blocks)
+                    .map(|b| b.rhs[2])
+                    .sum()
+            };
+            // The blocks' right-hand side is the negative gradient (`H δ = rhs`).
+            let (consistent, fixed_map) = (-pull(true), -pull(false));
+            assert!(numeric.abs() > 1.0, "trajectory {trajectory}: {numeric}");
+            assert!(
+                (consistent - numeric).abs() < 0.01 * numeric.abs(),
+                "trajectory {trajectory}: {consistent} vs {numeric}"
+            );
+            eprintln!("trajectory {trajectory}: reduced-cost gradient {numeric:.3}, consistent {consistent:.3}, map held {fixed_map:.3}");
+            if trajectory == 0 {
+                // The sparse pass: the map-fixed pull misses what the dense pass's points pull.
+                assert!((fixed_map - numeric).abs() > 0.1 * numeric.abs(), "{fixed_map} vs {numeric}");
+            }
+            common_consistent += consistent;
+            common_fixed_map += fixed_map;
+        }
+        // Moving every pass together changes no residual, so the reduced cost has no gradient
+        // along it; holding the map fixed invents one, which only the prior would balance.
+        assert!(common_consistent.abs() < 1e-6 * 1000.0, "{common_consistent}");
+        assert!(common_fixed_map.abs() > 100.0, "{common_fixed_map}");
     }
 
     /// Deterministic uniform numbers in [0, 1) (a linear congruential generator).
