@@ -92,6 +92,30 @@ async fn wait_finished(jobs: &JobStore, id: uuid::Uuid, limit: Duration) -> prec
     }
 }
 
+/// Executors in this process (two tasks at a time) working the store's queue until stopped.
+struct LocalExecutors {
+    stop: tokio::sync::watch::Sender<bool>,
+    handle: tokio::task::JoinHandle<Result<(), precimap_framework::FrameworkError>>,
+}
+
+impl LocalExecutors {
+    fn start(jobs: &JobStore, objects: &Objects, scratch: &Path) -> Self {
+        let executor = Executor::new(
+            jobs.clone(),
+            TaskContext::new(objects.clone(), scratch.to_path_buf()),
+            ExecutorConfig::default(),
+        );
+        let (stop, stop_rx) = tokio::sync::watch::channel(false);
+        let handle = tokio::spawn(async move { executor.work_loop(2, stop_rx).await });
+        Self { stop, handle }
+    }
+
+    async fn stop(self) {
+        let _ = self.stop.send(true);
+        self.handle.await.unwrap().unwrap();
+    }
+}
+
 #[test]
 fn embedded_run_and_the_http_api_give_the_in_process_result() {
     let dir = tempfile::tempdir().unwrap();
@@ -121,13 +145,7 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         let address = listener.local_addr().unwrap();
         let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
         tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
-        let executor = Executor::new(
-            jobs.clone(),
-            TaskContext::new(objects.clone(), dir.path().join("scratch")),
-            ExecutorConfig::default(),
-        );
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let workers = tokio::spawn(async move { executor.work_loop(2, stop_rx).await });
+        let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
 
         let server = format!("http://{address}");
         let unauthorised = Client::new(&server, None);
@@ -158,8 +176,7 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         client.delete(submitted.id).await.unwrap();
         assert!(objects.list(&prefix).await.unwrap().is_empty());
         assert!(client.status(submitted.id).await.is_err());
-        let _ = stop_tx.send(true);
-        workers.await.unwrap().unwrap();
+        workers.stop().await;
     });
     assert_same_results(&reference, &via_http);
 }
@@ -211,17 +228,10 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
         let bad_id = framework.submit(&bad_manifest).await.unwrap();
         let good_id = framework.submit(&good_manifest).await.unwrap();
-        let executor = Executor::new(
-            jobs.clone(),
-            TaskContext::new(objects.clone(), dir.path().join("scratch")),
-            ExecutorConfig::default(),
-        );
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let workers = tokio::spawn(async move { executor.work_loop(2, stop_rx).await });
+        let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
         let failed = wait_finished(&jobs, bad_id, Duration::from_secs(600)).await;
         let succeeded = wait_finished(&jobs, good_id, Duration::from_secs(600)).await;
-        let _ = stop_tx.send(true);
-        workers.await.unwrap().unwrap();
+        workers.stop().await;
         assert_eq!(failed.state, CampaignState::Failed);
         let error = failed.error.unwrap();
         assert!(error.contains("v02-right"), "the error names the strip: {error}");
