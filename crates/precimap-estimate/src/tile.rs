@@ -108,6 +108,12 @@ impl SurfaceModel {
         let d = [p[0] - self.o[0], p[1] - self.o[1], p[2] - self.o[2]];
         (dot(d, self.e1), dot(d, self.e2), dot(d, self.w))
     }
+
+    /// Height of `p` above the model plane (the third coordinate of [`Self::project`]).
+    #[inline]
+    fn height(&self, p: &[f64; 3]) -> f64 {
+        dot([p[0] - self.o[0], p[1] - self.o[1], p[2] - self.o[2]], self.w)
+    }
 }
 
 #[derive(Clone, Copy, Default)]
@@ -410,7 +416,7 @@ pub fn estimate_tile_recording(
                 continue;
             }
             let m = &models[id as usize];
-            let h = dot([p[0] - m.o[0], p[1] - m.o[1], p[2] - m.o[2]], m.w);
+            let h = m.height(p);
             stats.points_modelled += 1;
             let e = h - latent;
             histogram.add(e);
@@ -1084,7 +1090,8 @@ fn corner_pulls(
     threshold: f64,
     weight: f64,
 ) -> CornerPulls {
-    // Per item: ω/(c+1) and ω/(c+1)·e of the points the observation loop will use, else zeros.
+    // Per item: ω/(c+1) and ω/(c+1)·e of the points the observation loop will use, else zeros
+    // (the index holds each core point's height above its model plane, the loop's `h`).
     let pull: Vec<[f64; 2]> = index
         .items
         .iter()
@@ -1094,9 +1101,7 @@ fn corner_pulls(
             if l.is_nan() {
                 return [0.0; 2];
             }
-            let m = &t.models[t.model_of[a] as usize];
-            let p = t.position[a];
-            let e = dot([p[0] - m.o[0], p[1] - m.o[1], p[2] - m.o[2]], m.w) - l;
+            let e = index.uvh[a][2] - l;
             if e.abs() > threshold {
                 return [0.0; 2];
             }

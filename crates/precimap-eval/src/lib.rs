@@ -306,11 +306,11 @@ struct StripOutcome {
     tiles_after: TileStripMeans,
     segments: Option<SegmentTally>,
     assignments: Option<AssignmentTally>,
-    surfaces_before: SurfaceStripMeans,
-    surfaces_after: SurfaceStripMeans,
+    /// All classes together: the per-class sums merged, plus the datum samples.
     shift_free_before: ShiftFreeMeans,
     shift_free_after: ShiftFreeMeans,
-    /// Per class, and per (class, tile, surface), before and after.
+    /// Per class, and per (class, tile, surface), before and after. A surface id has one class,
+    /// so the latter also gives the whole campaign's same-surface spread.
     classes: [BTreeMap<u8, ShiftFreeMeans>; 2],
     class_surfaces: [ClassSurfaceStripMeans; 2],
 }
@@ -375,8 +375,6 @@ fn evaluate_strip(
         tiles_after: TileStripMeans::new(),
         segments: None,
         assignments: None,
-        surfaces_before: SurfaceStripMeans::new(),
-        surfaces_after: SurfaceStripMeans::new(),
         shift_free_before: ShiftFreeMeans::new(),
         shift_free_after: ShiftFreeMeans::new(),
         classes: Default::default(),
@@ -430,16 +428,12 @@ fn evaluate_strip(
         let tile = TileKey::of(t.position[0], t.position[1], SPREAD_TILE_M);
         out.tiles_before.add(tile, index, eb);
         out.tiles_after.add(tile, index, ea);
-        out.surfaces_before.add((tile, t.surface_id), index, eb);
-        out.surfaces_after.add((tile, t.surface_id), index, ea);
         let len = t.normal.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt();
         let unit = t.normal.map(|c| c as f64 / len);
         for (k, e) in [eb, ea].into_iter().enumerate() {
             out.classes[k].entry(t.class as u8).or_default().add(tile, index, e, unit);
             out.class_surfaces[k].add((t.class as u8, tile, t.surface_id), index, e);
         }
-        out.shift_free_before.add(tile, index, eb, unit);
-        out.shift_free_after.add(tile, index, ea, unit);
         if let Some(tr) = trajectory {
             let time = before.gps_time[k];
             if let Some(truth_position) = tr.truth.position_at(time) {
@@ -451,6 +445,12 @@ fn evaluate_strip(
                 }
             }
         }
+    }
+    for class in out.classes[0].values() {
+        out.shift_free_before.merge(class.clone());
+    }
+    for class in out.classes[1].values() {
+        out.shift_free_after.merge(class.clone());
     }
     out.segments = segment_ids.map(|_| tally);
     out.assignments = assignment_ids.map(|_| assigned);
@@ -499,7 +499,6 @@ fn assemble(
 ) -> Evaluation {
     let (mut before, mut after) = (ErrorStats::new(), ErrorStats::new());
     let (mut tiles_before, mut tiles_after) = (TileStripMeans::new(), TileStripMeans::new());
-    let (mut surfaces_before, mut surfaces_after) = (SurfaceStripMeans::new(), SurfaceStripMeans::new());
     let (mut shift_free_before, mut shift_free_after) = (ShiftFreeMeans::new(), ShiftFreeMeans::new());
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
     let mut class_means: [BTreeMap<u8, ShiftFreeMeans>; 2] = Default::default();
@@ -527,8 +526,6 @@ fn assemble(
         }
         tiles_before.merge(s.tiles_before);
         tiles_after.merge(s.tiles_after);
-        surfaces_before.merge(s.surfaces_before);
-        surfaces_after.merge(s.surfaces_after);
         shift_free_before.merge(s.shift_free_before);
         shift_free_after.merge(s.shift_free_after);
         for (total, part) in class_means.iter_mut().zip(s.classes) {
@@ -549,8 +546,8 @@ fn assemble(
     }
     let (spread_before, pairs) = tiles_before.spread(SPREAD_MIN_POINTS);
     let (spread_after, _) = tiles_after.spread(SPREAD_MIN_POINTS);
-    let (surface_spread_before, _) = surfaces_before.spread(SPREAD_MIN_POINTS);
-    let (surface_spread_after, _) = surfaces_after.spread(SPREAD_MIN_POINTS);
+    let (surface_spread_before, _) = class_surface_means[0].spread(SPREAD_MIN_POINTS);
+    let (surface_spread_after, _) = class_surface_means[1].spread(SPREAD_MIN_POINTS);
     let worst_tiles_after = tiles_after
         .worst_tiles(SPREAD_MIN_POINTS, 8)
         .into_iter()
