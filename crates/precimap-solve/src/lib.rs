@@ -1,4 +1,5 @@
-//! Exact linear-time solver for the block-tridiagonal normal equations of one trajectory.
+//! Exact linear-time solver for the block-tridiagonal normal equations of one trajectory, and
+//! ([`sparse`]) an exact sparse solver for the common-mode field's normal equations.
 //!
 //! With the latent map held fixed (paper Eq. 6), the unknowns of one trajectory are the 6-vectors
 //! of pose corrections at its anchors, and every observation, prior and smoothness term couples at
@@ -21,6 +22,7 @@ mod bench;
 mod chol6;
 pub mod generic;
 mod rng;
+pub mod sparse;
 
 pub use bench::{bench_solve, synthetic_system};
 
