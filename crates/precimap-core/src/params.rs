@@ -147,9 +147,10 @@ pub struct Parameters {
     /// along, and added to every trajectory at its anchors. It moves the shift every pass at a
     /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
     /// 15 m since stop 12 (30 m before): on medium the spread without the campaign's shift falls
-    /// 2.90 → 1.28 mm; 10 m gains a little more (1.17 mm) but has 2.25× the nodes of the dense
-    /// field solve, whose limit (`MAX_FIELD_NODES` in `precimap-estimate`) 15 m nodes reach at
-    /// ~0.7 km² of tiles (ARCHITECTURE.md, "Consistent gradient and 15 m field nodes").
+    /// 2.90 → 1.28 mm. With the default schedule's settling (stop 13), 10 m nodes gain 1–2 % on
+    /// medium and lose 1–2 % on small seed 1 for 2.25× the nodes. The field's sparse solve takes
+    /// a street network of ~40 km² at 15 m (`MAX_FIELD_ENVELOPE` in `precimap-estimate`;
+    /// ARCHITECTURE.md, "The common-mode field's sparse solve").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step
     /// that no field on the same nodes represents (the field re-solves the rest itself, so
