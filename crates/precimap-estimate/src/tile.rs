@@ -1,9 +1,10 @@
 //! `estimate_tile`: the map task of one estimation iteration (paper §6.3, DESIGN §2–3).
 //!
 //! 1. Every point of the tile is corrected with the current trajectory corrections.
-//! 2. The latent map is built: points fall into voxel-hashed cells; inside a cell, points whose
-//!    normals agree form a local surface model (LSM: plane with normal `w`, origin `o`, and a
-//!    height raster of pixel size `grid_m`). Each strip's surface (the triangles of its scan
+//! 2. The latent map is built: points fall into voxel-hashed cells (with segments, outside the
+//!    capture steps, columns along the point's normal axis, so that no cell face cuts across a
+//!    surface); inside a cell, points whose normals agree form a local surface model (LSM:
+//!    plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each strip's surface (the triangles of its scan
 //!    image) is rasterised into the LSM pixels, so a pixel knows every strip's surface height
 //!    there even when the points are sparser than the pixels (DESIGN §2 "Density matters").
 //!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and evaluate the
@@ -176,16 +177,38 @@ fn floor_i64(x: f64) -> i64 {
     i - ((i as f64) > x) as i64
 }
 
-/// Key of the cell holding `p`; with `columns` the cell is an unbounded vertical column.
+/// Key of the cell holding `p`; with `unbounded` the cell is a column unbounded along that axis
+/// (index 0 there, which no tile-local position reaches, so columns along different axes never
+/// share a key).
 #[inline]
-fn cell_key(p: &[f64; 3], inv_cell: f64, columns: bool) -> u64 {
+fn cell_key(p: &[f64; 3], inv_cell: f64, unbounded: Option<usize>) -> u64 {
     const OFFSET: i64 = 1 << 20;
-    let ix = (floor_i64(p[0] * inv_cell) + OFFSET) as u64 & 0x1F_FFFF;
-    let iy = (floor_i64(p[1] * inv_cell) + OFFSET) as u64 & 0x1F_FFFF;
-    let iz = if columns { 0 } else { (floor_i64(p[2] * inv_cell) + OFFSET) as u64 & 0x1F_FFFF };
-    (ix << 42) | (iy << 21) | iz
+    let index = |axis: usize| {
+        if unbounded == Some(axis) {
+            0
+        } else {
+            (floor_i64(p[axis] * inv_cell) + OFFSET) as u64 & 0x1F_FFFF
+        }
+    };
+    (index(0) << 42) | (index(1) << 21) | index(2)
 }
 
+/// The axis along which `n` points most.
+#[inline]
+fn dominant_axis(n: &[f64; 3]) -> usize {
+    let a = n.map(f64::abs);
+    if a[0] >= a[1] && a[0] >= a[2] {
+        0
+    } else if a[1] >= a[2] {
+        1
+    } else {
+        2
+    }
+}
+
+/// Largest distance of a point from the plane of a patch (one strip segment in one normal
+/// column) it joins: farther, it is a parallel surface of the same segment along the column.
+const PATCH_PLANE_M: f64 = 0.05;
 /// Smallest distance between planes at which patches of different strips join one model.
 const JOIN_DISTANCE_MIN_M: f64 = 0.1;
 /// Largest distance between planes at which two segments of one strip pass join one model.
@@ -260,6 +283,11 @@ pub fn estimate_tile_recording(
     let mut vehicle: Vec<[f64; 2]> = Vec::with_capacity(if solves_field { total } else { 0 });
     let mut patch_of = Vec::with_capacity(total);
     let mut patches: Vec<Patch> = Vec::new();
+    // With segments, outside the capture steps, a cell is a column along its points' normal
+    // axis: a cell face across a surface would split the passes that disagree about where the
+    // surface is (by more than its distance to the face) into two cells that never meet, and
+    // that disagreement then persists. Along the normal, plane distance tells surfaces apart.
+    let normal_columns = params.segment_surfaces && !step.column_cells;
     let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
     for (chunk_index, chunk) in chunks.iter().enumerate() {
         let corr = &corrections[chunk.trajectory as usize];
@@ -282,10 +310,12 @@ pub fn estimate_tile_recording(
             }
             position.push(p);
             measurement.push(rr);
-            let key = if params.segment_surfaces {
-                (cell_key(&p, inv_cell, step.column_cells), chunk_index as u32, chunk.segment[k])
+            let key = if normal_columns {
+                (cell_key(&p, inv_cell, Some(dominant_axis(&n))), chunk_index as u32, chunk.segment[k])
+            } else if params.segment_surfaces {
+                (cell_key(&p, inv_cell, step.column_cells.then_some(2)), chunk_index as u32, chunk.segment[k])
             } else {
-                (cell_key(&p, inv_cell, step.column_cells), u32::MAX, 0)
+                (cell_key(&p, inv_cell, step.column_cells.then_some(2)), u32::MAX, 0)
             };
             if key != last.0 {
                 if last.0 .0 != u64::MAX {
@@ -298,8 +328,9 @@ pub fn estimate_tile_recording(
             let mut best_cos = cos_group;
             for &id in &slots.ids[..slots.len as usize] {
                 let m = &patches[id as usize];
-                let cos = dot(n, m.sum_normal) / dot(m.sum_normal, m.sum_normal).sqrt();
-                if cos > best_cos {
+                let norm = dot(m.sum_normal, m.sum_normal).sqrt();
+                let cos = dot(n, m.sum_normal) / norm;
+                if cos > best_cos && (!normal_columns || m.plane_distance(&p, norm) <= PATCH_PLANE_M) {
                     best_cos = cos;
                     best = id;
                 }
@@ -475,6 +506,16 @@ struct Patch {
     sum_normal: [f64; 3],
     sum_position: [f64; 3],
     count: u32,
+}
+
+impl Patch {
+    /// Distance of `p` from the patch's plane (`norm`: the length of its normal sum).
+    #[inline]
+    fn plane_distance(&self, p: &[f64; 3], norm: f64) -> f64 {
+        let c = self.count as f64;
+        let d = [p[0] - self.sum_position[0] / c, p[1] - self.sum_position[1] / c, p[2] - self.sum_position[2] / c];
+        dot(d, self.sum_normal).abs() / norm
+    }
 }
 
 /// A model of the cell being joined: (id, normal sum, position sum, count, member passes as
@@ -1259,10 +1300,21 @@ mod tests {
 
     /// [`plane_strip`] with `per_row` times as many revolutions (rows), as a slower pass has.
     fn plane_strip_every(tile: TileKey, strip: u32, offset: f64, shift: [f64; 2], per_row: usize) -> TileChunk {
+        let height = |x: f64, y: f64| 0.05 * x - 0.03 * y + offset;
+        strip_on(tile, strip, shift, per_row, height, normalize([-0.05, 0.03, 1.0]))
+    }
+
+    /// A strip scanning the plane `z = height(x, y)` of normal `n` (see [`plane_strip`]).
+    fn strip_on(
+        tile: TileKey,
+        strip: u32,
+        shift: [f64; 2],
+        per_row: usize,
+        height: impl Fn(f64, f64) -> f64,
+        n: [f64; 3],
+    ) -> TileChunk {
         let (cols, rows) = (12usize, 40 * per_row);
         let mut c = TileChunk::with_capacity(tile, strip, strip, [0.0, 0.0, 0.0], cols * rows);
-        let height = |x: f64, y: f64| 0.05 * x - 0.03 * y + offset;
-        let n = normalize([-0.05, 0.03, 1.0]);
         for row in 0..rows {
             for col in 0..cols {
                 let (x, y) = (2.0 + shift[0] + 0.1 * row as f64 / per_row as f64, 2.0 + shift[1] + 0.5 * col as f64);
@@ -1282,6 +1334,35 @@ mod tests {
             }
         }
         c
+    }
+
+    /// Two passes 4 cm apart on either side of a 1 m cell face (z = 1 m) across their surface
+    /// still meet in one model per cell with segments: cells are columns along the normal.
+    /// Cubic cells (grouping by normal alone) put the passes in two cells that never meet, and
+    /// that disagreement would persist.
+    #[test]
+    fn passes_either_side_of_a_cell_face_meet_in_one_model() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let up = [0.0, 0.0, 1.0];
+        let chunks =
+            [strip_on(tile, 0, [0.0, 0.0], 1, |_, _| 0.98, up), strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 1.02, up)];
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 2];
+        let step = IterationStep::new(0.01, 0.05);
+        let run = |segment_surfaces: bool| {
+            let params = Parameters { segment_surfaces, point_latent_below_grid_m: 0.02, ..Default::default() };
+            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
+        };
+        let columns = run(true);
+        assert!(columns.stats.points_used > 500, "{}", columns.stats.points_used);
+        // The passes meet in the middle: every residual is ±2 cm, and the pulls are opposite.
+        let rms = (columns.stats.residual_sum2_m2 / columns.stats.points_used as f64).sqrt();
+        assert!((rms - 0.02).abs() < 1e-3, "{rms}");
+        let pull = |t: &TrajectoryBlocks| t.blocks.iter().map(|b| b.rhs[2]).sum::<f64>();
+        assert!(pull(&columns.blocks[0]) > 1.0 && pull(&columns.blocks[1]) < -1.0);
+        // Each cubic cell the strips cross holds one pass only: twice the models, no observation.
+        let cubes = run(false);
+        assert_eq!(cubes.stats.surface_models, 2 * columns.stats.surface_models);
+        assert_eq!(cubes.stats.points_used, 0);
     }
 
     /// On a plane, the exact point-sampled latent surface and a fine raster give the same
