@@ -4,9 +4,10 @@
 //! 2. The latent map is built: points fall into voxel-hashed cells (with segments, outside the
 //!    capture steps, columns along the point's normal axis, so that no cell face cuts across a
 //!    surface); inside a cell, points whose normals agree form a local surface model (LSM:
-//!    plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each strip's surface (the triangles of its scan
-//!    image) is rasterised into the LSM pixels, so a pixel knows every strip's surface height
-//!    there even when the points are sparser than the pixels (DESIGN §2 "Density matters").
+//!    plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each
+//!    strip's surface (the triangles of its scan image) is rasterised into the LSM pixels, so a
+//!    pixel knows every strip's surface height there even when the points are sparser than the
+//!    pixels (DESIGN §2 "Density matters").
 //!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and evaluate the
 //!    strips' triangles exactly at the points instead ([`point_latent`]): the limit of an
 //!    infinitely fine raster, at a cost that does not grow with the pixel count.
@@ -288,6 +289,7 @@ pub fn estimate_tile_recording(
     // surface is (by more than its distance to the face) into two cells that never meet, and
     // that disagreement then persists. Along the normal, plane distance tells surfaces apart.
     let normal_columns = params.segment_surfaces && !step.column_cells;
+    let vertical_columns = step.column_cells.then_some(2);
     let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
     for (chunk_index, chunk) in chunks.iter().enumerate() {
         let corr = &corrections[chunk.trajectory as usize];
@@ -310,12 +312,12 @@ pub fn estimate_tile_recording(
             }
             position.push(p);
             measurement.push(rr);
-            let key = if normal_columns {
-                (cell_key(&p, inv_cell, Some(dominant_axis(&n))), chunk_index as u32, chunk.segment[k])
-            } else if params.segment_surfaces {
-                (cell_key(&p, inv_cell, step.column_cells.then_some(2)), chunk_index as u32, chunk.segment[k])
+            let unbounded = if normal_columns { Some(dominant_axis(&n)) } else { vertical_columns };
+            let cell = cell_key(&p, inv_cell, unbounded);
+            let key = if params.segment_surfaces {
+                (cell, chunk_index as u32, chunk.segment[k])
             } else {
-                (cell_key(&p, inv_cell, step.column_cells.then_some(2)), u32::MAX, 0)
+                (cell, u32::MAX, 0)
             };
             if key != last.0 {
                 if last.0 .0 != u64::MAX {
