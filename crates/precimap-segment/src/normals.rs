@@ -1,10 +1,15 @@
 //! Per-pixel normals from the pixel's scan-image neighbourhood.
 //!
-//! RANSAC: plane hypotheses through the centre point and two neighbours, scored by the number of
-//! neighbours within the inlier tolerance, refined by a least-squares (PCA) fit to the inliers of
-//! the best one. At a sharp edge (curb, façade corner) the pixel's own side of the edge wins, so
-//! the normal stays that side's normal; a least-squares fit to the whole window (the
-//! [`NormalMethod::LeastSquares`] variant, kept for comparison) tilts towards the other side.
+//! RANSAC: plane hypotheses through the centre point and two neighbours, scored by their MSAC
+//! cost (Torr & Zisserman: each neighbour costs its squared distance, at most the squared inlier
+//! tolerance), refined by a least-squares (PCA) fit to the inliers of the best one. At a sharp
+//! edge (curb, façade corner) the pixel's own side of the edge wins, so the normal stays that
+//! side's normal; a least-squares fit to the whole window (the [`NormalMethod::LeastSquares`]
+//! variant, kept for comparison) tilts towards the other side. Scoring by the inlier count alone
+//! (before stop 16) let a plane tilted across a step tie with the pixel's own plane: at the
+//! simulator's 1.5° angular step a curb seen at grazing incidence is a 13 cm rise over metres
+//! between two profile samples, and both planes can hold as many neighbours within the tolerance;
+//! the tilted one holds them worse.
 
 use crate::image::{dist, ScanImage, DROPPED, NO_POINT};
 use crate::{SegmentParams, StripGeometry};
@@ -82,15 +87,27 @@ impl Candidates {
     /// cheaper than a population count without the POPCNT instruction of the baseline target).
     #[inline]
     fn inliers_counted(&self, n: [f32; 3], tol: f32) -> (u64, u32) {
-        let limit = tol * tol * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-        let (mut mask, mut count) = (0u64, 1u32);
+        let (mask, count, _) = self.inliers_scored(n, tol);
+        (mask, count)
+    }
+
+    /// [`Self::inliers_counted`] and the plane's MSAC cost `Σ min(d², tol²)` over the neighbours
+    /// (in units of |n|², which one hypothesis shares: comparable between hypotheses only after
+    /// the division at the end).
+    #[inline]
+    fn inliers_scored(&self, n: [f32; 3], tol: f32) -> (u64, u32, f32) {
+        let norm2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+        let limit = tol * tol * norm2;
+        let (mut mask, mut count, mut cost) = (0u64, 1u32, 0.0f32);
         for i in 0..self.m {
             let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
-            let inlier = d * d <= limit;
+            let d2 = d * d;
+            let inlier = d2 <= limit;
             mask |= (inlier as u64) << i;
             count += inlier as u32;
+            cost += d2.min(limit);
         }
-        (mask, count)
+        (mask, count, cost / norm2)
     }
 
     /// Scatter sums of the centre and the neighbours in `mask`.
@@ -298,8 +315,10 @@ impl Budget {
 /// generator seeded by the point index (deterministic), drawn without division and never the same
 /// neighbour twice. A hypothesis costs a cross product and one multiply–add per neighbour: the
 /// inlier test compares squared distances against the unnormalised normal, so there is no square
-/// root or division in the loop. It stops at the first plane that most (80 %) of the neighbours
-/// lie on, or by the adaptive rule of [`Budget`]. The winner is refined by a least-squares fit to
+/// root in the loop and one division per hypothesis. The winner is the plane of least MSAC cost
+/// among those with at least `min_inliers` inliers. It stops at the first best plane that most
+/// (80 %) of the neighbours lie on, or by the adaptive rule of [`Budget`] (fed the most inliers
+/// seen, the estimate of the inlier share). The winner is refined by a least-squares fit to
 /// its inliers, and once more to the inliers of that fit if they differ and are not fewer (the
 /// "local optimisation" of LO-RANSAC: the result depends little on which noisy triple won).
 fn ransac(
@@ -324,7 +343,10 @@ fn ransac(
     };
     let all = m as u32 + 1;
     let good = (4 * all).div_ceil(5);
-    let mut best: Option<([f32; 3], u64, u32)> = None;
+    // (normal, inlier mask, inliers, MSAC cost) of the best hypothesis so far.
+    let mut best: Option<([f32; 3], u64, u32, f32)> = None;
+    // The most inliers any hypothesis had: what the adaptive stopping rule estimates from.
+    let mut most = 0;
     let mut enough = HYPOTHESES;
     let mut tried = 0;
     let mut structured = pairs.iter();
@@ -350,17 +372,32 @@ fn ransac(
         if n[0] * n[0] + n[1] * n[1] + n[2] * n[2] < MIN_SIN2 * cand.len2[i] * cand.len2[j] {
             continue;
         }
-        let (mask, inliers) = cand.inliers_counted(n, tol);
-        if best.is_none_or(|(_, _, s)| inliers > s) {
-            best = Some((n, mask, inliers));
+        let (mask, inliers, cost) = cand.inliers_scored(n, tol);
+        if inliers > most {
+            most = inliers;
+            enough = budget.hypotheses(m, inliers);
+        }
+        // MSAC: of the planes with enough inliers to give a normal, the one the neighbours lie
+        // closest to (below that, the most inliers, as a fit that fails anyway).
+        let better = best.is_none_or(|(_, _, best_inliers, best_cost)| {
+            let (eligible, best_eligible) = (inliers >= min_inliers, best_inliers >= min_inliers);
+            if eligible != best_eligible {
+                eligible
+            } else if eligible {
+                cost < best_cost
+            } else {
+                inliers > best_inliers
+            }
+        });
+        if better {
+            best = Some((n, mask, inliers, cost));
             // A plane through the centre that most neighbours lie on is the centre's plane.
             if inliers >= good {
                 break;
             }
-            enough = budget.hypotheses(m, inliers);
         }
     }
-    let (n, mask, inliers) = best?;
+    let (n, mask, inliers, _) = best?;
     if inliers < min_inliers {
         return None;
     }
@@ -597,6 +634,45 @@ mod tests {
         // Eigenvalues of a diagonal matrix.
         let (l0, l1, _, v) = smallest_eigen([3.0, 0.0, 0.0, 1.0, 0.0, 2.0]).unwrap();
         assert!((l0 - 1.0).abs() < 1e-12 && (l1 - 2.0).abs() < 1e-12 && (v[1].abs() - 1.0).abs() < 1e-12);
+    }
+
+    /// Two planes through the centre hold as many neighbours within the tolerance: the pixel's own
+    /// plane exactly, a plane tilted across a step loosely. MSAC takes the tight one although the
+    /// loose one is tried first; by the inlier count alone the first one found would win.
+    #[test]
+    fn of_two_planes_with_as_many_inliers_msac_takes_the_tighter() {
+        let mut cand = Candidates::new();
+        let points: [[f32; 3]; 8] = [
+            // On both planes (the step's edge line).
+            [0.3, 0.0, 0.0],
+            [-0.3, 0.0, 0.0],
+            // The pixel's own plane z = 0.
+            [0.0, -0.3, 0.0],
+            [0.3, -0.3, 0.0],
+            [-0.3, -0.3, 0.0],
+            // Beyond the step: about z = 0.3 y, scattered by up to 6 mm.
+            [0.0, 0.3, 0.096],
+            [0.3, 0.3, 0.084],
+            [-0.3, 0.3, 0.09],
+        ];
+        for (i, q) in points.iter().enumerate() {
+            (cand.x[i], cand.y[i], cand.z[i]) = (q[0], q[1], q[2]);
+            cand.len2[i] = q[0] * q[0] + q[1] * q[1] + q[2] * q[2];
+            cand.slot[i] = i as u8;
+        }
+        cand.m = points.len();
+        let tol = 0.02;
+        // The tie: both planes hold the centre and five neighbours.
+        assert_eq!(cand.inliers_counted([0.0, 0.0, 1.0], tol).1, 6);
+        assert_eq!(cand.inliers_counted([0.0, -0.32, 1.0], tol).1, 6);
+        let budget = Budget::new();
+        // First the tilted plane (two neighbours beyond the step), then the own plane.
+        let pairs = [(6, 7), (2, 0)];
+        for seed in 0..50 {
+            let n = ransac(&cand, tol, seed, 6, &budget, &pairs).expect("a plane");
+            let angle = n[2].abs().min(1.0).acos().to_degrees();
+            assert!(angle < 0.5, "seed {seed}: normal {n:?} is {angle:.1}° off the pixel's own plane");
+        }
     }
 
     /// The inverse iteration of the RANSAC refinement lands on the closed-form least-squares
