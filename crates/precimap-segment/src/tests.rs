@@ -36,7 +36,11 @@ fn profile() -> Vec<([f64; 2], [f64; 2], u32)> {
 }
 
 fn scan(revolutions: usize) -> Scan {
-    let rows = 360;
+    scan_rows(revolutions, 360)
+}
+
+/// [`scan`] with `rows` measurements per revolution.
+fn scan_rows(revolutions: usize, rows: usize) -> Scan {
     let pieces = profile();
     let mut s = Scan {
         x: vec![],
@@ -176,4 +180,26 @@ fn ransac_keeps_curb_edges_sharp() {
     eprintln!("mean normal error 3–20 cm from the curbs: RANSAC {ransac:.2}°, least squares {ls:.2}°");
     assert!(ransac < 3.0, "RANSAC mean error at curbs {ransac:.2}°");
     assert!(ls > 2.0 * ransac && ls > 5.0, "least squares {ls:.2}° vs RANSAC {ransac:.2}°");
+}
+
+/// At fine angular steps (0.1°, 3600 rows, as real mobile-mapping scanners) neighbouring
+/// measurements of a profile are millimetres apart, less than the noise tilts a plane across: a
+/// window a few rows long along the profile holds a blob. The window's stride along the profile
+/// keeps the road's normals (without it, most road points near the scanner got none).
+#[test]
+fn fine_angular_steps_still_give_road_normals() {
+    let s = scan_rows(24, 3600);
+    let geo = StripGeometry { x: &s.x, y: &s.y, z: &s.z, head: &s.head };
+    let image = ScanImage::build(&s.angle, &s.time, &vec![0; s.x.len()]);
+    assert_eq!(image.rows, 3600);
+    let normals = estimate_normals(&geo, &image, &image.grid(), &SegmentParams::default());
+    // Road points away from the image's first and last revolutions (no neighbours across there).
+    let road: Vec<usize> =
+        (0..s.x.len()).filter(|&k| s.truth[k] == ROAD && (2..22).contains(&(image.column[k] as usize))).collect();
+    let with: Vec<f64> = road.iter().filter_map(|&k| normals[k].map(|n| angle_deg(n.normal, s.normal[k]))).collect();
+    let share = with.len() as f64 / road.len() as f64;
+    let mean = with.iter().sum::<f64>() / with.len().max(1) as f64;
+    eprintln!("0.1° steps: {} road points, {:.1} % with a normal, mean error {mean:.2}°", road.len(), share * 100.0);
+    assert!(share > 0.95, "only {:.1} % of the road points have a normal", share * 100.0);
+    assert!(mean < 2.0, "mean road normal error {mean:.2}°");
 }
