@@ -514,10 +514,16 @@ impl Patch {
     /// Distance of `p` from the patch's plane (`norm`: the length of its normal sum).
     #[inline]
     fn plane_distance(&self, p: &[f64; 3], norm: f64) -> f64 {
-        let c = self.count as f64;
-        let d = [p[0] - self.sum_position[0] / c, p[1] - self.sum_position[1] / c, p[2] - self.sum_position[2] / c];
-        dot(d, self.sum_normal).abs() / norm
+        offset_along(self.sum_normal, &self.sum_position, self.count as f64, p) / norm
     }
+}
+
+/// `|(p − c) · axis|` for the centroid `c` of `count` points whose positions sum to
+/// `sum_position`: with a unit `axis`, the distance of `p` from the plane through the centroid.
+#[inline]
+fn offset_along(axis: [f64; 3], sum_position: &[f64; 3], count: f64, p: &[f64; 3]) -> f64 {
+    let c = [sum_position[0] / count, sum_position[1] / count, sum_position[2] / count];
+    dot([p[0] - c[0], p[1] - c[1], p[2] - c[2]], axis).abs()
 }
 
 /// A model of the cell being joined: (id, normal sum, position sum, count, member passes as
@@ -549,8 +555,7 @@ fn join_patches(patches: &[Patch], cos_group: f64, join_distance: f64) -> Vec<u3
             if dot(n, w) <= cos_group {
                 continue;
             }
-            let o = [sp[0] / count, sp[1] / count, sp[2] / count];
-            let d = dot(w, [centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]]).abs();
+            let d = offset_along(w, sp, *count, &centre);
             // Within one strip pass the geometry is exact up to the noise: another segment of the
             // same pass joins only if coplanar (a surface split by an occlusion), never a parallel
             // surface nearby (road and sidewalk either side of a curb).
