@@ -99,7 +99,9 @@ pub struct Parameters {
     /// pass joins only if coplanar; segments of different strips join by normal and plane
     /// distance) instead of by normal alone. On by default since the common-mode field: the
     /// residual σ falls 3.5 % and 1.2–1.6 points more of the surface points are used, with the
-    /// strip offset spread within ±2 % (ARCHITECTURE.md, "Surface models").
+    /// strip offset spread within ±2 % (ARCHITECTURE.md, "Surface models"). A triangle of another
+    /// pass then also gives a point its latent height only if its corners lie in one segment of
+    /// their pass (ARCHITECTURE.md, "Covering triangles lie within one segment").
     pub segment_surfaces: bool,
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
