@@ -413,7 +413,11 @@ pub fn estimate_tile_recording(
     let (latent, others, covering) = match &index {
         Some(index) => {
             let covers = params.consistent_gradient.then_some(&mut covers);
-            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), covers, &mut stats)
+            let agreement = match params.cover_agreement_thresholds {
+                f if f > 0.0 => f * threshold,
+                _ => f64::INFINITY,
+            };
+            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), covers, agreement, &mut stats)
         }
         None => {
             let (latent, others) =
@@ -1036,7 +1040,9 @@ struct CoveringTriangle {
 /// another pass of any strip that covers a point (in its model's plane) contributes its height
 /// there; the point's own pass contributes the point's own height. The latent height is the mean
 /// of these, provided at least one other pass covers the point and the other passes' facets
-/// there are not steeper than [`MAX_SLOPE`] against the model plane.
+/// there are not steeper than [`MAX_SLOPE`] against the model plane. With a finite `agreement`
+/// ([`Parameters::cover_agreement_thresholds`]) a triangle farther than that from the mean of
+/// the point and all its covering triangles is left out.
 ///
 /// Also returns, per point, the number `c` of other passes' triangles its latent height averages
 /// (0 where it has none), and with `vehicle` (absolute horizontal scan-head positions) the mean
@@ -1050,28 +1056,77 @@ fn point_latent(
     index: &CoreIndex,
     vehicle: Option<&[[f64; 2]]>,
     covers: Option<&mut Vec<[u32; 3]>>,
+    agreement: f64,
     stats: &mut TileStats,
 ) -> (Vec<f64>, Vec<[f64; 3]>, Vec<u32>) {
     let n = t.position.len();
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
     let mut acc = vec![Sample::default(); index.items.len()];
-    match covers {
-        None => index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
+    let gated = agreement.is_finite();
+    if !gated && covers.is_none() {
+        index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
             acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
-        }),
-        Some(covers) => {
-            // Appended without a branch: every candidate is written, only a taken one is kept.
-            covers.clear();
-            let mut len = 0;
-            index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
-                acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
-                if len == covers.len() {
-                    covers.resize(2 * len + 1024, [0; 3]);
+        });
+    } else {
+        // Every (point, triangle) pair taken, with its height and slope; appended without a
+        // branch: every candidate is written, only a taken one is kept.
+        let mut own_covers = Vec::new();
+        let covers = covers.unwrap_or(&mut own_covers);
+        covers.clear();
+        let mut heights: Vec<f64> = Vec::new();
+        let mut slopes: Vec<[f32; 2]> = Vec::new();
+        let mut len = 0;
+        index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
+            let h = tri.h0 + l1 * tri.dh1 + l2 * tri.dh2;
+            acc[q].add_masked(take, h, tri.hx, tri.hy, tri.vehicle);
+            if len == covers.len() {
+                let grown = len + len / 2 + 1024;
+                covers.resize(grown, [0; 3]);
+                if gated {
+                    heights.resize(grown, 0.0);
+                    slopes.resize(grown, [0.0; 2]);
                 }
-                covers[len] = [q as u32, tri.first as u32, tri.model];
-                len += take as usize;
-            });
-            covers.truncate(len);
+            }
+            covers[len] = [q as u32, tri.first as u32, tri.model];
+            if gated {
+                heights[len] = h;
+                slopes[len] = [tri.hx as f32, tri.hy as f32];
+            }
+            len += take as usize;
+        });
+        covers.truncate(len);
+        if gated {
+            // The consensus: the mean of the point and every covering triangle. A triangle far
+            // from it (a bridge over a step, a car one pass saw) is taken out again; judged
+            // against the consensus rather than the point alone, passes that are off together
+            // stay outliers of the rest instead of agreeing among themselves. Points where no
+            // triangle is taken out keep their sums bit for bit.
+            let consensus: Vec<f64> = index
+                .items
+                .iter()
+                .zip(&acc)
+                .map(|(&a, s)| (index.uvh[a as usize][2] + s.sum) / (s.count as f64 + 1.0))
+                .collect();
+            let mut kept = 0;
+            for i in 0..len {
+                let [q, first, _] = covers[i];
+                let h = heights[i];
+                if (h - consensus[q as usize]).abs() <= agreement {
+                    covers[kept] = covers[i];
+                    kept += 1;
+                    continue;
+                }
+                let s = &mut acc[q as usize];
+                let v = vehicle.map_or([0.0; 2], |v| v[first as usize]);
+                s.sum -= h;
+                s.sum2 -= h * h;
+                s.slope[0] -= slopes[i][0] as f64;
+                s.slope[1] -= slopes[i][1] as f64;
+                s.vehicle[0] -= v[0];
+                s.vehicle[1] -= v[1];
+                s.count -= 1;
+            }
+            covers.truncate(kept);
         }
     }
     let mut latent = vec![f64::NAN; n];
@@ -1424,6 +1479,71 @@ mod tests {
         // One pass's points beside the step sit under the other's bridges: 2.5 cm residuals.
         assert!(merged.points_used > split.points_used);
         assert!(rms(&merged) > 5e-3, "{}", rms(&merged));
+    }
+
+    /// A car that one of three passes saw on a road (4.5 cm high, in the road's segment and
+    /// model) must not spoil the latent height of the two passes that agree: without the
+    /// agreement gate their points under it read a third of its height and are rejected as
+    /// outliers; with it they are observations with residual zero.
+    #[test]
+    fn covering_triangles_far_from_the_consensus_are_left_out() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let up = [0.0, 0.0, 1.0];
+        let on_car = |x: f64, y: f64| (3.0..4.0).contains(&x) && (4.0..5.5).contains(&y);
+        let chunks = [
+            strip_on(tile, 0, [0.0, 0.0], 1, |_, _| 0.0, up),
+            strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.0, up),
+            strip_on(tile, 2, [0.017, 0.11], 1, |x, y| if on_car(x, y) { 0.045 } else { 0.0 }, up),
+        ];
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
+        let step = IterationStep::new(0.01, 0.012);
+        let run = |cover_agreement_thresholds: f64| {
+            let params =
+                Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds, ..Default::default() };
+            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap().stats
+        };
+        let (gated, all) = (run(2.0), run(0.0));
+        // Points of passes 0 and 1 on the car's footprint, away from its edges.
+        let under_car = chunks[..2]
+            .iter()
+            .flat_map(|c| (0..c.len()).map(move |k| (c.t0[k][0] + c.r[k][0], c.t0[k][1] + c.r[k][1])))
+            .filter(|&(x, y)| (3.1..3.9).contains(&(x as f64)) && (4.1..5.4).contains(&(y as f64)))
+            .count() as u64;
+        assert!(under_car > 20, "{under_car}");
+        assert!(
+            gated.points_used >= all.points_used + under_car,
+            "{} {} {under_car}",
+            gated.points_used,
+            all.points_used
+        );
+        let rms = |s: &TileStats| (s.residual_sum2_m2 / s.points_used as f64).sqrt();
+        assert!(rms(&gated) < rms(&all), "{} {}", rms(&gated), rms(&all));
+    }
+
+    /// Two passes 7 cm above two others (more than the gate's 6 cm): judged against the
+    /// consensus of all four, every triangle stays, so the gate changes nothing and the offset
+    /// passes remain outliers of the rest. A gate judged against the point alone would let each
+    /// pair agree with itself and split the map into two layers.
+    #[test]
+    fn passes_off_together_are_not_split_into_layers() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let up = [0.0, 0.0, 1.0];
+        let chunks = [
+            strip_on(tile, 0, [0.0, 0.0], 1, |_, _| 0.0, up),
+            strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.0, up),
+            strip_on(tile, 2, [0.017, 0.11], 1, |_, _| 0.07, up),
+            strip_on(tile, 3, [0.051, 0.33], 1, |_, _| 0.07, up),
+        ];
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 4];
+        let step = IterationStep::new(0.01, 0.03);
+        let run = |cover_agreement_thresholds: f64| {
+            let params =
+                Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds, ..Default::default() };
+            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap().stats
+        };
+        let (gated, all) = (run(2.0), run(0.0));
+        assert_eq!(gated, all);
+        assert!(gated.points_modelled > 1000 && gated.points_used < gated.points_modelled / 10, "{gated:?}");
     }
 
     /// On a plane, the exact point-sampled latent surface and a fine raster give the same
