@@ -1481,6 +1481,16 @@ mod tests {
         assert!(rms(&merged) > 5e-3, "{}", rms(&merged));
     }
 
+    /// One point-sampled 1 cm pass over `chunks` with the given outlier threshold and
+    /// [`Parameters::cover_agreement_thresholds`].
+    fn stats_with_gate(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate: f64) -> TileStats {
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); chunks.len()];
+        let step = IterationStep::new(0.01, threshold);
+        let params =
+            Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds: gate, ..Default::default() };
+        estimate_tile(tile, chunks, &corrections, &params, &step).unwrap().stats
+    }
+
     /// A car that one of three passes saw on a road (4.5 cm high, in the road's segment and
     /// model) must not spoil the latent height of the two passes that agree: without the
     /// agreement gate their points under it read a third of its height and are rejected as
@@ -1495,14 +1505,7 @@ mod tests {
             strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.0, up),
             strip_on(tile, 2, [0.017, 0.11], 1, |x, y| if on_car(x, y) { 0.045 } else { 0.0 }, up),
         ];
-        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
-        let step = IterationStep::new(0.01, 0.012);
-        let run = |cover_agreement_thresholds: f64| {
-            let params =
-                Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds, ..Default::default() };
-            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap().stats
-        };
-        let (gated, all) = (run(2.0), run(0.0));
+        let (gated, all) = (stats_with_gate(tile, &chunks, 0.012, 2.0), stats_with_gate(tile, &chunks, 0.012, 0.0));
         // Points of passes 0 and 1 on the car's footprint, away from its edges.
         let under_car = chunks[..2]
             .iter()
@@ -1534,14 +1537,7 @@ mod tests {
             strip_on(tile, 2, [0.017, 0.11], 1, |_, _| 0.07, up),
             strip_on(tile, 3, [0.051, 0.33], 1, |_, _| 0.07, up),
         ];
-        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 4];
-        let step = IterationStep::new(0.01, 0.03);
-        let run = |cover_agreement_thresholds: f64| {
-            let params =
-                Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds, ..Default::default() };
-            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap().stats
-        };
-        let (gated, all) = (run(2.0), run(0.0));
+        let (gated, all) = (stats_with_gate(tile, &chunks, 0.03, 2.0), stats_with_gate(tile, &chunks, 0.03, 0.0));
         assert_eq!(gated, all);
         assert!(gated.points_modelled > 1000 && gated.points_used < gated.points_modelled / 10, "{gated:?}");
     }
