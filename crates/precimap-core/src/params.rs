@@ -143,7 +143,7 @@ pub struct Parameters {
     /// already reject; where several passes cover a point, one pass's bridge over a step or a car
     /// it alone saw no longer spoils the mean of those that agree. Judged against the consensus,
     /// not the point alone: passes that are off together stay outliers of the rest instead of
-    /// agreeing among themselves. Off by default: at 2 the datum-free spreads improve 1–2 % and
+    /// agreeing among themselves. Off by default: at 2 the datum-free spreads improve 0.1–2.5 % and
     /// points used rise ~0.5 points, but every covering pair is held until the consensus is
     /// known, and the largest anchor change of the last iteration grows on medium seed 2
     /// (ARCHITECTURE.md, "Covering triangles lie within one segment").
