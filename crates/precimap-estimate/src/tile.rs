@@ -1101,12 +1101,8 @@ fn point_latent(
             // against the consensus rather than the point alone, passes that are off together
             // stay outliers of the rest instead of agreeing among themselves. Points where no
             // triangle is taken out keep their sums bit for bit.
-            let consensus: Vec<f64> = index
-                .items
-                .iter()
-                .zip(&acc)
-                .map(|(&a, s)| (index.uvh[a as usize][2] + s.sum) / (s.count as f64 + 1.0))
-                .collect();
+            let consensus: Vec<f64> =
+                index.items.iter().zip(&acc).map(|(&a, s)| s.mean_with(index.uvh[a as usize][2])).collect();
             let mut kept = 0;
             for i in 0..len {
                 let [q, first, _] = covers[i];
@@ -1116,15 +1112,7 @@ fn point_latent(
                     kept += 1;
                     continue;
                 }
-                let s = &mut acc[q as usize];
-                let v = vehicle.map_or([0.0; 2], |v| v[first as usize]);
-                s.sum -= h;
-                s.sum2 -= h * h;
-                s.slope[0] -= slopes[i][0] as f64;
-                s.slope[1] -= slopes[i][1] as f64;
-                s.vehicle[0] -= v[0];
-                s.vehicle[1] -= v[1];
-                s.count -= 1;
+                acc[q as usize].remove(h, slopes[i], vehicle.map_or([0.0; 2], |v| v[first as usize]));
             }
             covers.truncate(kept);
         }
@@ -1141,7 +1129,7 @@ fn point_latent(
         let h = index.uvh[a as usize][2];
         let c = s.count as f64;
         let (gx, gy) = (s.slope[0] / c, s.slope[1] / c);
-        let mean = (h + s.sum) / (c + 1.0);
+        let mean = s.mean_with(h);
         stats.pixels_shared += 1;
         let var = ((h * h + s.sum2) / (c + 1.0) - mean * mean).max(0.0);
         stats.pixel_std_sum_m += var.sqrt();
@@ -1286,6 +1274,24 @@ impl Sample {
         self.slope[0] += m * hx;
         self.slope[1] += m * hy;
         self.count += take as u32;
+    }
+
+    /// Takes out one triangle [`Self::add_masked`] added (its slope as stored, in f32).
+    #[inline]
+    fn remove(&mut self, h: f64, slope: [f32; 2], vehicle: [f64; 2]) {
+        self.sum -= h;
+        self.sum2 -= h * h;
+        self.slope[0] -= slope[0] as f64;
+        self.slope[1] -= slope[1] as f64;
+        self.vehicle[0] -= vehicle[0];
+        self.vehicle[1] -= vehicle[1];
+        self.count -= 1;
+    }
+
+    /// The mean of the point's own height `own` and the other passes' heights.
+    #[inline]
+    fn mean_with(&self, own: f64) -> f64 {
+        (own + self.sum) / (self.count as f64 + 1.0)
     }
 }
 
@@ -1461,16 +1467,13 @@ mod tests {
             }
             c
         };
-        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 2];
-        let step = IterationStep::new(0.01, 0.05);
-        let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
         let run = |split: bool| {
             let up = [0.0, 0.0, 1.0];
             let chunks = [
                 with_segments(strip_on(tile, 0, [0.0, 0.0], 1, height, up), split),
                 with_segments(strip_on(tile, 1, [0.033, 0.21], 1, height, up), split),
             ];
-            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap().stats
+            fine_pass_stats(tile, &chunks, 0.05, 0.0)
         };
         let rms = |s: &TileStats| (s.residual_sum2_m2 / s.points_used as f64).sqrt();
         let (split, merged) = (run(true), run(false));
@@ -1483,7 +1486,7 @@ mod tests {
 
     /// One point-sampled 1 cm pass over `chunks` with the given outlier threshold and
     /// [`Parameters::cover_agreement_thresholds`].
-    fn stats_with_gate(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate: f64) -> TileStats {
+    fn fine_pass_stats(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate: f64) -> TileStats {
         let corrections = vec![TrajectoryCorrections::zeros(0, 8); chunks.len()];
         let step = IterationStep::new(0.01, threshold);
         let params =
@@ -1505,7 +1508,7 @@ mod tests {
             strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.0, up),
             strip_on(tile, 2, [0.017, 0.11], 1, |x, y| if on_car(x, y) { 0.045 } else { 0.0 }, up),
         ];
-        let (gated, all) = (stats_with_gate(tile, &chunks, 0.012, 2.0), stats_with_gate(tile, &chunks, 0.012, 0.0));
+        let (gated, all) = (fine_pass_stats(tile, &chunks, 0.012, 2.0), fine_pass_stats(tile, &chunks, 0.012, 0.0));
         // Points of passes 0 and 1 on the car's footprint, away from its edges.
         let under_car = chunks[..2]
             .iter()
@@ -1537,7 +1540,7 @@ mod tests {
             strip_on(tile, 2, [0.017, 0.11], 1, |_, _| 0.07, up),
             strip_on(tile, 3, [0.051, 0.33], 1, |_, _| 0.07, up),
         ];
-        let (gated, all) = (stats_with_gate(tile, &chunks, 0.03, 2.0), stats_with_gate(tile, &chunks, 0.03, 0.0));
+        let (gated, all) = (fine_pass_stats(tile, &chunks, 0.03, 2.0), fine_pass_stats(tile, &chunks, 0.03, 0.0));
         assert_eq!(gated, all);
         assert!(gated.points_modelled > 1000 && gated.points_used < gated.points_modelled / 10, "{gated:?}");
     }
