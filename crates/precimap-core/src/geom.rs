@@ -95,6 +95,13 @@ pub fn floor(x: f64) -> f64 {
     }
 }
 
+/// `x.ceil()`, inlined like [`floor`] (same range; the sign of a zero result may differ, which
+/// the integer casts callers apply do not see).
+#[inline]
+pub fn ceil(x: f64) -> f64 {
+    -floor(-x)
+}
+
 /// Wraps an angle in degrees into (−180, 180].
 pub fn wrap_deg(a: f64) -> f64 {
     let mut w = a % 360.0;
@@ -118,6 +125,18 @@ mod tests {
         for x in [f64::INFINITY, f64::NEG_INFINITY, f64::NAN, 1e300, -1e300] {
             assert_eq!(floor(x) as i32, x.floor() as i32, "{x}");
             assert_eq!(floor(x) as u32, x.floor() as u32, "{x}");
+        }
+    }
+
+    #[test]
+    fn inlined_ceil_matches_ceil() {
+        for x in [-2.5, -2.0, -1e-12, -0.0, 0.0, 1e-12, 0.5, 1.0, 3.000_001, 1e15 + 0.5, -1e15 - 0.5, 4.5e15, -7.0] {
+            assert_eq!(ceil(x) as i64, x.ceil() as i64, "{x}");
+            assert!(ceil(x) == x.ceil(), "{x}");
+        }
+        for x in [f64::INFINITY, f64::NEG_INFINITY, f64::NAN, 1e300, -1e300] {
+            assert_eq!(ceil(x) as i32, x.ceil() as i32, "{x}");
+            assert_eq!(ceil(x) as u32, x.ceil() as u32, "{x}");
         }
     }
 

@@ -25,6 +25,7 @@
 //! factorisation or a coarser grid.
 
 use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::geom::floor;
 use precimap_core::Parameters;
 use precimap_solve::sparse::{SparseError, SymmetricSparse};
 use serde::{Deserialize, Serialize};
@@ -38,7 +39,7 @@ pub type FieldNode = (i64, i64);
 #[inline]
 pub fn bilinear(x: f64, y: f64, spacing: f64) -> [(FieldNode, f64); 4] {
     let (fx, fy) = (x / spacing, y / spacing);
-    let (ix, iy) = (fx.floor(), fy.floor());
+    let (ix, iy) = (floor(fx), floor(fy));
     let (tx, ty) = (fx - ix, fy - iy);
     let (ix, iy) = (ix as i64, iy as i64);
     [

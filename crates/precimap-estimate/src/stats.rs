@@ -1,5 +1,6 @@
 //! Tile statistics and residual histograms (QC), mergeable across tiles.
 
+use precimap_core::geom::floor;
 use precimap_core::TileKey;
 use serde::{Deserialize, Serialize};
 
@@ -22,7 +23,7 @@ impl Default for ResidualHistogram {
 impl ResidualHistogram {
     #[inline]
     pub fn add(&mut self, e: f64) {
-        let k = ((e - self.min_m) / self.bin_m).floor();
+        let k = floor((e - self.min_m) / self.bin_m);
         if k < 0.0 {
             self.below += 1;
         } else if k >= self.counts.len() as f64 {

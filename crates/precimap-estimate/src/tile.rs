@@ -27,7 +27,7 @@ use crate::field::{FieldAccumulator, FieldEquations};
 use crate::hash::FxHashMap;
 use crate::stats::{ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_core::geom::rotate_small;
+use precimap_core::geom::{ceil, floor, rotate_small};
 use precimap_core::{IterationStep, Parameters, TileKey};
 use std::collections::BTreeMap;
 
@@ -617,7 +617,7 @@ struct Raster {
 fn latent_height(r: &Raster, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> Option<f64> {
     let fu = (u - r.u0) / grid - 0.5;
     let fv = (v - r.v0) / grid - 0.5;
-    let (i0, j0) = (fu.floor(), fv.floor());
+    let (i0, j0) = (floor(fu), floor(fv));
     let (tu, tv) = (fu - i0, fv - j0);
     let (i0, j0) = (i0 as i64, j0 as i64);
     if i0 < 0 || j0 < 0 || i0 + 1 >= r.nu as i64 || j0 + 1 >= r.nv as i64 {
@@ -827,7 +827,7 @@ fn raster_latent(
 fn raster_vehicle_mean(r: &Raster, pixels: &[Pixel], vehicle: &[[f64; 2]], u: f64, v: f64, grid: f64) -> [f64; 3] {
     let fu = (u - r.u0) / grid - 0.5;
     let fv = (v - r.v0) / grid - 0.5;
-    let (i0, j0) = (fu.floor(), fv.floor());
+    let (i0, j0) = (floor(fu), floor(fv));
     let (tu, tv) = (fu - i0, fv - j0);
     let (i0, j0) = (i0 as usize, j0 as usize);
     let mut out = [0.0, 0.0, 1.0];
@@ -940,7 +940,13 @@ impl CoreIndex {
     /// (barycentric coordinates `l1`, `l2`); `take` is whether the item lies inside the triangle
     /// and belongs to another pass than the triangle. Candidates that are not taken are visited
     /// too: callers add `take × value` without a branch (whether a candidate is taken is close to
-    /// a coin toss, and mispredictions cost more than the sums).
+    /// a coin toss, and mispredictions cost more than the sums; visiting only the taken ones,
+    /// gathered without a branch, measured 4–5 % slower).
+    ///
+    /// The candidates are the items in the buckets under the triangle's bounding box: on small
+    /// s1, 14.2 per triangle against 10.1 for the triangle's exact extent in each bucket row,
+    /// yet 1.17× faster in all, as finding those extents took unpredictable branches (and
+    /// 1.13× faster than finding them without a branch). `inside` alone decides.
     #[inline]
     fn for_each_cover(
         &self,
@@ -978,33 +984,12 @@ impl CoreIndex {
             let j0 = floor_i64(by[0].min(by[1]).min(by[2])).max(0);
             let j1 = floor_i64(by[0].max(by[1]).max(by[2])).min(g.nv as i64 - 1);
             const SLACK: f64 = -1e-9;
+            let i0 = floor_i64(bx[0].min(bx[1]).min(bx[2])).max(0);
+            let i1 = floor_i64(bx[0].max(bx[1]).max(bx[2])).min(g.nu as i64 - 1);
+            if i0 > i1 {
+                return;
+            }
             for j in j0..=j1 {
-                // The triangle's extent in u within the bucket row [j, j + 1): corners inside the
-                // row and the edges' crossings of its two boundaries.
-                let (lo_v, hi_v) = (j as f64, j as f64 + 1.0);
-                let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-                for k in 0..3 {
-                    let (xa, ya, xb, yb) = (bx[k], by[k], bx[(k + 1) % 3], by[(k + 1) % 3]);
-                    if (lo_v..=hi_v).contains(&ya) {
-                        lo = lo.min(xa);
-                        hi = hi.max(xa);
-                    }
-                    for line in [lo_v, hi_v] {
-                        if (ya - line) * (yb - line) < 0.0 {
-                            let x = xa + (xb - xa) * (line - ya) / (yb - ya);
-                            lo = lo.min(x);
-                            hi = hi.max(x);
-                        }
-                    }
-                }
-                if lo > hi {
-                    continue;
-                }
-                let i0 = floor_i64(lo).max(0);
-                let i1 = floor_i64(hi).min(g.nu as i64 - 1);
-                if i0 > i1 {
-                    continue;
-                }
                 let row = g.offset + (j as usize) * g.nu as usize;
                 let (s, e) = (self.start[row + i0 as usize] as usize, self.start[row + i1 as usize + 1] as usize);
                 for q in s..e {
@@ -1261,8 +1246,8 @@ struct Sample {
 
 impl Sample {
     /// Adds one triangle's height, slope and scan head if `take`, else exact zeros: without a
-    /// branch, as whether a candidate point lies inside a triangle (2.4 are tested per point
-    /// inside) is close to a coin toss, and mispredictions cost more than the sums.
+    /// branch (see [`CoreIndex::for_each_cover`]; on small s1 a seventh of the candidates are
+    /// taken).
     #[inline]
     fn add_masked(&mut self, take: bool, h: f64, hx: f64, hy: f64, vehicle: [f64; 2]) {
         let m = take as u32 as f64;
@@ -1311,8 +1296,8 @@ fn scan_triangle(x: [f64; 3], y: [f64; 3], h: [f64; 3], nu: i64, nv: i64, mut vi
     let (dx2, dy2, dh2) = (x[2] - x[0], y[2] - y[0], h[2] - h[0]);
     let hx = (dh1 * dy2 - dh2 * dy1) / area;
     let hy = (dh2 * dx1 - dh1 * dx2) / area;
-    let j0 = y[0].min(y[1]).min(y[2]).ceil().max(0.0) as i64;
-    let j1 = (y[0].max(y[1]).max(y[2]).floor() as i64).min(nv - 1);
+    let j0 = ceil(y[0].min(y[1]).min(y[2])).max(0.0) as i64;
+    let j1 = (floor(y[0].max(y[1]).max(y[2])) as i64).min(nv - 1);
     // Edge k from P to Q: sign·((qx−px)(Y−py) − (qy−py)(X−px)) ≥ 0, i.e. a·X + b(Y) ≥ 0.
     let edges = [(0usize, 1usize), (1, 2), (2, 0)];
     const SLACK: f64 = 1e-9;
@@ -1334,7 +1319,7 @@ fn scan_triangle(x: [f64; 3], y: [f64; 3], h: [f64; 3], nu: i64, nv: i64, mut vi
         if empty {
             continue;
         }
-        let (i0, i1) = (lo.ceil() as i64, hi.floor() as i64);
+        let (i0, i1) = (ceil(lo) as i64, floor(hi) as i64);
         if i0 > i1 {
             continue;
         }
