@@ -427,7 +427,7 @@ pub fn estimate_tile_recording(
     };
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
     //     the other passes' triangles that cover it.
-    let pulls = match &index {
+    let mut pulls = match &index {
         Some(index) if params.consistent_gradient => {
             Some(corner_pulls(&triangles, index, &covers, &latent, &covering, threshold, weight))
         }
@@ -445,7 +445,7 @@ pub fn estimate_tile_recording(
         let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
         for k in 0..chunk.len() {
             let a = base + k;
-            if let Some(pulls) = &pulls {
+            if let Some(pulls) = &mut pulls {
                 let interval = (chunk.anchor[k] - first) as usize;
                 pulls.add_to(a, &models, &model_of, &measurement, &mut intervals[interval], chunk.lambda[k] as f64);
             }
@@ -1139,15 +1139,19 @@ fn point_latent(
 struct CornerPulls {
     /// Per point: Σ weight and Σ weight × residual, for the point's own model.
     sums: Vec<[f64; 2]>,
-    /// The same where a triangle lies on another model than its corner's: (corner, model, sums).
+    /// The same where a triangle lies on another model than its corner's: (corner, model, sums),
+    /// sorted.
     other_models: Vec<(usize, u32, [f64; 2])>,
+    /// First entry of `other_models` not yet passed: points are added in increasing order.
+    next_other: usize,
 }
 
 impl CornerPulls {
-    /// Adds the pulls on point `a` (a triangle corner) to its interval's moments.
+    /// Adds the pulls on point `a` (a triangle corner) to its interval's moments; `a` must
+    /// increase from call to call.
     #[inline]
     fn add_to(
-        &self,
+        &mut self,
         a: usize,
         models: &[SurfaceModel],
         model_of: &[u32],
@@ -1165,11 +1169,17 @@ impl CornerPulls {
             // Corners always have a model (triangles are formed from modelled points only).
             add(model_of[a], sums, moments);
         }
-        let from = self.other_models.partition_point(|o| o.0 < a);
-        for &(_, model, sums) in self.other_models[from..].iter().take_while(|o| o.0 == a) {
+        // A cursor, not a binary search per point: the calls come in point order.
+        let others = &self.other_models;
+        while self.next_other < others.len() && others[self.next_other].0 < a {
+            self.next_other += 1;
+        }
+        while self.next_other < others.len() && others[self.next_other].0 == a {
+            let (_, model, sums) = others[self.next_other];
             if sums[0] > 0.0 {
                 add(model, sums, moments);
             }
+            self.next_other += 1;
         }
     }
 }
@@ -1212,7 +1222,7 @@ fn corner_pulls(
     }
     let mut other_models: Vec<(usize, u32, [f64; 2])> = other.into_iter().map(|((a, m), s)| (a, m, s)).collect();
     other_models.sort_by_key(|o| (o.0, o.1));
-    CornerPulls { sums, other_models }
+    CornerPulls { sums, other_models, next_other: 0 }
 }
 
 /// Mean number of core points per bucket of [`point_latent`]'s grids.
