@@ -1670,6 +1670,41 @@ mod tests {
         assert!(count > 1500 && count < 2500);
     }
 
+    /// The pulls on triangles lying on another model than their corner's reach exactly their
+    /// corners, each once, when the points are added in order (the cursor over the sorted
+    /// entries), and entries without weight add nothing.
+    #[test]
+    fn corner_pulls_of_other_models_reach_their_corners() {
+        let mut models = vec![SurfaceModel::new(); 3];
+        for (m, w) in models.iter_mut().zip([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.6, 0.8]]) {
+            m.w = w;
+        }
+        let n = 7;
+        let model_of = vec![0u32; n];
+        let measurement: Vec<[f64; 3]> = (0..n).map(|i| [i as f64, 1.0, -2.0]).collect();
+        let mut sums = vec![[0.0; 2]; n];
+        sums[2] = [0.5, 0.01];
+        let other_models =
+            vec![(1, 1, [2.0, 0.5]), (1, 2, [1.0, -0.25]), (3, 2, [0.0, 0.0]), (4, 1, [3.0, 1.5]), (6, 2, [0.2, 0.1])];
+        let mut pulls = CornerPulls { sums: sums.clone(), other_models: other_models.clone(), next_other: 0 };
+        let mut reached = 0;
+        for a in 0..n {
+            let mut got = IntervalMoments::default();
+            pulls.add_to(a, &models, &model_of, &measurement, &mut got, 0.25);
+            let mut want = IntervalMoments::default();
+            let entries = std::iter::once((model_of[a], sums[a]))
+                .chain(other_models.iter().filter(|o| o.0 == a).map(|o| (o.1, o.2)));
+            for (model, [w_sum, we_sum]) in entries.filter(|e| e.1[0] > 0.0) {
+                let w = models[model as usize].w;
+                let rw = cross(measurement[a], w);
+                want.add(&[w[0], w[1], w[2], rw[0], rw[1], rw[2]], -we_sum / w_sum, w_sum, 0.25);
+                reached += 1;
+            }
+            assert_eq!(format!("{got:?}"), format!("{want:?}"), "point {a}");
+        }
+        assert_eq!(reached, 5);
+    }
+
     #[test]
     fn floor_i64_matches_floor() {
         for x in [-2.5, -2.0, -1e-12, -0.0, 0.0, 1e-12, 0.5, 1.0, 3.999_999, 1e15 + 0.5, -1e15 - 0.5] {
