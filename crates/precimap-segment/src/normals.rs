@@ -38,6 +38,10 @@ const MAX_STRIDE: i64 = 16;
 const HYPOTHESES: u32 = 16;
 /// Largest neighbourhood (3×3 ring plus 4 axial pixels per step out to half-width 8).
 const MAX_NEIGHBOURS: usize = 8 + 4 * 7;
+/// Neighbours scored together (one SSE register of f32).
+const LANES: usize = 4;
+// The lane groups must fit the candidate arrays, and the inlier masks a u64.
+const _: () = assert!(MAX_NEIGHBOURS.is_multiple_of(LANES) && MAX_NEIGHBOURS < 64);
 /// A hypothesis plane through the centre and neighbours a, b needs sin∠(a, b) ≥ 0.25.
 const MIN_SIN2: f32 = 0.25 * 0.25;
 /// Inverse-iteration steps of the final least-squares fit (each shrinks the angle to the
@@ -87,29 +91,59 @@ impl Candidates {
     /// Bit i set: neighbour i lies within `tol` of the plane through the centre with
     /// (unnormalised) normal `n`; and the number of inliers, centre included (counted alongside:
     /// cheaper than a population count without the POPCNT instruction of the baseline target).
+    /// The same test as [`Self::scored`], neighbour by neighbour: run for a hypothesis's winner
+    /// only, not for every hypothesis.
     #[inline]
     fn inliers_counted(&self, n: [f32; 3], tol: f32) -> (u64, u32) {
-        let (mask, count, _) = self.inliers_scored(n, tol);
+        let limit = tol * tol * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+        let (mut mask, mut count) = (0u64, 1u32);
+        for i in 0..self.m {
+            let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
+            let inlier = d * d <= limit;
+            mask |= (inlier as u64) << i;
+            count += inlier as u32;
+        }
         (mask, count)
     }
 
-    /// [`Self::inliers_counted`] and the plane's MSAC cost `Σ min(d², tol²)` over the neighbours
-    /// (in units of |n|², which one hypothesis shares: comparable between hypotheses only after
-    /// the division at the end).
+    /// The number of inliers of [`Self::inliers_counted`] and the plane's MSAC cost
+    /// `Σ min(d², tol²)` over the neighbours (in units of |n|², which one hypothesis shares:
+    /// comparable between hypotheses only after the division at the end).
+    ///
+    /// In groups of [`LANES`] neighbours with a count and a partial cost per lane, which the
+    /// compiler keeps in vector registers: the inlier mask's variable shifts, one sum in
+    /// candidate order (a chain of dependent adds), and `f32::min` (which must return the number
+    /// when one side is NaN: a compare, a select and a NaN test) kept the loop scalar. Lanes from
+    /// `m` to the group's end read the zeros [`Self::close`] wrote: they cost nothing and count as
+    /// inliers, which is taken off again.
     #[inline]
-    fn inliers_scored(&self, n: [f32; 3], tol: f32) -> (u64, u32, f32) {
+    fn scored(&self, n: [f32; 3], tol: f32) -> (u32, f32) {
         let norm2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
         let limit = tol * tol * norm2;
-        let (mut mask, mut count, mut cost) = (0u64, 1u32, 0.0f32);
-        for i in 0..self.m {
-            let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
-            let d2 = d * d;
-            let inlier = d2 <= limit;
-            mask |= (inlier as u64) << i;
-            count += inlier as u32;
-            cost += d2.min(limit);
+        let mut count = [0u32; LANES];
+        let mut cost = [0.0f32; LANES];
+        for group in 0..self.m.div_ceil(LANES) {
+            for lane in 0..LANES {
+                let i = group * LANES + lane;
+                let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
+                let d2 = d * d;
+                count[lane] += (d2 <= limit) as u32;
+                // Both sides are finite: a plain select is the minimum.
+                cost[lane] += if d2 < limit { d2 } else { limit };
+            }
         }
-        (mask, count, cost / norm2)
+        let padding = (self.m.next_multiple_of(LANES) - self.m) as u32;
+        let inliers = 1 + count.iter().sum::<u32>() - padding;
+        let total = (cost[0] + cost[1]) + (cost[2] + cost[3]);
+        (inliers, total / norm2)
+    }
+
+    /// Zeroes the lanes from `m` to the end of its group (see [`Self::scored`]).
+    #[inline]
+    fn close(&mut self) {
+        for i in self.m..self.m.next_multiple_of(LANES) {
+            (self.x[i], self.y[i], self.z[i]) = (0.0, 0.0, 0.0);
+        }
     }
 
     /// Scatter sums of the centre and the neighbours in `mask`.
@@ -253,6 +287,7 @@ pub fn estimate_normals(
             out.push(None);
             continue;
         }
+        cand.close();
         let normal = match params.method {
             NormalMethod::LeastSquares => plane_fit((0..cand.m).map(|i| cand.point(i))),
             NormalMethod::Ransac => ransac(&cand, tol as f32, k as u64, params.min_inliers, &budget, &pairs),
@@ -355,8 +390,8 @@ fn ransac(
     };
     let all = m as u32 + 1;
     let good = (4 * all).div_ceil(5);
-    // (normal, inlier mask, inliers, MSAC cost) of the best hypothesis so far.
-    let mut best: Option<([f32; 3], u64, u32, f32)> = None;
+    // (normal, inliers, MSAC cost) of the best hypothesis so far.
+    let mut best: Option<([f32; 3], u32, f32)> = None;
     // The most inliers any hypothesis had: what the adaptive stopping rule estimates from.
     let mut most = 0;
     let mut enough = HYPOTHESES;
@@ -384,14 +419,14 @@ fn ransac(
         if n[0] * n[0] + n[1] * n[1] + n[2] * n[2] < MIN_SIN2 * cand.len2[i] * cand.len2[j] {
             continue;
         }
-        let (mask, inliers, cost) = cand.inliers_scored(n, tol);
+        let (inliers, cost) = cand.scored(n, tol);
         if inliers > most {
             most = inliers;
             enough = budget.hypotheses(m, inliers);
         }
         // MSAC: of the planes with enough inliers to give a normal, the one the neighbours lie
         // closest to (below that, the most inliers, as a fit that fails anyway).
-        let better = best.is_none_or(|(_, _, best_inliers, best_cost)| {
+        let better = best.is_none_or(|(_, best_inliers, best_cost)| {
             let (eligible, best_eligible) = (inliers >= min_inliers, best_inliers >= min_inliers);
             if eligible != best_eligible {
                 eligible
@@ -402,17 +437,18 @@ fn ransac(
             }
         });
         if better {
-            best = Some((n, mask, inliers, cost));
+            best = Some((n, inliers, cost));
             // A plane through the centre that most neighbours lie on is the centre's plane.
             if inliers >= good {
                 break;
             }
         }
     }
-    let (n, mask, inliers, _) = best?;
+    let (n, inliers, _) = best?;
     if inliers < min_inliers {
         return None;
     }
+    let (mask, _) = cand.inliers_counted(n, tol);
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
     let start = [n[0] / len, n[1] / len, n[2] / len].map(f64::from);
     let fitted = cand.scatter(mask).plane_from(start)?;
@@ -509,15 +545,17 @@ impl Scatter {
     /// the adjugate of the scatter has the scatter's eigenvectors with eigenvalues
     /// (λ1λ2, λ0λ2, λ0λ1), so each product with it shrinks the angle to the smallest-eigenvalue
     /// direction by λ0/λ1. The eigenvalues for the planarity test follow from the Rayleigh
-    /// quotient (λ0), the trace and the sum of the principal 2×2 minors. No trigonometry.
+    /// quotient (λ0), the trace and the sum of the principal 2×2 minors. No trigonometry, and
+    /// no scaling of the scatter first: the direction and the eigenvalue ratios the test uses do
+    /// not depend on scale, and a division at the head of this chain of dependent steps (this
+    /// is latency, not throughput) cost a sixth of the fit.
     fn plane_from(&self, start: [f64; 3]) -> Option<[f64; 3]> {
         let c = self.covariance();
         let trace = c[0] + c[3] + c[5];
         if trace.is_nan() || trace <= 1e-300 {
             return None;
         }
-        let inv = 1.0 / trace;
-        let [a00, a01, a02, a11, a12, a22] = c.map(|v| v * inv);
+        let [a00, a01, a02, a11, a12, a22] = c;
         let adj = [
             a11 * a22 - a12 * a12,
             a02 * a12 - a01 * a22,
@@ -534,19 +572,21 @@ impl Scatter {
                 adj[2] * v[0] + adj[4] * v[1] + adj[5] * v[2],
             ];
         }
+        // Each step scales by up to trace²: degenerate is small against that.
+        let scale = trace * trace;
         let len = norm(v);
-        if !(len.is_finite() && len > 1e-200) {
+        if !(len.is_finite() && len > 1e-200 * scale * scale * scale) {
             return None;
         }
         let inv = 1.0 / len;
         let n = v.map(|x| x * inv);
-        // Eigenvalues of the trace-normalised scatter: λ0 + λ1 + λ2 = 1.
+        // Eigenvalues of the scatter: λ0 + λ1 + λ2 = trace.
         let l0 = a00 * n[0] * n[0]
             + a11 * n[1] * n[1]
             + a22 * n[2] * n[2]
             + 2.0 * (a01 * n[0] * n[1] + a02 * n[0] * n[2] + a12 * n[1] * n[2]);
         let minors = adj[0] + adj[3] + adj[5];
-        let rest = 1.0 - l0;
+        let rest = trace - l0;
         let product = minors - l0 * rest;
         let half_gap = (0.25 * rest * rest - product).max(0.0).sqrt();
         let (l1, l2) = (0.5 * rest - half_gap, 0.5 * rest + half_gap);
@@ -673,6 +713,7 @@ mod tests {
             cand.slot[i] = i as u8;
         }
         cand.m = points.len();
+        cand.close();
         let tol = 0.02;
         // The tie: both planes hold the centre and five neighbours.
         assert_eq!(cand.inliers_counted([0.0, 0.0, 1.0], tol).1, 6);
@@ -690,6 +731,74 @@ mod tests {
     /// The inverse iteration of the RANSAC refinement lands on the closed-form least-squares
     /// normal from a start 20° off, on noisy planar scatters, and rejects lines and blobs as the
     /// closed form does.
+    #[test]
+    fn lane_groups_score_as_the_neighbour_by_neighbour_test() {
+        let mut seed = 11u64;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        for m in 1..=MAX_NEIGHBOURS {
+            let mut cand = Candidates::new();
+            // Junk everywhere first: what the gathering leaves behind the last kept neighbour.
+            for i in 0..MAX_NEIGHBOURS {
+                (cand.x[i], cand.y[i], cand.z[i]) = (3.0 * rand(), 3.0 * rand(), 3.0 * rand());
+            }
+            for i in 0..m {
+                cand.z[i] = 0.02 * rand();
+            }
+            cand.m = m;
+            cand.close();
+            for trial in 0..20 {
+                let n = [0.05 * rand(), 0.05 * rand(), 1.0 + rand()];
+                let tol = 0.002 * (1 + trial % 5) as f32;
+                let (inliers, cost) = cand.scored(n, tol);
+                let (mask, count) = cand.inliers_counted(n, tol);
+                assert_eq!(inliers, count, "m {m}, trial {trial}");
+                assert_eq!(count, 1 + mask.count_ones());
+                let norm2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+                let limit = tol * tol * norm2;
+                let expected: f64 = (0..m)
+                    .map(|i| {
+                        let d = n[0] * cand.x[i] + n[1] * cand.y[i] + n[2] * cand.z[i];
+                        f64::from((d * d).min(limit))
+                    })
+                    .sum::<f64>()
+                    / f64::from(norm2);
+                assert!(
+                    (f64::from(cost) - expected).abs() <= 1e-5 * expected + 1e-12,
+                    "m {m}: {cost} against {expected}"
+                );
+            }
+        }
+    }
+
+    /// The fit works on the scatter as it is, unscaled: a window of millimetres and one of
+    /// metres give the same plane and the same planarity verdict.
+    #[test]
+    fn plane_fit_does_not_depend_on_the_window_scale() {
+        let pts: Vec<[f32; 3]> = (0..15)
+            .map(|i| {
+                let (a, b) = ((i % 5) as f32 - 2.0, (i / 5) as f32 - 1.0);
+                [a, b, 0.1 * a - 0.2 * b + 0.01 * ((i * 7 % 5) as f32 - 2.0)]
+            })
+            .collect();
+        let line: Vec<[f32; 3]> = (1..8).map(|i| [i as f32, 2.0 * i as f32, 0.001 * (i % 2) as f32]).collect();
+        let fit = |pts: &[[f32; 3]], scale: f32| {
+            let mut sums = Scatter::new();
+            for q in pts {
+                sums.add(q.map(|v| v * scale));
+            }
+            sums.plane_from([0.0, 0.0, 1.0])
+        };
+        let reference = fit(&pts, 1.0).expect("a plane");
+        for scale in [1e-3, 1e-2, 10.0, 1e3] {
+            let n = fit(&pts, scale).expect("a plane at every scale");
+            assert!(dot(n, reference) > 1.0 - 1e-9, "scale {scale}: {n:?} against {reference:?}");
+            assert!(fit(&line, scale).is_none(), "scale {scale}: a line is no plane");
+        }
+    }
+
     #[test]
     fn inverse_iteration_matches_the_closed_form() {
         let mut seed = 7u64;
