@@ -79,11 +79,26 @@ pub struct FieldAccumulator {
     rhs: Vec<[f64; 3]>,
     observations: u64,
     row: Vec<(usize, f64)>,
+    /// Per position of a row (the point's scan head, the other passes' mean), the cell it fell
+    /// in last and the indices of that cell's four nodes ([`UNKNOWN`] until looked up):
+    /// consecutive points mostly share their cells, and the look-up is a search of `nodes`.
+    cells: [(FieldNode, [usize; 4]); 2],
 }
+
+/// A node index not looked up yet.
+const UNKNOWN: usize = usize::MAX;
 
 impl FieldAccumulator {
     pub fn new(spacing: f64) -> Self {
-        Self { spacing, nodes: Vec::new(), h: Vec::new(), rhs: Vec::new(), observations: 0, row: Vec::new() }
+        Self {
+            spacing,
+            nodes: Vec::new(),
+            h: Vec::new(),
+            rhs: Vec::new(),
+            observations: 0,
+            row: Vec::new(),
+            cells: [((i64::MIN, i64::MIN), [UNKNOWN; 4]); 2],
+        }
     }
 
     fn index(&mut self, node: FieldNode) -> usize {
@@ -108,12 +123,22 @@ impl FieldAccumulator {
     pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
         let mut row = std::mem::take(&mut self.row);
         row.clear();
-        for (sign, at) in [(k, vehicle), (-k, others)] {
-            for (node, phi) in bilinear(at[0], at[1], self.spacing) {
+        for (position, (sign, at)) in [(k, vehicle), (-k, others)].into_iter().enumerate() {
+            let weights = bilinear(at[0], at[1], self.spacing);
+            let cell = weights[0].0;
+            if self.cells[position].0 != cell {
+                self.cells[position] = (cell, [UNKNOWN; 4]);
+            }
+            for (corner, (node, phi)) in weights.into_iter().enumerate() {
+                // A node is created only where a row reaches it, as before the cache.
                 if phi == 0.0 {
                     continue;
                 }
-                let i = self.index(node);
+                let mut i = self.cells[position].1[corner];
+                if i == UNKNOWN {
+                    i = self.index(node);
+                    self.cells[position].1[corner] = i;
+                }
                 accumulate(&mut row, i, sign * phi);
             }
         }
@@ -516,6 +541,68 @@ mod tests {
         }
         // A constant field does not change the row's value: the coefficients sum to zero.
         assert!(row.values().sum::<f64>().abs() < 1e-12);
+    }
+
+    /// The cell cache gives the equations, node order and all, bit for bit, that looking every
+    /// node up gives: rows that leave a cell and come back, that share nodes between their two
+    /// positions, and that fall on a node line (a zero weight creates no node).
+    #[test]
+    fn cached_node_look_ups_give_the_uncached_equations() {
+        fn add_uncached(
+            acc: &mut FieldAccumulator,
+            v: [f64; 2],
+            o: [f64; 2],
+            k: f64,
+            w: [f64; 3],
+            e: f64,
+            weight: f64,
+        ) {
+            let mut row = Vec::new();
+            for (sign, at) in [(k, v), (-k, o)] {
+                for (node, phi) in bilinear(at[0], at[1], acc.spacing) {
+                    if phi != 0.0 {
+                        let i = acc.index(node);
+                        accumulate(&mut row, i, sign * phi);
+                    }
+                }
+            }
+            let n = acc.nodes.len();
+            for &(a, ra) in &row {
+                for c in 0..3 {
+                    acc.rhs[a][c] -= weight * ra * e * w[c];
+                }
+                for &(b, rb) in &row {
+                    if b >= a {
+                        let s = weight * ra * rb;
+                        let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
+                        let m = &mut acc.h[a * n + b];
+                        for (slot, v) in [0, 1, 2, 4, 5, 8].into_iter().zip(ww) {
+                            m[slot] += s * v;
+                        }
+                    }
+                }
+            }
+            acc.observations += 1;
+        }
+        let mut seed = 3u64;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut cached, mut uncached) = (FieldAccumulator::new(10.0), FieldAccumulator::new(10.0));
+        for i in 0..400 {
+            // Back and forth over three cells; every 7th point on a node line.
+            let x = 500_000.0 + 30.0 * (i as f64 * 0.05).sin().abs() + rand();
+            let y = if i % 7 == 0 { 5_400_010.0 } else { 5_400_005.0 + 8.0 * rand() };
+            let o = [x + 12.0 * (rand() - 0.5), y + 3.0 * rand()];
+            let w = [0.1 * rand(), 0.1 * rand(), 1.0];
+            let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
+            cached.add([x, y], o, k, w, e, 5.0);
+            add_uncached(&mut uncached, [x, y], o, k, w, e, 5.0);
+        }
+        assert!(cached.nodes.len() >= 9, "{} nodes", cached.nodes.len());
+        assert_eq!(cached.nodes, uncached.nodes);
+        assert_eq!(cached.finish(), uncached.finish());
     }
 
     #[test]

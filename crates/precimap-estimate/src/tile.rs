@@ -410,30 +410,28 @@ pub fn estimate_tile_recording(
     // 2. The latent height under every point of the tile's core (NaN: not observable).
     let index = (grid < params.point_latent_below_grid_m).then(|| CoreIndex::new(&triangles, &in_core));
     let mut covers = Vec::new();
-    let (latent, others, covering) = match &index {
+    let Latent { height: latent, others, covering, pull } = match &index {
         Some(index) => {
-            let covers = params.consistent_gradient.then_some(&mut covers);
+            let pulls = params.consistent_gradient.then_some((&mut covers, ItemPull { threshold, weight }));
             let agreement = match params.cover_agreement_thresholds {
                 f if f > 0.0 => f * threshold,
                 _ => f64::INFINITY,
             };
-            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), covers, agreement, &mut stats)
+            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), pulls, agreement, &mut stats)
         }
         None => {
             let (latent, others) =
                 raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats);
-            (latent, others, Vec::new())
+            Latent { height: latent, others, covering: Vec::new(), pull: Vec::new() }
         }
     };
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
     //     the other passes' triangles that cover it.
     let mut pulls = match &index {
-        Some(index) if params.consistent_gradient => {
-            Some(corner_pulls(&triangles, index, &covers, &latent, &covering, threshold, weight))
-        }
+        Some(index) if params.consistent_gradient => Some(corner_pulls(&triangles, &covers, &pull)),
         _ => None,
     };
-    drop((index, covers));
+    drop((index, covers, pull));
     let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
@@ -855,8 +853,9 @@ struct CoreIndex {
     item_uv: Vec<[f64; 2]>,
     /// Strip and anchor of each item (for the own-pass test).
     item_owner: Vec<(u32, u32)>,
-    /// Plane coordinates and height of every point (NaN outside the core or without a model).
-    uvh: Vec<[f64; 3]>,
+    /// Height of each item above its model's plane (in item order: read where the items are
+    /// walked in order, not by point index).
+    item_h: Vec<f64>,
 }
 
 impl CoreIndex {
@@ -932,8 +931,9 @@ impl CoreIndex {
         }
         drop(fill);
         let item_uv: Vec<[f64; 2]> = items.iter().map(|&a| [uvh[a as usize][0], uvh[a as usize][1]]).collect();
+        let item_h: Vec<f64> = items.iter().map(|&a| uvh[a as usize][2]).collect();
         let item_owner: Vec<(u32, u32)> = items.iter().map(|&a| owner[a as usize]).collect();
-        Self { grids, start, items, item_uv, item_owner, uvh }
+        Self { grids, start, items, item_uv, item_owner, item_h }
     }
 
     /// Calls `visit(triangle, item, take, l1, l2)` for every candidate item of every triangle
@@ -1034,20 +1034,26 @@ struct CoveringTriangle {
 /// scan-head position of those triangles and their share, `[x, y, c/(c+1)]` (what the
 /// common-mode field's observation row needs); otherwise that vector is empty.
 ///
-/// With `covers`, every (point, triangle) pair taken is recorded there as
-/// `[item, corner the triangle hangs off, model]` (for [`corner_pulls`]).
+/// With `pulls`, every (point, triangle) pair taken is recorded in its vector as
+/// `[item, corner the triangle hangs off, model]`, and the last vector returned holds, per item,
+/// what the point's residual pulls on each of its covering triangles ([`ItemPull`]); the two are
+/// what [`corner_pulls`] gathers. Without `pulls` that vector is empty.
 fn point_latent(
     t: &Triangles,
     index: &CoreIndex,
     vehicle: Option<&[[f64; 2]]>,
-    covers: Option<&mut Vec<[u32; 3]>>,
+    pulls: Option<(&mut Vec<[u32; 3]>, ItemPull)>,
     agreement: f64,
     stats: &mut TileStats,
-) -> (Vec<f64>, Vec<[f64; 3]>, Vec<u32>) {
+) -> Latent {
     let n = t.position.len();
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
     let mut acc = vec![Sample::default(); index.items.len()];
     let gated = agreement.is_finite();
+    let (covers, pull_terms) = match pulls {
+        Some((covers, terms)) => (Some(covers), Some(terms)),
+        None => (None, None),
+    };
     if !gated && covers.is_none() {
         index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
             acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
@@ -1086,8 +1092,7 @@ fn point_latent(
             // against the consensus rather than the point alone, passes that are off together
             // stay outliers of the rest instead of agreeing among themselves. Points where no
             // triangle is taken out keep their sums bit for bit.
-            let consensus: Vec<f64> =
-                index.items.iter().zip(&acc).map(|(&a, s)| s.mean_with(index.uvh[a as usize][2])).collect();
+            let consensus: Vec<f64> = index.item_h.iter().zip(&acc).map(|(&h, s)| s.mean_with(h)).collect();
             let mut kept = 0;
             for i in 0..len {
                 let [q, first, _] = covers[i];
@@ -1106,12 +1111,13 @@ fn point_latent(
     let mut covering = vec![0u32; n];
     // [x, y, share of the other passes in the latent mean].
     let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
+    let mut pull = vec![[0.0; 2]; if pull_terms.is_some() { index.items.len() } else { 0 }];
     for (q, &a) in index.items.iter().enumerate() {
         let s = &acc[q];
         if s.count == 0 {
             continue;
         }
-        let h = index.uvh[a as usize][2];
+        let h = index.item_h[q];
         let c = s.count as f64;
         let (gx, gy) = (s.slope[0] / c, s.slope[1] / c);
         let mean = s.mean_with(h);
@@ -1124,10 +1130,38 @@ fn point_latent(
             if let Some(o) = others.get_mut(a as usize) {
                 *o = [s.vehicle[0] / c, s.vehicle[1] / c, c / (c + 1.0)];
             }
+            // The observation loop's residual `h − latent` and its test against the threshold.
+            if let Some(ItemPull { threshold, weight }) = pull_terms {
+                let e = h - mean;
+                if e.abs() <= threshold {
+                    let alpha = weight / (s.count as f64 + 1.0);
+                    pull[q] = [alpha, alpha * e];
+                }
+            }
         }
     }
     stats.pixels = index.items.len() as u64;
-    (latent, others, covering)
+    Latent { height: latent, others, covering, pull }
+}
+
+/// What [`point_latent`] finds (the raster route finds the first two only).
+struct Latent {
+    /// Per point, the latent height (NaN: not observable).
+    height: Vec<f64>,
+    /// Per point, `[x, y, share]` for the common-mode field (empty without it).
+    others: Vec<[f64; 3]>,
+    /// Per point, the number of other passes' triangles its latent height averages.
+    covering: Vec<u32>,
+    /// Per item, the pulls on its covering triangles (empty without the consistent gradient).
+    pull: Vec<[f64; 2]>,
+}
+
+/// The observation loop's outlier threshold and weight, for the pulls of [`point_latent`]: a
+/// point used with residual `e` and `c` covering triangles pulls on each with weight `ω/(c+1)`.
+#[derive(Clone, Copy)]
+struct ItemPull {
+    threshold: f64,
+    weight: f64,
 }
 
 /// What the used points' residuals pull on the triangles that cover them, gathered per corner
@@ -1184,34 +1218,10 @@ impl CornerPulls {
     }
 }
 
-fn corner_pulls(
-    t: &Triangles,
-    index: &CoreIndex,
-    covers: &[[u32; 3]],
-    latent: &[f64],
-    covering: &[u32],
-    threshold: f64,
-    weight: f64,
-) -> CornerPulls {
-    // Per item: ω/(c+1) and ω/(c+1)·e of the points the observation loop will use, else zeros
-    // (the index holds each core point's height above its model plane, the loop's `h`).
-    let pull: Vec<[f64; 2]> = index
-        .items
-        .iter()
-        .map(|&a| {
-            let a = a as usize;
-            let l = latent[a];
-            if l.is_nan() {
-                return [0.0; 2];
-            }
-            let e = index.uvh[a][2] - l;
-            if e.abs() > threshold {
-                return [0.0; 2];
-            }
-            let alpha = weight / (covering[a] as f64 + 1.0);
-            [alpha, alpha * e]
-        })
-        .collect();
+/// Gathers the pulls of [`point_latent`] (`pull`, per item: `ω/(c+1)` and `ω/(c+1)·e` of the
+/// points the observation loop will use, else zeros) on the corners their covering triangles
+/// hang off.
+fn corner_pulls(t: &Triangles, covers: &[[u32; 3]], pull: &[[f64; 2]]) -> CornerPulls {
     let mut sums = vec![[0.0; 2]; t.position.len()];
     let mut other: FxHashMap<(usize, u32), [f64; 2]> = FxHashMap::default();
     for &[q, corner, model] in covers {
