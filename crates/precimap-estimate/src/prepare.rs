@@ -600,48 +600,33 @@ fn emit_tiles(
         .map(|(key, globals)| {
             let (ox, oy) = key.origin(params.tile_size_m);
             let origin = [ox, oy, 0.0];
+            let mut chunk = TileChunk::with_capacity(key, ctx.strip, ctx.trajectory, origin, globals.len());
             for (i, &g) in globals.iter().enumerate() {
                 local[g as usize] = i as u32;
             }
             let local_of = |g: u32| if g == NO_NEIGHBOUR { NO_NEIGHBOUR } else { local[g as usize] };
-            // Column by column, one tight pass each, where a push per column and point checked
-            // ten capacities. Every emitted point has a normal (the loop above kept only those).
-            fn column<T>(globals: &[u32], f: impl Fn(usize) -> T) -> Vec<T> {
-                globals.iter().map(|&g| f(g as usize)).collect()
+            for &g in &globals {
+                let k = g as usize;
+                let Some(nrm) = normals[k] else { continue };
+                let (t0, r) = (geometry.head[k], geometry.r(samples, k));
+                let (right, down) = links.of(k);
+                chunk.push(
+                    [(t0[0] - ox) as f32, (t0[1] - oy) as f32, t0[2] as f32],
+                    [r[0] as f32, r[1] as f32, r[2] as f32],
+                    nrm.normal,
+                    geometry.anchor[k],
+                    geometry.lambda[k],
+                    local_of(right),
+                    local_of(down),
+                    nrm.edge_limit,
+                    segment[k],
+                    g,
+                );
             }
-            let pixel =
-                |k: usize| normals[k].unwrap_or(PixelNormal { normal: [0.0; 3], edge_limit: 0.0, tolerance: 0.0 });
-            let t0 = column(&globals, |k| {
-                let t0 = geometry.head[k];
-                [(t0[0] - ox) as f32, (t0[1] - oy) as f32, t0[2] as f32]
-            });
-            let r = column(&globals, |k| geometry.r(samples, k).map(|v| v as f32));
-            let normal = column(&globals, |k| pixel(k).normal);
-            let edge_limit = column(&globals, |k| pixel(k).edge_limit);
-            let anchor = column(&globals, |k| geometry.anchor[k]);
-            let lambda = column(&globals, |k| geometry.lambda[k]);
-            let right = column(&globals, |k| local_of(links.of(k).0));
-            let down = column(&globals, |k| local_of(links.of(k).1));
-            let segment = column(&globals, |k| segment[k]);
             for &g in &globals {
                 local[g as usize] = NO_NEIGHBOUR;
             }
-            TileChunk {
-                tile: key,
-                strip: ctx.strip,
-                trajectory: ctx.trajectory,
-                origin,
-                t0,
-                r,
-                normal,
-                anchor,
-                lambda,
-                right,
-                down,
-                edge_limit,
-                segment,
-                source: globals,
-            }
+            chunk
         })
         .collect()
 }
