@@ -428,7 +428,7 @@ pub fn estimate_tile_recording(
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
     //     the other passes' triangles that cover it.
     let mut pulls = match &index {
-        Some(index) if params.consistent_gradient => Some(corner_pulls(&triangles, &covers, &pull)),
+        Some(_) if params.consistent_gradient => Some(corner_pulls(&triangles, &covers, &pull)),
         _ => None,
     };
     drop((index, covers, pull));

@@ -547,8 +547,8 @@ impl Scatter {
     /// direction by λ0/λ1. The eigenvalues for the planarity test follow from the Rayleigh
     /// quotient (λ0), the trace and the sum of the principal 2×2 minors. No trigonometry, and
     /// no scaling of the scatter first: the direction and the eigenvalue ratios the test uses do
-    /// not depend on scale, and a division at the head of this chain of dependent steps (this
-    /// is latency, not throughput) cost a sixth of the fit.
+    /// not depend on scale, and a division at the head of this chain of dependent steps (its
+    /// cost is latency, not throughput) made the normal phase ~10 % slower.
     fn plane_from(&self, start: [f64; 3]) -> Option<[f64; 3]> {
         let c = self.covariance();
         let trace = c[0] + c[3] + c[5];
