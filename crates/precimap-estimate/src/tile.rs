@@ -427,10 +427,7 @@ pub fn estimate_tile_recording(
     };
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
     //     the other passes' triangles that cover it.
-    let mut pulls = match &index {
-        Some(_) if params.consistent_gradient => Some(corner_pulls(&triangles, &covers, &pull)),
-        _ => None,
-    };
+    let mut pulls = (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull));
     drop((index, covers, pull));
     let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
@@ -930,8 +927,14 @@ impl CoreIndex {
             }
         }
         drop(fill);
-        let item_uv: Vec<[f64; 2]> = items.iter().map(|&a| [uvh[a as usize][0], uvh[a as usize][1]]).collect();
-        let item_h: Vec<f64> = items.iter().map(|&a| uvh[a as usize][2]).collect();
+        // One gather from the point-indexed projections for both item-ordered columns.
+        let (item_uv, item_h): (Vec<[f64; 2]>, Vec<f64>) = items
+            .iter()
+            .map(|&a| {
+                let [u, v, h] = uvh[a as usize];
+                ([u, v], h)
+            })
+            .unzip();
         let item_owner: Vec<(u32, u32)> = items.iter().map(|&a| owner[a as usize]).collect();
         Self { grids, start, items, item_uv, item_owner, item_h }
     }
