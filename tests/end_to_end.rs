@@ -269,6 +269,20 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
 }
 
+/// Whether `precimap serve` answers `GET /healthz` on `port`. A bare connect is not enough: on
+/// loopback, a connect to a free ephemeral port can pick that port as its own source and connect
+/// to itself.
+fn serves_health(port: u16) -> bool {
+    use std::io::{Read as _, Write as _};
+    let Ok(mut stream) = std::net::TcpStream::connect(("127.0.0.1", port)) else { return false };
+    let _ = stream.set_read_timeout(Some(std::time::Duration::from_secs(5)));
+    let mut answer = String::new();
+    stream.write_all(b"GET /healthz HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").is_ok()
+        && stream.read_to_string(&mut answer).is_ok()
+        && answer.starts_with("HTTP/1.")
+        && answer.contains(" 200 ")
+}
+
 /// glibc keeps freed memory in every malloc arena it opens (up to eight per core): the binary
 /// executes itself again with `MALLOC_ARENA_MAX` set to one arena per core, and keeps a limit the
 /// user set. Read off a running `precimap serve`'s environment once it listens.
@@ -293,7 +307,7 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
         }
         let mut child = command.spawn().unwrap();
         let started = std::time::Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        while !serves_health(port) {
             if let Some(status) = child.try_wait().unwrap() {
                 let log = std::fs::read_to_string(dir.path().join(format!("serve-{port}.log"))).unwrap_or_default();
                 panic!("precimap serve exited ({status}): {log}");
