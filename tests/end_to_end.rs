@@ -269,64 +269,6 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
 }
 
-/// Whether `precimap serve` answers `GET /healthz` on `port`. A bare connect is not enough: on
-/// loopback, a connect to a free ephemeral port can pick that port as its own source and connect
-/// to itself.
-fn serves_health(port: u16) -> bool {
-    use std::io::{Read as _, Write as _};
-    let Ok(mut stream) = std::net::TcpStream::connect(("127.0.0.1", port)) else { return false };
-    let _ = stream.set_read_timeout(Some(std::time::Duration::from_secs(5)));
-    let mut answer = String::new();
-    stream.write_all(b"GET /healthz HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").is_ok()
-        && stream.read_to_string(&mut answer).is_ok()
-        && answer.starts_with("HTTP/1.")
-        && answer.contains(" 200 ")
-}
-
-/// glibc keeps freed memory in every malloc arena it opens (up to eight per core): the binary
-/// executes itself again with `MALLOC_ARENA_MAX` set to one arena per core, and keeps a limit the
-/// user set. Read off a running `precimap serve`'s environment once it listens.
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-#[test]
-fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
-    let dir = tempfile::tempdir().unwrap();
-    let cores = std::thread::available_parallelism().unwrap().get().to_string();
-    for (preset, expected) in [(None, cores.as_str()), (Some("3"), "3")] {
-        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"));
-        command
-            .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}"), "--db"])
-            .arg(format!("sqlite://{}/jobs-{port}.db", dir.path().display()))
-            .arg("--store")
-            .arg(format!("file://{}", dir.path().join("store").display()))
-            .env_remove("MALLOC_ARENA_MAX")
-            .stdout(std::process::Stdio::null())
-            .stderr(std::fs::File::create(dir.path().join(format!("serve-{port}.log"))).unwrap());
-        if let Some(value) = preset {
-            command.env("MALLOC_ARENA_MAX", value);
-        }
-        let mut child = command.spawn().unwrap();
-        let started = std::time::Instant::now();
-        while !serves_health(port) {
-            if let Some(status) = child.try_wait().unwrap() {
-                let log = std::fs::read_to_string(dir.path().join(format!("serve-{port}.log"))).unwrap_or_default();
-                panic!("precimap serve exited ({status}): {log}");
-            }
-            assert!(started.elapsed() < std::time::Duration::from_secs(30), "precimap serve does not listen");
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        let environ = std::fs::read(format!("/proc/{}/environ", child.id())).unwrap();
-        let _ = child.kill();
-        let _ = child.wait();
-        let limits: Vec<String> = environ
-            .split(|&b| b == 0)
-            .filter_map(|v| std::str::from_utf8(v).ok()?.strip_prefix("MALLOC_ARENA_MAX=").map(str::to_string))
-            .collect();
-        let log = std::fs::read_to_string(dir.path().join(format!("serve-{port}.log"))).unwrap_or_default();
-        assert_eq!(limits, [expected], "preset {preset:?}; precimap serve said: {log}");
-    }
-}
-
 /// A truncated LAZ strip fails its own preparation task with an error naming the file and where
 /// it breaks; the other strips prepare normally.
 #[test]

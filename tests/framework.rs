@@ -356,15 +356,13 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
     let _server = Worker { child: server };
     let rt = tokio::runtime::Runtime::new().unwrap();
     let client = Client::new(&server_url, Some("chaos-token".into()));
-    let id = rt.block_on(async {
-        for _ in 0..100 {
-            if reqwest_get_ok(&format!("{server_url}/healthz")).await {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
+    for _ in 0..100 {
+        if serves_health(port) {
+            break;
         }
-        client.submit_local(&manifest, |_, _| {}).await.unwrap().id
-    });
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let id = rt.block_on(async { client.submit_local(&manifest, |_, _| {}).await.unwrap().id });
 
     let mut workers: Vec<Worker> = (0..4).map(|_| spawn_worker(&db, &store)).collect();
     let started = Instant::now();
@@ -441,11 +439,59 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
     let _ = psql(&pg, &format!("DROP DATABASE IF EXISTS {database} WITH (FORCE)"));
 }
 
-async fn reqwest_get_ok(url: &str) -> bool {
-    let Ok(stream) = tokio::net::TcpStream::connect(url.trim_start_matches("http://").split('/').next().unwrap()).await
-    else {
-        return false;
-    };
-    drop(stream);
-    true
+/// Whether `precimap serve` answers `GET /healthz` on `port` with 200. A bare connect is not
+/// enough: on loopback, a connect to a free ephemeral port can pick that port as its own source
+/// and connect to itself.
+fn serves_health(port: u16) -> bool {
+    use std::io::{Read as _, Write as _};
+    let Ok(mut stream) = std::net::TcpStream::connect(("127.0.0.1", port)) else { return false };
+    let _ = stream.set_read_timeout(Some(Duration::from_secs(5)));
+    let mut answer = String::new();
+    stream.write_all(b"GET /healthz HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").is_ok()
+        && stream.read_to_string(&mut answer).is_ok()
+        && answer.starts_with("HTTP/1.")
+        && answer.contains(" 200 ")
+}
+
+/// glibc keeps freed memory in every malloc arena it opens (up to eight per core): the binary
+/// executes itself again with `MALLOC_ARENA_MAX` set to one arena per core, and keeps a limit the
+/// user set. Read off a running `precimap serve`'s environment once it answers.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
+    let dir = tempfile::tempdir().unwrap();
+    let cores = std::thread::available_parallelism().unwrap().get().to_string();
+    for (preset, expected) in [(None, cores.as_str()), (Some("3"), "3")] {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let log_path = dir.path().join(format!("serve-{port}.log"));
+        let log = || std::fs::read_to_string(&log_path).unwrap_or_default();
+        let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"));
+        command
+            .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}"), "--db"])
+            .arg(format!("sqlite://{}/jobs-{port}.db", dir.path().display()))
+            .arg("--store")
+            .arg(format!("file://{}", dir.path().join("store").display()))
+            .env_remove("MALLOC_ARENA_MAX")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(&log_path).unwrap());
+        if let Some(value) = preset {
+            command.env("MALLOC_ARENA_MAX", value);
+        }
+        let mut server = Worker { child: command.spawn().unwrap() };
+        let started = Instant::now();
+        while !serves_health(port) {
+            if let Some(status) = server.child.try_wait().unwrap() {
+                panic!("precimap serve exited ({status}): {}", log());
+            }
+            assert!(started.elapsed() < Duration::from_secs(30), "precimap serve does not answer: {}", log());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let environ = std::fs::read(format!("/proc/{}/environ", server.child.id())).unwrap();
+        drop(server);
+        let limits: Vec<String> = environ
+            .split(|&b| b == 0)
+            .filter_map(|v| std::str::from_utf8(v).ok()?.strip_prefix("MALLOC_ARENA_MAX=").map(str::to_string))
+            .collect();
+        assert_eq!(limits, [expected], "preset {preset:?}; precimap serve said: {}", log());
+    }
 }
