@@ -311,6 +311,26 @@ struct Worker {
     child: std::process::Child,
 }
 
+impl Worker {
+    /// Waits until the child answers `GET /healthz` on `port` (at most 30 s); panics with
+    /// `log()` if it exits or does not answer.
+    fn wait_until_serving(&mut self, port: u16, log: impl Fn() -> String) {
+        let started = Instant::now();
+        while !serves_health(port) {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                panic!("precimap serve exited ({status}): {}", log());
+            }
+            assert!(started.elapsed() < Duration::from_secs(30), "precimap serve does not answer: {}", log());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// A port no one listens on now.
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
 impl Drop for Worker {
     fn drop(&mut self) {
         let _ = self.child.kill();
@@ -344,7 +364,7 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
     let store = format!("{s3}/{}", uuid::Uuid::new_v4().simple());
 
     // `precimap serve` on a free port, without in-process executors.
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let port = free_port();
     let server_url = format!("http://127.0.0.1:{port}");
     let server = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
         .args(["serve", "--db", &db, "--store", &store, "--listen", &format!("127.0.0.1:{port}"), "--lease-s", "3"])
@@ -353,15 +373,10 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         .stderr(std::process::Stdio::null())
         .spawn()
         .expect("spawn precimap serve");
-    let _server = Worker { child: server };
+    let mut server = Worker { child: server };
+    server.wait_until_serving(port, String::new);
     let rt = tokio::runtime::Runtime::new().unwrap();
     let client = Client::new(&server_url, Some("chaos-token".into()));
-    for _ in 0..100 {
-        if serves_health(port) {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
     let id = rt.block_on(async { client.submit_local(&manifest, |_, _| {}).await.unwrap().id });
 
     let mut workers: Vec<Worker> = (0..4).map(|_| spawn_worker(&db, &store)).collect();
@@ -462,7 +477,7 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
     let dir = tempfile::tempdir().unwrap();
     let cores = std::thread::available_parallelism().unwrap().get().to_string();
     for (preset, expected) in [(None, cores.as_str()), (Some("3"), "3")] {
-        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let port = free_port();
         let log_path = dir.path().join(format!("serve-{port}.log"));
         let log = || std::fs::read_to_string(&log_path).unwrap_or_default();
         let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"));
@@ -478,14 +493,7 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
             command.env("MALLOC_ARENA_MAX", value);
         }
         let mut server = Worker { child: command.spawn().unwrap() };
-        let started = Instant::now();
-        while !serves_health(port) {
-            if let Some(status) = server.child.try_wait().unwrap() {
-                panic!("precimap serve exited ({status}): {}", log());
-            }
-            assert!(started.elapsed() < Duration::from_secs(30), "precimap serve does not answer: {}", log());
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        server.wait_until_serving(port, log);
         let environ = std::fs::read(format!("/proc/{}/environ", server.child.id())).unwrap();
         drop(server);
         let limits: Vec<String> = environ
