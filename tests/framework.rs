@@ -29,7 +29,7 @@ fn in_process(manifest: &Path, out: &Path) {
 /// 0.1 mm or finer and the CSV writes round-trip floats, so this is equality of the corrections
 /// far below 1e-9 m), and the same iteration statistics.
 fn assert_same_results(a: &Path, b: &Path) {
-    for folder in ["strips", "trajectories", "segments"] {
+    for folder in ["strips", "trajectories", "segments", "qc"] {
         let mut names: Vec<_> = std::fs::read_dir(a.join(folder)).unwrap().map(|e| e.unwrap().file_name()).collect();
         names.sort();
         assert!(!names.is_empty());
@@ -160,6 +160,13 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         assert!(!status.iterations.is_empty());
         assert_eq!(status.tasks.dead, 0);
         client.results(submitted.id, &via_http).await.unwrap();
+        // The QC plots are served as SVG that a browser shows in place and that runs nothing.
+        let head = http_head(address, &format!("/v1/campaigns/{}/results/qc/convergence.svg", submitted.id)).await;
+        assert!(head.starts_with("HTTP/1.0 200") || head.starts_with("HTTP/1.1 200"), "{head}");
+        let head = head.to_ascii_lowercase();
+        assert!(head.contains("content-type: image/svg+xml"), "{head}");
+        assert!(head.contains("content-security-policy: default-src 'none'; sandbox"), "{head}");
+        assert!(head.contains("x-content-type-options: nosniff"), "{head}");
 
         // The anchors' positions were read from the trajectory files once, by the first field
         // task; every later field task read the object it wrote.
@@ -179,6 +186,18 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         workers.stop().await;
     });
     assert_same_results(&reference, &via_http);
+}
+
+/// The status line and headers of `GET path` (HTTP/1.0: the server closes the connection after
+/// the body).
+async fn http_head(address: std::net::SocketAddr, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
+    stream.write_all(format!("GET {path} HTTP/1.0\r\nHost: {address}\r\n\r\n").as_bytes()).await.unwrap();
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).await.unwrap();
+    let text = String::from_utf8_lossy(&response);
+    text.split("\r\n\r\n").next().unwrap_or_default().to_string()
 }
 
 /// `field_free_momentum` (an option, off by default) takes the same path in the framework's

@@ -298,11 +298,18 @@ async fn download_result(
         "application/json"
     } else if name.ends_with(".csv") {
         "text/csv"
+    } else if name.ends_with(".svg") {
+        // The QC plots: a browser shows them in place.
+        "image/svg+xml"
     } else {
         "application/octet-stream"
     };
     Response::builder()
         .header(header::CONTENT_TYPE, content_type)
+        // Results are data, never active content: no sniffing, and an SVG opened directly runs
+        // no script and loads nothing (its styles are attributes).
+        .header(header::X_CONTENT_TYPE_OPTIONS, "nosniff")
+        .header(header::CONTENT_SECURITY_POLICY, "default-src 'none'; sandbox")
         .header(header::CONTENT_LENGTH, size)
         .body(Body::from_stream(stream))
         .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))

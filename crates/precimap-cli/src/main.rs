@@ -238,9 +238,10 @@ fn real_main() -> Result<()> {
             service::run_framework(&campaign.join("manifest.json"), &result, false)?;
             evaluate(&campaign.join("truth"), &result, false)?;
             eprintln!(
-                "\ncorrected strips and trajectories: {}\nreport: {}",
+                "\ncorrected strips and trajectories: {}\nreport: {}\nQC plots (SVG, open in a browser): {}",
                 result.display(),
-                result.join("report.json").display()
+                result.join("report.json").display(),
+                result.join(precimap_pipeline::qc::QC_DIR).display()
             );
             Ok(())
         }

@@ -279,6 +279,7 @@ pub fn run_campaign(
     let path = out.join("report.json");
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
+    crate::tasks::write_report_plots(&report, out)?;
     Ok(report)
 }
 

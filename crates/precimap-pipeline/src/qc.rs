@@ -1,0 +1,506 @@
+//! Quality-control plots (SVG): each trajectory's corrections along its arc length, the last
+//! iteration's residual histogram, and the convergence of the iterations. Pure functions of data
+//! both drivers hold (the corrections, `report.json`), so the in-process driver and the job
+//! framework write the same bytes; a browser shows them.
+
+use crate::report::IterationReport;
+use precimap_core::corrections::TrajectoryCorrections;
+use precimap_estimate::ResidualHistogram;
+use std::fmt::Write;
+
+/// Folder of the QC plots inside a result folder.
+pub const QC_DIR: &str = "qc";
+/// The residual histogram's file name inside [`QC_DIR`].
+pub const RESIDUALS_SVG: &str = "residuals.svg";
+/// The convergence plot's file name inside [`QC_DIR`].
+pub const CONVERGENCE_SVG: &str = "convergence.svg";
+
+/// A trajectory's correction plot's file name inside [`QC_DIR`].
+pub fn corrections_svg_name(trajectory: &str) -> String {
+    format!("corrections-{trajectory}.svg")
+}
+
+const WIDTH: f64 = 960.0;
+const LEFT: f64 = 78.0;
+const RIGHT: f64 = 24.0;
+const PANEL: f64 = 120.0;
+const GAP: f64 = 46.0;
+const TOP: f64 = 56.0;
+/// Longest polyline, in vertices: a longer series is drawn as its minimum and maximum per
+/// horizontal pixel (every extreme stays visible, and a 100 km trajectory stays a small file).
+const MAX_VERTICES: usize = 2 * (WIDTH as usize);
+
+/// The six components of a trajectory's corrections (translation in mm, rotation in mdeg, world
+/// axes) against arc length, one panel each, with their RMS and largest magnitude.
+pub fn corrections_svg(trajectory: &str, anchor_spacing_m: f64, corrections: &TrajectoryCorrections) -> String {
+    const PANELS: [(&str, &str); 6] = [
+        ("translation x", "mm"),
+        ("translation y", "mm"),
+        ("translation z", "mm"),
+        ("rotation about x (roll)", "mdeg"),
+        ("rotation about y (pitch)", "mdeg"),
+        ("rotation about z (yaw)", "mdeg"),
+    ];
+    let n = corrections.values.len();
+    let s0 = corrections.first_anchor as f64 * anchor_spacing_m;
+    let s1 = s0 + (n.max(2) - 1) as f64 * anchor_spacing_m;
+    let mut svg = Svg::new(TOP + 6.0 * (PANEL + GAP));
+    svg.title(&format!(
+        "Corrections of trajectory {} ({n} anchors every {} m, arc length {} … {} m)",
+        escape(trajectory),
+        number(anchor_spacing_m),
+        number(s0),
+        number(s1)
+    ));
+    for (k, (name, unit)) in PANELS.iter().enumerate() {
+        let scale = if k < 3 { 1e3 } else { 1e3 * 180.0 / std::f64::consts::PI };
+        let values: Vec<f64> = corrections.values.iter().map(|c| c[k] * scale).collect();
+        let rms = (values.iter().map(|v| v * v).sum::<f64>() / n.max(1) as f64).sqrt();
+        let max = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let top = TOP + k as f64 * (PANEL + GAP);
+        let (lo, hi) = padded_range(values.iter().copied().chain([0.0]));
+        let plot = Plot { top, x: (s0, s1), y: (lo, hi), log_y: false };
+        svg.panel(
+            &plot,
+            &format!("{name} ({unit}): RMS {}, largest |value| {}", number(rms), number(max)),
+            "arc length (m)",
+        );
+        svg.zero_line(&plot);
+        let points = envelope(&values, (WIDTH - LEFT - RIGHT) as usize)
+            .into_iter()
+            .map(|(i, v)| (s0 + i as f64 * anchor_spacing_m, v));
+        svg.polyline(&plot, points, "#1f5fbf", false);
+    }
+    svg.finish()
+}
+
+/// The last iteration's signed point-to-latent-map distances (mm), with their robust σ and what
+/// fell outside the histogram's range.
+pub fn residuals_svg(histogram: &ResidualHistogram) -> String {
+    let mut svg = Svg::new(TOP + PANEL + GAP);
+    let total = histogram.total();
+    let sigma = histogram.robust_sigma_m().map_or("–".to_string(), |s| format!("{} mm", number(s * 1e3)));
+    svg.title(&format!(
+        "Residuals of the last iteration: {total} modelled points, robust σ {sigma}; below {} mm: {}, above {} mm: {}",
+        number(histogram.min_m * 1e3),
+        histogram.below,
+        number((histogram.min_m + histogram.bin_m * histogram.counts.len() as f64) * 1e3),
+        histogram.above
+    ));
+    let bin = histogram.bin_m * 1e3;
+    let x0 = histogram.min_m * 1e3;
+    let x1 = x0 + bin * histogram.counts.len() as f64;
+    let most = histogram.counts.iter().copied().max().unwrap_or(0).max(1) as f64;
+    let plot = Plot { top: TOP, x: (x0, x1), y: (0.0, most * 1.05), log_y: false };
+    svg.panel(&plot, "points per bin", "signed distance to the latent map (mm)");
+    // One path of bars: a step outline closed along the axis.
+    let mut outline = Vec::with_capacity(2 * histogram.counts.len() + 2);
+    outline.push((x0, 0.0));
+    for (i, &c) in histogram.counts.iter().enumerate() {
+        let left = x0 + i as f64 * bin;
+        outline.push((left, c as f64));
+        outline.push((left + bin, c as f64));
+    }
+    outline.push((x1, 0.0));
+    svg.polyline(&plot, outline.into_iter(), "#1f5fbf", true);
+    svg.finish()
+}
+
+/// Per iteration, the residual σ against the outlier threshold, and the anchors' largest and
+/// median change (both on logarithmic axes): how the schedule converged.
+pub fn convergence_svg(iterations: &[IterationReport]) -> String {
+    let mut svg = Svg::new(TOP + 2.0 * (PANEL + GAP));
+    let n = iterations.len();
+    let last = iterations.last();
+    svg.title(&format!(
+        "Convergence over {n} iterations: residual σ {} mm, largest anchor change {} mm in the last",
+        last.map_or("–".into(), |i| number(i.residual_std_m * 1e3)),
+        last.map_or("–".into(), |i| number(i.max_correction_change_m * 1e3)),
+    ));
+    let x = (0.5, n.max(1) as f64 + 0.5);
+    let series = |f: fn(&IterationReport) -> f64| -> Vec<(f64, f64)> {
+        iterations.iter().map(|i| (i.iteration as f64, f(i) * 1e3)).collect()
+    };
+    // Per panel its label and (colour, values) per line.
+    let panels: [(&str, [Series; 2]); 2] = [
+        (
+            "residual σ (mm, blue) and outlier threshold (mm, grey)",
+            [("#1f5fbf", series(|i| i.residual_std_m)), ("#888888", series(|i| i.threshold_m))],
+        ),
+        (
+            "largest (blue) and median (orange) anchor change (mm at 10 m)",
+            [("#1f5fbf", series(|i| i.max_correction_change_m)), ("#d9822b", series(|i| i.median_correction_change_m))],
+        ),
+    ];
+    for (k, (label, lines)) in panels.iter().enumerate() {
+        let positive = lines.iter().flat_map(|l| l.1.iter().map(|p| p.1)).filter(|v| *v > 0.0 && v.is_finite());
+        let (lo, hi) = positive.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+        let (lo, hi) = if lo.is_finite() { (lo, hi) } else { (1e-3, 1.0) };
+        let y = (10f64.powf(lo.log10().floor()), 10f64.powf(hi.log10().ceil().max(lo.log10().floor() + 1.0)));
+        let plot = Plot { top: TOP + k as f64 * (PANEL + GAP), x, y, log_y: true };
+        svg.panel(&plot, label, "iteration");
+        for (colour, points) in lines {
+            // Zeros (no change) sit on the axis floor rather than at minus infinity.
+            svg.polyline(&plot, points.iter().map(|&(i, v)| (i, v.max(y.0))), colour, false);
+        }
+    }
+    svg.finish()
+}
+
+/// A line of a plot: its colour and its (x, y) vertices.
+type Series = (&'static str, Vec<(f64, f64)>);
+
+/// A panel's placement and data ranges.
+struct Plot {
+    top: f64,
+    x: (f64, f64),
+    y: (f64, f64),
+    log_y: bool,
+}
+
+impl Plot {
+    fn px(&self, x: f64) -> f64 {
+        let span = (self.x.1 - self.x.0).max(f64::MIN_POSITIVE);
+        LEFT + (x - self.x.0) / span * (WIDTH - LEFT - RIGHT)
+    }
+
+    fn py(&self, y: f64) -> f64 {
+        let (y, lo, hi) =
+            if self.log_y { (y.log10(), self.y.0.log10(), self.y.1.log10()) } else { (y, self.y.0, self.y.1) };
+        let span = (hi - lo).max(f64::MIN_POSITIVE);
+        self.top + PANEL - (y - lo) / span * PANEL
+    }
+}
+
+struct Svg {
+    out: String,
+}
+
+impl Svg {
+    fn new(height: f64) -> Self {
+        let mut out = String::new();
+        let _ = write!(
+            out,
+            r##"<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{height}" viewBox="0 0 {WIDTH} {height}" font-family="sans-serif" font-size="12">"##
+        );
+        let _ = write!(out, r##"<rect width="100%" height="100%" fill="#ffffff"/>"##);
+        Self { out }
+    }
+
+    fn title(&mut self, text: &str) {
+        let _ = write!(self.out, r##"<text x="{LEFT}" y="24" font-size="15" font-weight="bold">{text}</text>"##);
+    }
+
+    /// Frame, ticks with labels, the panel's label above it and the x axis' label below.
+    fn panel(&mut self, plot: &Plot, label: &str, x_label: &str) {
+        let (top, bottom, right) = (plot.top, plot.top + PANEL, WIDTH - RIGHT);
+        let _ = write!(self.out, r##"<text x="{LEFT}" y="{:.1}">{}</text>"##, top - 8.0, escape(label));
+        let _ = write!(
+            self.out,
+            r##"<rect x="{LEFT}" y="{top:.1}" width="{:.1}" height="{PANEL}" fill="none" stroke="#444444"/>"##,
+            right - LEFT
+        );
+        for t in ticks(plot.x.0, plot.x.1, 8) {
+            let x = plot.px(t);
+            let _ = write!(
+                self.out,
+                r##"<line x1="{x:.1}" y1="{top:.1}" x2="{x:.1}" y2="{bottom:.1}" stroke="#e4e4e4"/><text x="{x:.1}" y="{:.1}" text-anchor="middle">{}</text>"##,
+                bottom + 14.0,
+                number(t)
+            );
+        }
+        let y_ticks = if plot.log_y { decades(plot.y.0, plot.y.1) } else { ticks(plot.y.0, plot.y.1, 4) };
+        for t in y_ticks {
+            let y = plot.py(t);
+            let _ = write!(
+                self.out,
+                r##"<line x1="{LEFT}" y1="{y:.1}" x2="{right:.1}" y2="{y:.1}" stroke="#e4e4e4"/><text x="{:.1}" y="{:.1}" text-anchor="end">{}</text>"##,
+                LEFT - 6.0,
+                y + 4.0,
+                number(t)
+            );
+        }
+        let _ = write!(
+            self.out,
+            r##"<text x="{:.1}" y="{:.1}" text-anchor="middle" fill="#444444">{}</text>"##,
+            (LEFT + right) / 2.0,
+            bottom + 30.0,
+            escape(x_label)
+        );
+    }
+
+    fn zero_line(&mut self, plot: &Plot) {
+        if plot.y.0 < 0.0 && plot.y.1 > 0.0 {
+            let y = plot.py(0.0);
+            let _ = write!(
+                self.out,
+                r##"<line x1="{LEFT}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#888888"/>"##,
+                WIDTH - RIGHT
+            );
+        }
+    }
+
+    fn polyline(&mut self, plot: &Plot, points: impl Iterator<Item = (f64, f64)>, colour: &str, filled: bool) {
+        let mut coordinates = String::new();
+        for (x, y) in points {
+            if x.is_finite() && y.is_finite() {
+                let _ = write!(coordinates, "{:.1},{:.1} ", plot.px(x), plot.py(y));
+            }
+        }
+        let fill = if filled { colour } else { "none" };
+        let _ = write!(
+            self.out,
+            r##"<polyline points="{}" fill="{fill}" fill-opacity="0.6" stroke="{colour}" stroke-width="1.2"/>"##,
+            coordinates.trim_end()
+        );
+    }
+
+    fn finish(mut self) -> String {
+        self.out.push_str("</svg>\n");
+        self.out
+    }
+}
+
+/// `values` as (index, value) vertices: all of them if they fit [`MAX_VERTICES`], otherwise
+/// per one of `columns` equal index ranges its minimum and maximum, in the order they occur.
+fn envelope(values: &[f64], columns: usize) -> Vec<(usize, f64)> {
+    if values.len() <= MAX_VERTICES || columns == 0 {
+        return values.iter().copied().enumerate().collect();
+    }
+    let mut out = Vec::with_capacity(2 * columns);
+    for c in 0..columns {
+        let (a, b) = (c * values.len() / columns, (c + 1) * values.len() / columns);
+        if a == b {
+            continue;
+        }
+        let (mut lo, mut hi) = (a, a);
+        for i in a..b {
+            if values[i] < values[lo] {
+                lo = i;
+            }
+            if values[i] > values[hi] {
+                hi = i;
+            }
+        }
+        let (first, second) = if lo <= hi { (lo, hi) } else { (hi, lo) };
+        out.push((first, values[first]));
+        if second != first {
+            out.push((second, values[second]));
+        }
+    }
+    out
+}
+
+/// The finite values' range widened by 5 % on each side (±1 around a constant).
+fn padded_range(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) =
+        values.filter(|v| v.is_finite()).fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+    if !lo.is_finite() {
+        return (-1.0, 1.0);
+    }
+    if hi - lo < 1e-12 {
+        return (lo - 1.0, hi + 1.0);
+    }
+    let pad = 0.05 * (hi - lo);
+    (lo - pad, hi + pad)
+}
+
+/// About `count` round tick values (1, 2 or 5 × a power of ten apart) within `[lo, hi]`.
+fn ticks(lo: f64, hi: f64, count: usize) -> Vec<f64> {
+    if !(lo.is_finite() && hi.is_finite()) || hi <= lo {
+        return Vec::new();
+    }
+    let raw = (hi - lo) / count.max(1) as f64;
+    let power = 10f64.powf(raw.log10().floor());
+    // The round step whose tick count comes closest to `count`.
+    let misfit = |step: f64| ((hi - lo) / step - count as f64).abs();
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * power)
+        .min_by(|a, b| misfit(*a).total_cmp(&misfit(*b)))
+        .unwrap_or(power);
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    // Integer multiples of the step: no drift, and an exact zero.
+    (first..=last).map(|k| k as f64 * step).collect()
+}
+
+/// The powers of ten within `[lo, hi]` (both positive).
+fn decades(lo: f64, hi: f64) -> Vec<f64> {
+    let (a, b) = (lo.log10().ceil() as i32, hi.log10().floor() as i32);
+    (a..=b).map(|e| 10f64.powi(e)).collect()
+}
+
+/// A short label: up to four significant digits, no trailing zeros.
+fn number(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return if v.is_nan() {
+            "NaN".into()
+        } else if v == 0.0 {
+            "0".into()
+        } else {
+            format!("{v}")
+        };
+    }
+    let magnitude = v.abs().log10().floor() as i32;
+    if !(-4..6).contains(&magnitude) {
+        return format!("{v:.3e}");
+    }
+    let decimals = (3 - magnitude).max(0) as usize;
+    let s = format!("{v:.decimals$}");
+    let s = if s.contains('.') { s.trim_end_matches('0').trim_end_matches('.').to_string() } else { s };
+    if s == "-0" {
+        "0".into()
+    } else {
+        s
+    }
+}
+
+/// Text for SVG: the five characters XML reserves, escaped.
+fn escape(text: &str) -> String {
+    text.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;").replace('\'', "&apos;")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The vertices of the svg's polylines, per polyline, in pixels.
+    fn polylines(svg: &str) -> Vec<Vec<(f64, f64)>> {
+        svg.split("<polyline points=\"")
+            .skip(1)
+            .map(|rest| {
+                rest[..rest.find('"').unwrap()]
+                    .split_whitespace()
+                    .map(|p| {
+                        let (x, y) = p.split_once(',').unwrap();
+                        (x.parse().unwrap(), y.parse().unwrap())
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Tags open and close in order (a well-formedness check without an XML parser: the plots
+    /// use only self-closing elements besides `svg` and `text`).
+    fn assert_well_formed(svg: &str) {
+        assert!(svg.starts_with("<svg xmlns=\"http://www.w3.org/2000/svg\""), "{}", &svg[..80]);
+        assert!(svg.ends_with("</svg>\n"));
+        assert_eq!(svg.matches("<text").count(), svg.matches("</text>").count());
+        assert_eq!(svg.matches('<').count(), svg.matches('>').count());
+        assert!(!svg.contains("NaN") && !svg.contains("inf"), "non-finite coordinates");
+    }
+
+    #[test]
+    fn a_correction_ramp_is_drawn_where_its_values_are() {
+        // Translation x rises 0 → 100 mm over 201 anchors (100 m), everything else zero.
+        let values: Vec<[f64; 6]> = (0..201).map(|i| [i as f64 * 0.0005, 0.0, 0.0, 0.0, 0.0, 0.0]).collect();
+        let corrections = TrajectoryCorrections { first_anchor: 40, values };
+        let svg = corrections_svg("v<1>", 0.5, &corrections);
+        assert_well_formed(&svg);
+        assert!(svg.contains("trajectory v&lt;1&gt;"), "the id is escaped");
+        assert!(svg.contains("arc length 20 … 120 m"));
+        // RMS of a 0…100 ramp: 100/√3 · √(n(n+1)(2n+1)/6)/… ≈ 57.88 mm for 201 samples.
+        let rms = ((0..201).map(|i| (i as f64 * 0.5).powi(2)).sum::<f64>() / 201.0).sqrt();
+        assert!(svg.contains(&format!("RMS {}, largest |value| 100", number(rms))), "{svg}");
+        let lines = polylines(&svg);
+        assert_eq!(lines.len(), 6);
+        let ramp = &lines[0];
+        assert_eq!(ramp.len(), 201);
+        // Left end at the frame's left edge and bottom (0 mm, padded 5 %), right end at the top.
+        let (x_first, y_first) = ramp[0];
+        let (x_last, y_last) = ramp[200];
+        assert!((x_first - LEFT).abs() < 0.06 && (x_last - (WIDTH - RIGHT)).abs() < 0.06);
+        let pad = 5.0;
+        let plot = Plot { top: TOP, x: (20.0, 120.0), y: (-pad, 100.0 + pad), log_y: false };
+        assert!((y_first - plot.py(0.0)).abs() < 0.06 && (y_last - plot.py(100.0)).abs() < 0.06);
+        // A flat component is a line on its zero line.
+        assert!(lines[1].iter().all(|p| (p.1 - lines[1][0].1).abs() < 1e-9));
+    }
+
+    #[test]
+    fn a_long_trajectory_keeps_every_extreme_in_a_bounded_polyline() {
+        // 200,000 anchors of small noise with one spike each way.
+        let mut values: Vec<[f64; 6]> =
+            (0..200_000).map(|i| [((i * 7919) % 13) as f64 * 1e-4, 0.0, 0.0, 0.0, 0.0, 0.0]).collect();
+        values[123_457][0] = 0.25;
+        values[7][0] = -0.125;
+        let svg = corrections_svg("long", 0.5, &TrajectoryCorrections { first_anchor: 0, values });
+        assert_well_formed(&svg);
+        let ramp = &polylines(&svg)[0];
+        assert!(ramp.len() <= MAX_VERTICES, "{} vertices", ramp.len());
+        let top = ramp.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
+        let bottom = ramp.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+        let plot = Plot { top: TOP, x: (0.0, 1.0), y: (-125.0 - 18.75, 250.0 + 18.75), log_y: false };
+        assert!((top - plot.py(250.0)).abs() < 0.06, "the +250 mm spike is drawn: {top}");
+        assert!((bottom - plot.py(-125.0)).abs() < 0.06, "the −125 mm spike is drawn: {bottom}");
+        assert!(svg.contains("largest |value| 250"));
+    }
+
+    #[test]
+    fn the_histogram_outline_follows_the_counts() {
+        let mut h = ResidualHistogram::default();
+        for e in [0.0001, 0.0002, 0.0007, -0.0003, 0.2, -0.3, -0.4] {
+            h.add(e);
+        }
+        let svg = residuals_svg(&h);
+        assert_well_formed(&svg);
+        assert!(svg.contains("7 modelled points"), "{svg}");
+        assert!(svg.contains("below -50 mm: 2, above 50 mm: 1"), "{svg}");
+        let outline = &polylines(&svg)[0];
+        assert_eq!(outline.len(), 2 * h.counts.len() + 2);
+        // Bin 100 ([0, 0.5) mm) holds 2 of the tallest count 2, bin 101 one, bin 99 one.
+        let plot = Plot { top: TOP, x: (-50.0, 50.0), y: (0.0, 2.1), log_y: false };
+        let height = |bin: usize| outline[1 + 2 * bin].1;
+        assert!((height(100) - plot.py(2.0)).abs() < 0.06);
+        assert!((height(101) - plot.py(1.0)).abs() < 0.06 && (height(99) - plot.py(1.0)).abs() < 0.06);
+        assert!((height(50) - plot.py(0.0)).abs() < 0.06);
+        // An empty histogram still renders.
+        assert_well_formed(&residuals_svg(&ResidualHistogram::default()));
+    }
+
+    #[test]
+    fn convergence_is_drawn_on_decades_and_survives_zero_changes() {
+        let iterations: Vec<IterationReport> = (1..=4)
+            .map(|i| IterationReport {
+                iteration: i,
+                common_mode_field_max_m: 0.0,
+                grid_m: 0.1,
+                threshold_m: 0.3 / i as f64,
+                points_in_tiles: 10,
+                points_modelled: 9,
+                points_used: 8,
+                residual_mean_m: 0.0,
+                residual_std_m: 0.01 / i as f64,
+                pixel_std_mean_m: 0.0,
+                max_correction_change_m: 0.1 / 10f64.powi(i as i32),
+                median_correction_change_m: if i == 1 { 0.0 } else { 0.01 / 10f64.powi(i as i32) },
+                p99_correction_change_m: 0.0,
+                seconds: 1.0,
+            })
+            .collect();
+        let svg = convergence_svg(&iterations);
+        assert_well_formed(&svg);
+        let lines = polylines(&svg);
+        assert_eq!(lines.len(), 4);
+        assert!(lines.iter().all(|l| l.len() == 4));
+        // The largest change falls a decade per iteration: equal vertical steps on a log axis.
+        let largest = &lines[2];
+        let steps: Vec<f64> = largest.windows(2).map(|w| w[1].1 - w[0].1).collect();
+        assert!(steps.iter().all(|s| (s - steps[0]).abs() < 0.11 && *s > 0.0), "{steps:?}");
+        assert!(svg.contains(">0.001<") && svg.contains(">10<"), "decade labels");
+        assert_well_formed(&convergence_svg(&[]));
+    }
+
+    #[test]
+    fn tick_values_are_round_and_labels_short() {
+        assert_eq!(ticks(0.0, 100.0, 4), vec![0.0, 20.0, 40.0, 60.0, 80.0, 100.0]);
+        assert_eq!(ticks(-3.0, 7.0, 4), vec![-2.0, 0.0, 2.0, 4.0, 6.0]);
+        assert_eq!(decades(0.002, 30.0), vec![0.01, 0.1, 1.0, 10.0]);
+        assert_eq!(number(0.0), "0");
+        assert_eq!(number(12.345678), "12.35");
+        assert_eq!(number(-0.00012), "-0.00012");
+        assert_eq!(number(1234.4), "1234");
+        assert_eq!(number(2.5e-6), "2.500e-6");
+    }
+}
