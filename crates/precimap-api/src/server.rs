@@ -307,9 +307,9 @@ async fn download_result(
     Response::builder()
         .header(header::CONTENT_TYPE, content_type)
         // Results are data, never active content: no sniffing, and an SVG opened directly runs
-        // no script and loads nothing but its own embedded images (its styles are attributes).
+        // no script and loads nothing (its styles are attributes).
         .header(header::X_CONTENT_TYPE_OPTIONS, "nosniff")
-        .header(header::CONTENT_SECURITY_POLICY, "default-src 'none'; img-src data:; sandbox")
+        .header(header::CONTENT_SECURITY_POLICY, "default-src 'none'; sandbox")
         .header(header::CONTENT_LENGTH, size)
         .body(Body::from_stream(stream))
         .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))

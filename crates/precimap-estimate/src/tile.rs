@@ -25,7 +25,7 @@ use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use crate::field::{FieldAccumulator, FieldEquations};
 use crate::hash::FxHashMap;
-use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
+use crate::stats::{ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::{ceil, floor, rotate_small};
 use precimap_core::{IterationStep, Parameters, TileKey};
@@ -59,9 +59,6 @@ pub struct TileEstimate {
     /// The common-mode field's data equations, in steps that solve the field.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<FieldEquations>,
-    /// The latent map's standard deviation under the core points, per cell (QC).
-    #[serde(default)]
-    pub latent_std: LatentStdMap,
 }
 
 #[derive(Clone, Copy, Default)]
@@ -409,7 +406,6 @@ pub fn estimate_tile_recording(
     let threshold = step.threshold_m;
     let mut stats = TileStats::new(tile);
     stats.surface_models = models.len() as u64;
-    let mut latent_std = LatentStdMap::new(tile_size);
     let in_core = |p: &[f64; 3]| p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size;
     // 2. The latent height under every point of the tile's core (NaN: not observable).
     let index = (grid < params.point_latent_below_grid_m).then(|| CoreIndex::new(&triangles, &in_core));
@@ -421,12 +417,11 @@ pub fn estimate_tile_recording(
                 f if f > 0.0 => f * threshold,
                 _ => f64::INFINITY,
             };
-            let vehicle = solves_field.then_some(vehicle.as_slice());
-            point_latent(&triangles, index, vehicle, pulls, agreement, &mut stats, &mut latent_std)
+            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), pulls, agreement, &mut stats)
         }
         None => {
-            let vehicle = solves_field.then_some(vehicle.as_slice());
-            let (latent, others) = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, &mut latent_std);
+            let (latent, others) =
+                raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats);
             Latent { height: latent, others, covering: Vec::new(), pull: Vec::new() }
         }
     };
@@ -506,7 +501,7 @@ pub fn estimate_tile_recording(
         .into_iter()
         .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
         .collect();
-    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish), latent_std })
+    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish) })
 }
 
 /// The points of one strip segment in one cell whose normals agree.
@@ -735,7 +730,6 @@ fn raster_latent(
     in_core: &impl Fn(&[f64; 3]) -> bool,
     vehicle: Option<&[[f64; 2]]>,
     stats: &mut TileStats,
-    latent_std: &mut LatentStdMap,
 ) -> (Vec<f64>, Vec<[f64; 3]>) {
     let models = t.models;
     // Raster extents from the member points; one pixel of margin on each side keeps bilinear
@@ -814,27 +808,13 @@ fn raster_latent(
             let r = &rasters[id as usize];
             let (u, v, _) = m.project(p);
             let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
-            if !h.is_nan() {
-                latent_std.add(p[0], p[1], raster_std(r, &pixels, u, v, grid));
-                if let Some(o) = others.get_mut(a) {
-                    *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
-                }
+            if let (false, Some(o)) = (h.is_nan(), others.get_mut(a)) {
+                *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
             }
             h
         })
         .collect();
     (latent, others)
-}
-
-/// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
-/// [`latent_height`] interpolated from, so it has contributions).
-fn raster_std(r: &Raster, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> f64 {
-    let i = (floor((u - r.u0) / grid) as usize).min(r.nu as usize - 1);
-    let j = (floor((v - r.v0) / grid) as usize).min(r.nv as usize - 1);
-    let p = &pixels[r.offset + j * r.nu as usize + i];
-    let n = p.count as f64;
-    let mean = p.sum as f64 / n;
-    (p.sum2 as f64 / n - mean * mean).max(0.0).sqrt()
 }
 
 /// Mean scan-head position of the contributions to the four pixels a point's latent height
@@ -1068,7 +1048,6 @@ fn point_latent(
     pulls: Option<(&mut Vec<[u32; 3]>, ItemPull)>,
     agreement: f64,
     stats: &mut TileStats,
-    latent_std: &mut LatentStdMap,
 ) -> Latent {
     let n = t.position.len();
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
@@ -1148,8 +1127,6 @@ fn point_latent(
         stats.pixels_shared += 1;
         let var = ((h * h + s.sum2) / (c + 1.0) - mean * mean).max(0.0);
         stats.pixel_std_sum_m += var.sqrt();
-        let p = &t.position[a as usize];
-        latent_std.add(p[0], p[1], var.sqrt());
         if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
             latent[a as usize] = mean;
             covering[a as usize] = s.count;
@@ -1523,53 +1500,6 @@ mod tests {
         let params =
             Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds: gate, ..Default::default() };
         estimate_tile(tile, chunks, &corrections, &params, &step).unwrap().stats
-    }
-
-    /// The QC map of the latent map's standard deviation holds what the tile statistics sum
-    /// (point-sampled: one entry per sampled core point), in cells of the tile's core, and both
-    /// routes see three passes 2 mm apart as σ = 2·√(2/3) mm.
-    #[test]
-    fn the_latent_std_map_holds_the_spread_of_the_passes_where_they_are() {
-        let tile = TileKey { tx: 0, ty: 0 };
-        let up = [0.0, 0.0, 1.0];
-        let chunks = [
-            strip_on(tile, 0, [0.0, 0.0], 1, |_, _| 0.0, up),
-            strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.002, up),
-            strip_on(tile, 2, [0.017, 0.11], 1, |_, _| -0.002, up),
-        ];
-        let corrections = vec![TrajectoryCorrections::zeros(0, 8); chunks.len()];
-        let expected = 0.002 * (2.0f64 / 3.0).sqrt();
-        for (grid, sampled) in [(0.01, true), (0.05, false)] {
-            let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
-            let e = estimate_tile(tile, &chunks, &corrections, &params, &IterationStep::new(grid, 0.05)).unwrap();
-            let map = &e.latent_std;
-            assert_eq!(map.side, 15);
-            let count: u64 = map.count.iter().map(|&c| c as u64).sum();
-            let sum: f64 = map.std_sum_m.iter().sum();
-            if sampled {
-                assert_eq!(count, e.stats.pixels_shared);
-                assert!(
-                    (sum - e.stats.pixel_std_sum_m).abs() < 1e-9 * sum.max(1.0),
-                    "{sum} {}",
-                    e.stats.pixel_std_sum_m
-                );
-            }
-            assert!(count > 100, "{count} points mapped");
-            // Every observed cell lies under the strips (x in [2, 6.1] m, y in [2, 7.8] m) and
-            // holds about the three passes' spread.
-            for j in 0..map.side {
-                for i in 0..map.side {
-                    if let Some(mean) = map.mean_m(i, j) {
-                        let (x, y) = (i as f64 + 0.5, j as f64 + 0.5);
-                        assert!((2.0..7.0).contains(&x) && (2.0..8.0).contains(&y), "cell ({i}, {j})");
-                        assert!(
-                            (mean - expected).abs() < 0.35 * expected,
-                            "cell ({i}, {j}) {mean} (sampled {sampled})"
-                        );
-                    }
-                }
-            }
-        }
     }
 
     /// A car that one of three passes saw on a road (4.5 cm high, in the road's segment and

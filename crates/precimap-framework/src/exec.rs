@@ -11,8 +11,8 @@ use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
     CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult, StripInput, TaskInput,
-    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS,
-    PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
+    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_POSITIONS, PREVIOUS_PREFIX,
+    SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
@@ -335,8 +335,6 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");
                 objects.push((OUTPUT_FIELD.into(), key, encode_field(field)));
             }
-            let key = format!("{prefix}/it/{iteration}/latent-std/{tile}.{tag}.json");
-            objects.push((OUTPUT_LATENT_STD.into(), key, to_bytes(&estimate.latent_std)?));
             let outputs = ctx.put_many(objects).await?;
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
@@ -507,26 +505,13 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 outputs: vec![OutputKey { name, object_key: key }, OutputKey { name: plot_name, object_key: plot_key }],
             })
         }
-        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m } => {
+        TaskInput::WriteReport { prefix, report } => {
             let key = format!("{prefix}/out/{tag}/report.json");
             let json = serde_json::to_vec_pretty(&report)
                 .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
             ctx.put(&key, json).await?;
             let mut outputs = vec![OutputKey { name: "report.json".into(), object_key: key }];
-            let mut maps = [Vec::new(), Vec::new()];
-            for (list, refs) in maps.iter_mut().zip([&latent_std.first, &latent_std.last]) {
-                let keys: Vec<String> = refs.iter().map(|(_, key)| key.clone()).collect();
-                for ((tile, key), bytes) in refs.iter().zip(ctx.get_many(&keys).await?) {
-                    let map: precimap_estimate::LatentStdMap = serde_json::from_slice(&bytes)
-                        .map_err(|e| TaskError::permanent(format!("latent-map QC object {key}: {e}")))?;
-                    list.push((*tile, map));
-                }
-            }
-            let [first, last] = &maps;
-            let plots = precimap_pipeline::tasks::report_plots(&report)
-                .into_iter()
-                .chain(precimap_pipeline::tasks::latent_std_plots(tile_size_m, first, last));
-            for (file, svg) in plots {
+            for (file, svg) in precimap_pipeline::tasks::report_plots(&report) {
                 let name = format!("{}/{file}", precimap_pipeline::qc::QC_DIR);
                 let key = format!("{prefix}/out/{tag}/{name}");
                 ctx.put(&key, svg.into_bytes()).await?;
@@ -535,10 +520,6 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
         }
     }
-}
-
-fn to_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, TaskError> {
-    serde_json::to_vec(value).map_err(|e| TaskError::permanent(format!("object does not serialise: {e}")))
 }
 
 fn to_json<T: serde::Serialize>(value: &T) -> Result<serde_json::Value, TaskError> {

@@ -49,16 +49,6 @@ pub const PREVIOUS_PREFIX: &str = "previous/";
 /// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
 /// task (from the trajectory files) and read by the later ones instead of those files.
 pub const OUTPUT_POSITIONS: &str = "anchor_positions";
-/// The latent-map standard-deviation objects (tile, object key) of a campaign's first and latest
-/// map stage, in tile order.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct LatentStdKeys {
-    pub first: Vec<(TileKey, String)>,
-    pub last: Vec<(TileKey, String)>,
-}
-
-/// `estimate_tile` output: the tile's latent-map standard deviation per cell (QC, JSON).
-pub const OUTPUT_LATENT_STD: &str = "latent_std";
 /// A strip's per-point segment ids (a result, like the exported strips).
 pub const SEGMENTS_PREFIX: &str = "segments/";
 
@@ -161,11 +151,6 @@ pub enum TaskInput {
     WriteReport {
         prefix: String,
         report: Box<Report>,
-        /// The tiles' latent-map standard-deviation objects of the first and the last iteration.
-        #[serde(default)]
-        latent_std: LatentStdKeys,
-        #[serde(default)]
-        tile_size_m: f64,
     },
 }
 
@@ -270,9 +255,6 @@ pub struct PlanState {
     pub anchor_positions: Option<String>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
-    /// The latent-map standard-deviation objects of the first and the latest map stage (QC).
-    #[serde(default)]
-    pub latent_std: LatentStdKeys,
     pub pending_seconds: f64,
     /// When the current iteration's map stage was enqueued (database clock, ms).
     #[serde(default)]
@@ -348,7 +330,6 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_field_max_m: 0.0,
         anchor_positions: None,
         pending_stats: None,
-        latent_std: LatentStdKeys::default(),
         pending_seconds: 0.0,
         iteration_enqueued_at_ms: None,
         task_s: 0.0,
@@ -562,18 +543,13 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     let mut blocks: Vec<Vec<String>> = vec![Vec::new(); state.trajectories.len()];
     let mut equations = Vec::new();
     let mut seconds = 0.0;
-    let mut latent_std = Vec::with_capacity(per_tile.len());
-    for (tile, task) in &per_tile {
+    for (_, task) in &per_tile {
         let r: EstimateResult = parse(task)?;
         stats.merge(&r.stats);
         seconds += r.seconds;
         for out in &task.outputs {
             if out.name == OUTPUT_FIELD {
                 equations.push(out.object_key.clone());
-                continue;
-            }
-            if out.name == OUTPUT_LATENT_STD {
-                latent_std.push((*tile, out.object_key.clone()));
                 continue;
             }
             let t: usize = out
@@ -587,11 +563,6 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
-    // The same rule as the in-process driver: the first map stage, and the latest.
-    if state.iterations.is_empty() {
-        state.latent_std.first = latent_std.clone();
-    }
-    state.latent_std.last = latent_std;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let momentum = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
     if !step.solves_field(&state.params) {
@@ -823,12 +794,6 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
             task_s: Some(state.task_s),
         },
     };
-    let task = TaskInput::WriteReport {
-        prefix: state.prefix.clone(),
-        report: Box::new(report),
-        latent_std: state.latent_std.clone(),
-        tile_size_m: state.params.tile_size_m,
-    }
-    .task("report".into());
+    let task = TaskInput::WriteReport { prefix: state.prefix.clone(), report: Box::new(report) }.task("report".into());
     Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })
 }

@@ -11,7 +11,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentStdMap, TileStats};
+use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -104,8 +104,6 @@ pub struct Iterated {
     /// The corrections the per-trajectory solves started from: the input corrections plus the
     /// field (the input itself without one). Momentum measures the next step from these.
     pub started_from: Vec<TrajectoryCorrections>,
-    /// Every tile's latent-map standard deviation (QC), in tile order.
-    pub latent_std: Vec<(TileKey, LatentStdMap)>,
 }
 
 /// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
@@ -129,10 +127,8 @@ pub fn iterate(
         .collect::<Result<Vec<_>, _>>()?;
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
     let mut per_trajectory: Vec<Vec<&precimap_estimate::AnchorBlock>> = vec![Vec::new(); corrections.len()];
-    let mut latent_std = Vec::with_capacity(estimates.len());
     for e in &estimates {
         stats.merge(&e.stats);
-        latent_std.push((e.tile, e.latent_std.clone()));
         for tb in &e.blocks {
             per_trajectory[tb.trajectory as usize].extend(tb.blocks.iter());
         }
@@ -172,7 +168,7 @@ pub fn iterate(
             solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, with_sigma)
         })
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Iterated { solutions, stats, field, started_from, latent_std })
+    Ok(Iterated { solutions, stats, field, started_from })
 }
 
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
@@ -202,9 +198,6 @@ pub fn run_campaign(
     let mut solutions;
     let mut step_index = 0;
     let mut robust_sigma: Option<f64> = None;
-    // The latent map's standard deviation per tile in the first and the latest iteration (QC).
-    let mut first_latent_std = Vec::new();
-    let mut last_latent_std;
     // The corrections before the last iteration and that iteration's step (for momentum).
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     loop {
@@ -215,12 +208,8 @@ pub fn run_campaign(
             previous.as_ref().filter(|(_, s)| step.momentum_continues(s, &campaign.params)).map(|(c, _)| c.as_slice());
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
-        let Iterated { solutions: sol, stats, field, started_from, latent_std } =
+        let Iterated { solutions: sol, stats, field, started_from } =
             iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
-        if iterations.is_empty() {
-            first_latent_std = latent_std.clone();
-        }
-        last_latent_std = latent_std;
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
         let mut changes = precimap_core::ChangeHistogram::default();
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
@@ -291,7 +280,6 @@ pub fn run_campaign(
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
     crate::tasks::write_report_plots(&report, out)?;
-    crate::tasks::write_latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, out)?;
     Ok(report)
 }
 

@@ -271,37 +271,6 @@ pub fn write_report_plots(report: &crate::Report, out_dir: &Path) -> Result<(), 
     Ok(())
 }
 
-/// Writes the latent map's standard-deviation maps of the first and the last iteration
-/// (`qc/latent-std-first.svg`, `qc/latent-std-last.svg`) into `out_dir`.
-pub fn write_latent_std_plots(
-    tile_size_m: f64,
-    first: &[(TileKey, precimap_estimate::LatentStdMap)],
-    last: &[(TileKey, precimap_estimate::LatentStdMap)],
-    out_dir: &Path,
-) -> Result<(), PipelineError> {
-    for (name, svg) in latent_std_plots(tile_size_m, first, last) {
-        write_atomic(&out_dir.join(crate::qc::QC_DIR).join(name), svg.as_bytes())?;
-    }
-    Ok(())
-}
-
-/// The standard-deviation maps of the first and the last iteration as (file name inside `qc/`,
-/// SVG).
-pub fn latent_std_plots(
-    tile_size_m: f64,
-    first: &[(TileKey, precimap_estimate::LatentStdMap)],
-    last: &[(TileKey, precimap_estimate::LatentStdMap)],
-) -> [(&'static str, String); 2] {
-    let title = |which: &str| format!("Standard deviation of the latent map, {which} iteration");
-    [
-        (
-            crate::qc::LATENT_STD_FIRST_SVG,
-            crate::qc::latent_std_svg(&title("first (before any correction)"), tile_size_m, first),
-        ),
-        (crate::qc::LATENT_STD_LAST_SVG, crate::qc::latent_std_svg(&title("last"), tile_size_m, last)),
-    ]
-}
-
 /// The report's QC plots as (file name inside `qc/`, SVG).
 pub fn report_plots(report: &crate::Report) -> [(&'static str, String); 2] {
     [
