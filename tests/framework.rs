@@ -161,7 +161,10 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         assert_eq!(status.tasks.dead, 0);
         client.results(submitted.id, &via_http).await.unwrap();
         // The QC plots are served as SVG that a browser shows in place and that runs nothing.
-        let head = http_head(address, &format!("/v1/campaigns/{}/results/qc/convergence.svg", submitted.id)).await;
+        let path = format!("/v1/campaigns/{}/results/qc/convergence.svg", submitted.id);
+        let answer = tokio::task::spawn_blocking(move || http_get(address.port(), &path)).await.unwrap();
+        let answer = answer.expect("the server answers");
+        let head = answer.split("\r\n\r\n").next().unwrap_or_default();
         assert!(head.starts_with("HTTP/1.0 200") || head.starts_with("HTTP/1.1 200"), "{head}");
         let head = head.to_ascii_lowercase();
         assert!(head.contains("content-type: image/svg+xml"), "{head}");
@@ -186,18 +189,6 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         workers.stop().await;
     });
     assert_same_results(&reference, &via_http);
-}
-
-/// The status line and headers of `GET path` (HTTP/1.0: the server closes the connection after
-/// the body).
-async fn http_head(address: std::net::SocketAddr, path: &str) -> String {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
-    stream.write_all(format!("GET {path} HTTP/1.0\r\nHost: {address}\r\n\r\n").as_bytes()).await.unwrap();
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response).await.unwrap();
-    let text = String::from_utf8_lossy(&response);
-    text.split("\r\n\r\n").next().unwrap_or_default().to_string()
 }
 
 /// `field_free_momentum` (an option, off by default) takes the same path in the framework's
@@ -477,14 +468,20 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
 /// enough: on loopback, a connect to a free ephemeral port can pick that port as its own source
 /// and connect to itself.
 fn serves_health(port: u16) -> bool {
+    http_get(port, "/healthz").is_some_and(|answer| answer.starts_with("HTTP/1.") && answer.contains(" 200 "))
+}
+
+/// The whole answer (status line, headers, body) to `GET path` on 127.0.0.1:`port`, over
+/// HTTP/1.0 so that the server closes the connection after the body; `None` if it cannot be read
+/// within 5 s.
+fn http_get(port: u16, path: &str) -> Option<String> {
     use std::io::{Read as _, Write as _};
-    let Ok(mut stream) = std::net::TcpStream::connect(("127.0.0.1", port)) else { return false };
-    let _ = stream.set_read_timeout(Some(Duration::from_secs(5)));
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    stream.write_all(format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").as_bytes()).ok()?;
     let mut answer = String::new();
-    stream.write_all(b"GET /healthz HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").is_ok()
-        && stream.read_to_string(&mut answer).is_ok()
-        && answer.starts_with("HTTP/1.")
-        && answer.contains(" 200 ")
+    stream.read_to_string(&mut answer).ok()?;
+    Some(answer)
 }
 
 /// glibc keeps freed memory in every malloc arena it opens (up to eight per core): the binary

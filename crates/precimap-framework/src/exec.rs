@@ -489,14 +489,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let entry = read_trajectory(ctx, &trajectory).await?;
             let name = format!("trajectories/{}.csv", trajectory.id);
             let key = format!("{prefix}/out/{tag}/{name}");
-            let plot = precimap_pipeline::qc::corrections_svg(&trajectory.id, anchor_spacing_m, &corrections);
+            let (plot_name, plot) =
+                precimap_pipeline::qc::trajectory_plot(&trajectory.id, anchor_spacing_m, &corrections);
             ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
                 .await?;
-            let plot_name = format!(
-                "{}/{}",
-                precimap_pipeline::qc::QC_DIR,
-                precimap_pipeline::qc::corrections_svg_name(&trajectory.id)
-            );
             let plot_key = format!("{prefix}/out/{tag}/{plot_name}");
             ctx.put(&plot_key, plot.into_bytes()).await?;
             let result = ExportResult { points: 0, seconds: started.elapsed().as_secs_f64() };
@@ -509,14 +505,12 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let key = format!("{prefix}/out/{tag}/report.json");
             let json = serde_json::to_vec_pretty(&report)
                 .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
-            ctx.put(&key, json).await?;
-            let mut outputs = vec![OutputKey { name: "report.json".into(), object_key: key }];
-            for (file, svg) in precimap_pipeline::tasks::report_plots(&report) {
-                let name = format!("{}/{file}", precimap_pipeline::qc::QC_DIR);
+            let mut objects = vec![("report.json".to_string(), key, json)];
+            for (name, svg) in precimap_pipeline::qc::report_plots(&report) {
                 let key = format!("{prefix}/out/{tag}/{name}");
-                ctx.put(&key, svg.into_bytes()).await?;
-                outputs.push(OutputKey { name, object_key: key });
+                objects.push((name, key, svg.into_bytes()));
             }
+            let outputs = ctx.put_many(objects).await?;
             Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
         }
     }

@@ -3,21 +3,31 @@
 //! both drivers hold (the corrections, `report.json`), so the in-process driver and the job
 //! framework write the same bytes; a browser shows them.
 
-use crate::report::IterationReport;
+use crate::report::{IterationReport, Report};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_estimate::ResidualHistogram;
 use std::fmt::Write;
 
 /// Folder of the QC plots inside a result folder.
 pub const QC_DIR: &str = "qc";
-/// The residual histogram's file name inside [`QC_DIR`].
-pub const RESIDUALS_SVG: &str = "residuals.svg";
-/// The convergence plot's file name inside [`QC_DIR`].
-pub const CONVERGENCE_SVG: &str = "convergence.svg";
 
-/// A trajectory's correction plot's file name inside [`QC_DIR`].
-pub fn corrections_svg_name(trajectory: &str) -> String {
-    format!("corrections-{trajectory}.svg")
+/// A trajectory's correction plot as (path inside a result folder, SVG): what both drivers write
+/// beside the corrected trajectory.
+pub fn trajectory_plot(
+    trajectory: &str,
+    anchor_spacing_m: f64,
+    corrections: &TrajectoryCorrections,
+) -> (String, String) {
+    (format!("{QC_DIR}/corrections-{trajectory}.svg"), corrections_svg(trajectory, anchor_spacing_m, corrections))
+}
+
+/// The report's plots as (path inside a result folder, SVG): what both drivers write beside
+/// `report.json`.
+pub fn report_plots(report: &Report) -> [(String, String); 2] {
+    [
+        (format!("{QC_DIR}/residuals.svg"), residuals_svg(&report.residual_histogram)),
+        (format!("{QC_DIR}/convergence.svg"), convergence_svg(&report.iterations)),
+    ]
 }
 
 const WIDTH: f64 = 960.0;
@@ -46,8 +56,7 @@ pub fn corrections_svg(trajectory: &str, anchor_spacing_m: f64, corrections: &Tr
     let s1 = s0 + (n.max(2) - 1) as f64 * anchor_spacing_m;
     let mut svg = Svg::new(TOP + 6.0 * (PANEL + GAP));
     svg.title(&format!(
-        "Corrections of trajectory {} ({n} anchors every {} m, arc length {} … {} m)",
-        escape(trajectory),
+        "Corrections of trajectory {trajectory} ({n} anchors every {} m, arc length {} … {} m)",
         number(anchor_spacing_m),
         number(s0),
         number(s1)
@@ -188,6 +197,7 @@ impl Svg {
     }
 
     fn title(&mut self, text: &str) {
+        let text = escape(text);
         let _ = write!(self.out, r##"<text x="{LEFT}" y="24" font-size="15" font-weight="bold">{text}</text>"##);
     }
 

@@ -255,28 +255,17 @@ pub fn export_trajectory_task(
     let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
     export_trajectory_file(entry, campaign.params.anchor_spacing_m, corrections, &dst)?;
-    let plot = out_dir.join(crate::qc::QC_DIR).join(crate::qc::corrections_svg_name(&entry.id));
-    write_atomic(
-        &plot,
-        crate::qc::corrections_svg(&entry.id, campaign.params.anchor_spacing_m, corrections).as_bytes(),
-    )?;
+    let (plot, svg) = crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, corrections);
+    write_atomic(&out_dir.join(plot), svg.as_bytes())?;
     Ok(dst)
 }
 
 /// Writes the report's QC plots (`qc/residuals.svg`, `qc/convergence.svg`) into `out_dir`.
 pub fn write_report_plots(report: &crate::Report, out_dir: &Path) -> Result<(), PipelineError> {
-    for (name, svg) in report_plots(report) {
-        write_atomic(&out_dir.join(crate::qc::QC_DIR).join(name), svg.as_bytes())?;
+    for (name, svg) in crate::qc::report_plots(report) {
+        write_atomic(&out_dir.join(name), svg.as_bytes())?;
     }
     Ok(())
-}
-
-/// The report's QC plots as (file name inside `qc/`, SVG).
-pub fn report_plots(report: &crate::Report) -> [(&'static str, String); 2] {
-    [
-        (crate::qc::RESIDUALS_SVG, crate::qc::residuals_svg(&report.residual_histogram)),
-        (crate::qc::CONVERGENCE_SVG, crate::qc::convergence_svg(&report.iterations)),
-    ]
 }
 
 /// Writes `entry`'s corrected trajectory CSV to `dst`.
