@@ -4,7 +4,8 @@
 #   - PostgreSQL on 127.0.0.1:5432 (the machine's cluster);
 #   - Garage, a single-node S3-compatible server on 127.0.0.1:3900 (DESIGN §5), installed with
 #     `cargo install garage` on first use (~8 min on a fast machine; 65-77 min on this project's
-#     2-core machine beside other builds; the binary is cached in ~/.cargo/bin).
+#     2-core machine beside other builds; the binary is cached in ~/.cargo/bin);
+#   - headless Chromium for the dashboard test (Debian's package, installed on first use).
 set -euo pipefail
 log() { echo "services: $*" >&2; }
 
@@ -49,7 +50,15 @@ TOML
     sleep 1
 fi
 
+if ! command -v chromium >/dev/null; then
+    log "installing Debian's chromium for the dashboard test (first time only, ~1-2 min)"
+    SUDO=$([ "$(id -u)" = 0 ] || echo sudo)
+    { $SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q chromium; } >&2
+fi
+CHROMIUM=$(command -v chromium) || { log "chromium is not installed"; exit 1; }
+
 cat <<ENV
+export PRECIMAP_TEST_CHROMIUM=$CHROMIUM
 export PRECIMAP_TEST_POSTGRES=postgres://postgres@127.0.0.1:5432/postgres
 export PRECIMAP_TEST_S3=s3://precimap/test
 export AWS_ACCESS_KEY_ID=$ACCESS_KEY

@@ -519,3 +519,146 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
         assert_eq!(limits, [expected], "preset {preset:?}; precimap serve said: {}", log());
     }
 }
+
+/// Headless Chromium, as `scripts/services.sh` installs it (`PRECIMAP_TEST_CHROMIUM`); like the
+/// other services, required when the test command sets `PRECIMAP_REQUIRE_SERVICES=1`.
+fn chromium() -> Option<PathBuf> {
+    let path = std::env::var_os("PRECIMAP_TEST_CHROMIUM").map(PathBuf::from).or_else(|| {
+        ["/usr/bin/chromium", "/usr/bin/chromium-browser"].into_iter().map(PathBuf::from).find(|p| p.exists())
+    });
+    if path.is_none() {
+        assert!(
+            std::env::var("PRECIMAP_REQUIRE_SERVICES").as_deref() != Ok("1"),
+            "Chromium is required for the dashboard test (run ./scripts/test.sh, which installs it)"
+        );
+        eprintln!("SKIPPED: no Chromium; ./scripts/test.sh installs Debian's chromium");
+    }
+    path
+}
+
+/// The DOM of `url` after its scripts ran for `budget_ms` of virtual time (which waits for
+/// pending fetches), as headless Chromium serialises it.
+fn rendered_dom(chromium: &Path, url: &str, profile: &Path, budget_ms: u32) -> String {
+    let mut child = std::process::Command::new(chromium)
+        .args([
+            "--headless",
+            "--no-sandbox", // the test runs as root in CI
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--no-first-run",
+            "--window-size=1280,2400",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--virtual-time-budget={budget_ms}"))
+        .args(["--dump-dom", url])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("start chromium");
+    // Read stdout on a thread so that a large DOM cannot fill the pipe while we wait.
+    let mut stdout = child.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut dom = String::new();
+        std::io::Read::read_to_string(&mut stdout, &mut dom).map(|_| dom)
+    });
+    let started = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed() > Duration::from_secs(120) {
+            let _ = child.kill();
+            panic!("chromium did not finish rendering {url} within 120 s");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let dom = reader.join().unwrap().unwrap();
+    let mut errors = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut errors).unwrap();
+    assert!(dom.contains("</html>"), "chromium rendered nothing for {url}: {errors}");
+    dom
+}
+
+/// The part of `dom` from the element with `id` to the end of its first `closing` tag.
+fn element<'a>(dom: &'a str, id: &str, closing: &str) -> &'a str {
+    let start = dom.find(&format!("id=\"{id}\"")).unwrap_or_else(|| panic!("no #{id} in the page"));
+    let end = dom[start..].find(closing).map_or(dom.len(), |e| start + e + closing.len());
+    &dom[start..end]
+}
+
+/// The status dashboard in a real browser over a real port: the campaign list with a succeeded,
+/// a failed and a cancelled campaign, one campaign's iterations, convergence chart, QC plots
+/// (which must load as images despite their sandboxing policy) and events, and a campaign name
+/// that looks like markup shown as text.
+#[test]
+fn the_dashboard_shows_campaigns_in_headless_chromium() {
+    let Some(chromium) = chromium() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let good = simulate_tiny(dir.path(), 5);
+    let bad = simulate_tiny(dir.path(), 6);
+    let las = bad.join("strips/v02-right.las");
+    let bytes = std::fs::read(&las).unwrap();
+    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+    const MARKUP_NAME: &str = "town <img src=x onerror=alert(1)> & co";
+
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
+        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap();
+        let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
+        tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
+
+        let mut good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
+        good_manifest.name = MARKUP_NAME.into();
+        let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
+        let cancelled_id = framework.submit(&bad_manifest).await.unwrap();
+        assert!(jobs.cancel_campaign(cancelled_id).await.unwrap());
+        let bad_id = framework.submit(&bad_manifest).await.unwrap();
+        let good_id = framework.submit(&good_manifest).await.unwrap();
+        let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
+        let failed = wait_finished(&jobs, bad_id, Duration::from_secs(600)).await;
+        let succeeded = wait_finished(&jobs, good_id, Duration::from_secs(600)).await;
+        workers.stop().await;
+        assert_eq!(failed.state, CampaignState::Failed);
+        assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
+        let iterations = jobs.iterations(good_id).await.unwrap().len();
+        let qc_plots = framework.results(good_id).await.unwrap().iter().filter(|(n, _)| n.starts_with("qc/")).count();
+        assert!(iterations > 1 && qc_plots >= 3, "{iterations} iterations, {qc_plots} plots");
+
+        let server = format!("http://{address}");
+        let (chromium, profile) = (chromium.clone(), dir.path().join("chromium"));
+        let (succeeded_page, failed_page) = tokio::task::spawn_blocking(move || {
+            (
+                rendered_dom(&chromium, &format!("{server}/#{good_id}"), &profile, 20_000),
+                rendered_dom(&chromium, &format!("{server}/#{bad_id}"), &profile, 10_000),
+            )
+        })
+        .await
+        .unwrap();
+
+        // The list: all three campaigns with their states; the markup name is text.
+        let dom = &succeeded_page;
+        assert!(dom.contains("data-list-ready=\"1\""), "the list never rendered:\n{dom}");
+        assert!(dom.contains(&format!("data-detail-ready=\"{good_id}\"")), "the campaign never rendered:\n{dom}");
+        let list = element(dom, "campaigns", "</table>");
+        for (id, state) in [(good_id, "succeeded"), (bad_id, "failed"), (cancelled_id, "cancelled")] {
+            let row = element(list, &id.to_string(), "</tr>");
+            assert!(row.contains(&format!("<span class=\"state {state}\">{state}</span>")), "{state}: {row}");
+        }
+        assert!(dom.contains("town &lt;img src=x onerror=alert(1)&gt; &amp; co"), "the name as text:\n{list}");
+        assert!(!dom.contains("onerror=\"alert(1)\""), "the name became markup:\n{dom}");
+        // The campaign: one table row per iteration, the convergence chart, every QC plot loaded.
+        let table = element(dom, "iterations", "</table>");
+        assert_eq!(table.matches("<tr>").count(), 1 + iterations, "{table}");
+        let chart = element(dom, "sigma-chart", "</div>");
+        assert!(chart.contains("<polyline") && chart.contains("class=\"sigma\""), "{chart}");
+        let qc = element(dom, "qc", "</section>");
+        assert_eq!(qc.matches("<img").count(), qc_plots, "{qc}");
+        assert_eq!(qc.matches("data-loaded=\"1\"").count(), qc_plots, "every plot loads as an image: {qc}");
+        let events = element(dom, "events", "</ol>");
+        assert!(events.contains("<strong>succeeded</strong>"), "{events}");
+        // The failed campaign's page names the broken strip.
+        let error = element(&failed_page, "d-error", "</p>");
+        assert!(error.contains("v02-right") && !error.contains(" hidden"), "{error}");
+    });
+}

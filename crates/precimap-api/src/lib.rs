@@ -1,7 +1,8 @@
 //! precimap's REST API (the contract is `api/openapi.yaml`) and the HTTP client the `submit`,
-//! `status` and `results` commands use.
+//! `status` and `results` commands use, and the status dashboard it serves at `/`.
 
 pub mod client;
+pub mod dashboard;
 pub mod server;
 pub mod types;
 

@@ -1,4 +1,4 @@
-//! The REST core (axum). Reads are open (a status dashboard needs no secret); every write needs
+//! The REST core (axum) and the dashboard's page. Reads are open (the status dashboard needs no secret); every write needs
 //! `Authorization: Bearer <token>`. Request bodies are bounded: manifests by `max_manifest_bytes`,
 //! uploads by `max_upload_bytes`. Uploads may only create objects under `inputs/`, so a client
 //! can never overwrite a campaign's work or results.
@@ -56,6 +56,7 @@ pub fn app(state: ApiState) -> Router {
         .route("/v1/campaigns/{id}/results/{*name}", get(download_result))
         // Uploads stream to the store with their own limit (checked while streaming).
         .route("/v1/objects/{*key}", put(upload_object).layer(DefaultBodyLimit::disable()))
+        .merge(crate::dashboard::routes())
         .with_state(state)
 }
 
@@ -249,15 +250,28 @@ async fn delete_campaign(
 struct EventsQuery {
     after: Option<i64>,
     limit: Option<i64>,
+    tail: Option<i64>,
 }
 
+/// `after` pages forward through the log; `tail=N` returns its newest N events (oldest first),
+/// from which a client follows with `after`.
 async fn campaign_events(
     State(state): State<Arc<ApiState>>,
     Path(id): Path<String>,
     Query(q): Query<EventsQuery>,
 ) -> Result<Json<Events>, ApiError> {
     let id = parse_id(&id)?;
-    let events = state.framework.jobs.events(id, q.after.unwrap_or(0), q.limit.unwrap_or(200).clamp(1, 1000)).await?;
+    let jobs = &state.framework.jobs;
+    let events = match (q.tail, q.after, q.limit) {
+        (Some(tail), None, None) => jobs.latest_events(id, tail.clamp(1, 1000)).await?,
+        (None, after, limit) => jobs.events(id, after.unwrap_or(0), limit.unwrap_or(200).clamp(1, 1000)).await?,
+        (Some(_), _, _) => {
+            return Err(ApiError::new(
+                StatusCode::BAD_REQUEST,
+                "`tail` returns the newest events and takes neither `after` nor `limit`; follow it with `after`",
+            ))
+        }
+    };
     Ok(Json(Events { events }))
 }
 

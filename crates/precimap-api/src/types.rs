@@ -29,7 +29,6 @@ pub struct CampaignStatus {
     #[serde(flatten)]
     pub campaign: CampaignSummary,
     pub updated_at_ms: i64,
-    pub finished_at_ms: Option<i64>,
     pub tasks: TaskCounts,
     /// One entry per finished iteration (grid, threshold, points used, residual σ, max change…).
     pub iterations: Vec<serde_json::Value>,
@@ -40,7 +39,6 @@ impl CampaignStatus {
         Self {
             campaign: CampaignSummary::from(c),
             updated_at_ms: c.updated_at_ms,
-            finished_at_ms: c.finished_at_ms,
             tasks,
             iterations: iterations.iter().map(|i| i.stats.clone()).collect(),
         }
@@ -58,6 +56,7 @@ pub struct CampaignSummary {
     pub iterations_planned: i32,
     pub error: Option<String>,
     pub created_at_ms: i64,
+    pub finished_at_ms: Option<i64>,
 }
 
 impl From<&CampaignRecord> for CampaignSummary {
@@ -71,6 +70,7 @@ impl From<&CampaignRecord> for CampaignSummary {
             iterations_planned: c.iterations_planned,
             error: c.error.clone(),
             created_at_ms: c.created_at_ms,
+            finished_at_ms: c.finished_at_ms,
         }
     }
 }

@@ -144,3 +144,63 @@ async fn uploads_stay_inside_inputs_and_within_the_limit() {
     assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
     assert!(!dir.path().join("store/inputs/u1/big").exists());
 }
+
+/// The dashboard's three files need no token, carry their types, and forbid inline script,
+/// foreign origins and framing; the page loads exactly its own script and stylesheet.
+#[tokio::test]
+async fn the_dashboard_is_served_under_a_strict_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    let mut bodies = Vec::new();
+    for (path, content_type) in [
+        ("/", "text/html; charset=utf-8"),
+        ("/dashboard.js", "text/javascript; charset=utf-8"),
+        ("/dashboard.css", "text/css; charset=utf-8"),
+    ] {
+        let response = app(s.clone()).oneshot(request(Method::GET, path, None, Body::empty())).await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{path}");
+        let headers = response.headers();
+        assert_eq!(headers[header::CONTENT_TYPE], content_type, "{path}");
+        assert_eq!(headers[header::X_CONTENT_TYPE_OPTIONS], "nosniff");
+        let policy = headers[header::CONTENT_SECURITY_POLICY].to_str().unwrap();
+        for directive in ["default-src 'none'", "script-src 'self'", "connect-src 'self'", "frame-ancestors 'none'"] {
+            assert!(policy.split(';').any(|d| d.trim() == directive), "{path}: {directive} missing in {policy}");
+        }
+        assert!(!policy.contains("unsafe"), "{policy}");
+        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
+        bodies.push(String::from_utf8(bytes.to_vec()).unwrap());
+    }
+    let page = &bodies[0];
+    assert!(page.contains(r#"<script src="/dashboard.js" defer></script>"#), "{page}");
+    assert!(page.contains(r#"<link rel="stylesheet" href="/dashboard.css">"#), "{page}");
+    // The policy refuses inline script and style, so the page must not depend on any.
+    assert_eq!(page.matches("<script").count(), 1, "only the external script");
+    assert!(!page.contains("<style") && !page.contains(" style="), "inline style in the page");
+    let handler_attribute = page.split(" on").skip(1).any(|rest| {
+        let name: String = rest.chars().take_while(|c| c.is_ascii_alphabetic()).collect();
+        !name.is_empty() && rest[name.len()..].starts_with('=')
+    });
+    assert!(!handler_attribute, "an inline event handler in the page");
+    // Server data enters the page as text only.
+    let script = &bodies[1];
+    for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write", "eval("] {
+        assert!(!script.contains(sink), "the dashboard script uses {sink}");
+    }
+}
+
+/// `tail` (the newest events) cannot be mixed with forward paging.
+#[tokio::test]
+async fn events_tail_excludes_paging() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = state(dir.path()).await;
+    let id = uuid::Uuid::new_v4();
+    let (status, body) =
+        call(&s, request(Method::GET, &format!("/v1/campaigns/{id}/events?tail=5"), None, Body::empty())).await;
+    assert_eq!((status, body), (StatusCode::OK, serde_json::json!({ "events": [] })));
+    for query in ["tail=5&after=3", "tail=5&limit=9"] {
+        let (status, body) =
+            call(&s, request(Method::GET, &format!("/v1/campaigns/{id}/events?{query}"), None, Body::empty())).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{query}");
+        assert!(body["error"].as_str().unwrap().contains("after"), "{body}");
+    }
+}

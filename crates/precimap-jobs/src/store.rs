@@ -586,19 +586,19 @@ impl JobStore {
     pub async fn events(&self, id: Uuid, after_id: i64, limit: i64) -> Result<Vec<EventRecord>, JobError> {
         let q = "SELECT id, campaign, at_ms, kind, task_id, message FROM events WHERE campaign = $1 AND id > $2 \
                  ORDER BY id LIMIT $3";
-        let rows: Vec<(i64, Uuid, i64, String, Option<i64>, String)> =
+        let rows: Vec<EventRow> =
             with_pool!(self, p => sqlx::query_as(q).bind(id).bind(after_id).bind(limit.max(0)).fetch_all(p).await?);
-        Ok(rows
-            .into_iter()
-            .map(|(id, campaign, at_ms, kind, task_id, message)| EventRecord {
-                id,
-                campaign,
-                at_ms,
-                kind,
-                task_id,
-                message,
-            })
-            .collect())
+        Ok(rows.into_iter().map(event_record).collect())
+    }
+
+    /// The campaign's newest `limit` events, oldest first (what a dashboard opens with before it
+    /// follows the log with [`JobStore::events`] after the last id).
+    pub async fn latest_events(&self, id: Uuid, limit: i64) -> Result<Vec<EventRecord>, JobError> {
+        let q = "SELECT id, campaign, at_ms, kind, task_id, message FROM events WHERE campaign = $1 \
+                 ORDER BY id DESC LIMIT $2";
+        let rows: Vec<EventRow> =
+            with_pool!(self, p => sqlx::query_as(q).bind(id).bind(limit.max(0)).fetch_all(p).await?);
+        Ok(rows.into_iter().rev().map(event_record).collect())
     }
 
     /// Queued/leased tasks become `cancelled`, the campaign `cancelled`; a worker still running one
@@ -1374,6 +1374,12 @@ fn finished_tasks(rows: Vec<FinishedRow>, outs: Vec<(i64, String, String)>) -> V
         .collect();
     tasks.sort_by(|a, b| (&a.kind, &a.key).cmp(&(&b.kind, &b.key)));
     tasks
+}
+
+type EventRow = (i64, Uuid, i64, String, Option<i64>, String);
+
+fn event_record((id, campaign, at_ms, kind, task_id, message): EventRow) -> EventRecord {
+    EventRecord { id, campaign, at_ms, kind, task_id, message }
 }
 
 #[cfg(test)]

@@ -365,6 +365,9 @@ async fn records_round_trip(store: JobStore, _url: String) {
     assert_eq!(events.last().map(|e| e.kind.as_str()), Some("succeeded"));
     let tail = store.events(id, events[2].id, 2).await.unwrap();
     assert_eq!(tail, events[3..5].to_vec(), "paging after an id");
+    let latest = store.latest_events(id, 3).await.unwrap();
+    assert_eq!(latest, events[events.len() - 3..].to_vec(), "the newest three, oldest first");
+    assert_eq!(store.latest_events(id, 1000).await.unwrap(), events);
 }
 
 /// s0 → `gap` (no tasks) → s2 (one task) → `Next::Fail` with a message.
