@@ -168,7 +168,7 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
         assert!(head.starts_with("HTTP/1.0 200") || head.starts_with("HTTP/1.1 200"), "{head}");
         let head = head.to_ascii_lowercase();
         assert!(head.contains("content-type: image/svg+xml"), "{head}");
-        assert!(head.contains("content-security-policy: default-src 'none'; sandbox"), "{head}");
+        assert!(head.contains("content-security-policy: default-src 'none'; img-src data:; sandbox"), "{head}");
         assert!(head.contains("x-content-type-options: nosniff"), "{head}");
 
         // The anchors' positions were read from the trajectory files once, by the first field

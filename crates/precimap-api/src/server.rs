@@ -1,7 +1,7 @@
-//! The REST core (axum) and the dashboard's page. Reads are open (the status dashboard needs no secret); every write needs
-//! `Authorization: Bearer <token>`. Request bodies are bounded: manifests by `max_manifest_bytes`,
-//! uploads by `max_upload_bytes`. Uploads may only create objects under `inputs/`, so a client
-//! can never overwrite a campaign's work or results.
+//! The REST core (axum), which also serves the dashboard's page. Reads are open (the status
+//! dashboard needs no secret); every write needs `Authorization: Bearer <token>`. Request bodies
+//! are bounded: manifests by `max_manifest_bytes`, uploads by `max_upload_bytes`. Uploads may only
+//! create objects under `inputs/`, so a client can never overwrite a campaign's work or results.
 
 use crate::types::{CampaignStatus, CampaignSummary, ErrorBody, Events, Problem, ResultEntry, Submitted, Uploaded};
 use axum::body::Body;
@@ -321,9 +321,9 @@ async fn download_result(
     Response::builder()
         .header(header::CONTENT_TYPE, content_type)
         // Results are data, never active content: no sniffing, and an SVG opened directly runs
-        // no script and loads nothing (its styles are attributes).
+        // no script and loads nothing but its own embedded images (its styles are attributes).
         .header(header::X_CONTENT_TYPE_OPTIONS, "nosniff")
-        .header(header::CONTENT_SECURITY_POLICY, "default-src 'none'; sandbox")
+        .header(header::CONTENT_SECURITY_POLICY, "default-src 'none'; img-src data:; sandbox")
         .header(header::CONTENT_LENGTH, size)
         .body(Body::from_stream(stream))
         .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))

@@ -26,5 +26,5 @@ pub use prepare::{
     NO_SEGMENT,
 };
 pub use solve::{solve_trajectory, TrajectorySolution};
-pub use stats::{ResidualHistogram, TileStats};
+pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
 pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, TileEstimate, UsedPoint};

@@ -141,6 +141,52 @@ impl TileStats {
     }
 }
 
+/// The latent map's standard deviation (the spread of the strips' surface heights about it) under
+/// a tile's core points, per square cell of the tile's core seen from above: what the paper's
+/// Figures 11–12 colour. `count[c]` points fell in cell `c` (row-major from the tile's south-west
+/// corner, x fastest), `std_sum_m[c]` sums the standard deviation under each.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LatentStdMap {
+    pub cell_m: f64,
+    /// Cells along each side of the tile.
+    pub side: u32,
+    pub count: Vec<u32>,
+    pub std_sum_m: Vec<f64>,
+}
+
+impl LatentStdMap {
+    /// Cell edge of the QC map: fine enough to show a street's lanes and façades apart, small
+    /// enough (225 cells per 15 m tile) to travel as one object per tile.
+    pub const CELL_M: f64 = 1.0;
+
+    pub fn new(tile_size_m: f64) -> Self {
+        let side = (tile_size_m / Self::CELL_M).ceil().max(1.0) as u32;
+        let cells = (side * side) as usize;
+        Self { cell_m: Self::CELL_M, side, count: vec![0; cells], std_sum_m: vec![0.0; cells] }
+    }
+
+    /// One point at tile-local `(x, y)` (in the core: `[0, tile size)`) with standard deviation
+    /// `std_m` of the latent map under it; points outside the grid or with a non-finite value are
+    /// not counted.
+    #[inline]
+    pub fn add(&mut self, x: f64, y: f64, std_m: f64) {
+        let (i, j) = (floor(x / self.cell_m), floor(y / self.cell_m));
+        let side = self.side as f64;
+        if !(i >= 0.0 && j >= 0.0 && i < side && j < side && std_m.is_finite()) {
+            return;
+        }
+        let c = j as usize * self.side as usize + i as usize;
+        self.count[c] += 1;
+        self.std_sum_m[c] += std_m;
+    }
+
+    /// Mean standard deviation of cell `(i, j)`; `None` where no point fell.
+    pub fn mean_m(&self, i: u32, j: u32) -> Option<f64> {
+        let c = j as usize * self.side as usize + i as usize;
+        (self.count[c] > 0).then(|| self.std_sum_m[c] / self.count[c] as f64)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

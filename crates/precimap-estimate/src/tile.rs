@@ -25,7 +25,7 @@ use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use crate::field::{FieldAccumulator, FieldEquations};
 use crate::hash::FxHashMap;
-use crate::stats::{ResidualHistogram, TileStats};
+use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::{ceil, floor, rotate_small};
 use precimap_core::{IterationStep, Parameters, TileKey};
@@ -59,6 +59,10 @@ pub struct TileEstimate {
     /// The common-mode field's data equations, in steps that solve the field.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<FieldEquations>,
+    /// The latent map's standard deviation under the core points, per cell (QC; only from
+    /// [`estimate_tile_recording`] asked for it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latent_std: Option<LatentStdMap>,
 }
 
 #[derive(Clone, Copy, Default)]
@@ -234,7 +238,7 @@ pub fn estimate_tile(
     params: &Parameters,
     step: &IterationStep,
 ) -> Result<TileEstimate, EstimateError> {
-    estimate_tile_recording(tile, chunks, corrections, params, step, None)
+    estimate_tile_recording(tile, chunks, corrections, params, step, None, false)
 }
 
 /// A point of a tile's core that became an observation: its strip, its index in the strip file
@@ -247,14 +251,57 @@ pub struct UsedPoint {
 }
 
 /// [`estimate_tile`], also appending to `used` every point that became an observation (what the
-/// assignment audit compares with the simulator's true surfaces).
+/// assignment audit compares with the simulator's true surfaces) and, with `std_map`, returning
+/// the latent map's standard deviation per cell ([`TileEstimate::latent_std`], QC).
 pub fn estimate_tile_recording(
     tile: TileKey,
     chunks: &[TileChunk],
     corrections: &[TrajectoryCorrections],
     params: &Parameters,
     step: &IterationStep,
+    used: Option<&mut Vec<UsedPoint>>,
+    std_map: bool,
+) -> Result<TileEstimate, EstimateError> {
+    if std_map {
+        let mut map = LatentStdMap::new(params.tile_size_m);
+        let estimate = estimate_tile_into(tile, chunks, corrections, params, step, used, &mut map)?;
+        Ok(TileEstimate { latent_std: Some(map), ..estimate })
+    } else {
+        estimate_tile_into(tile, chunks, corrections, params, step, used, &mut ())
+    }
+}
+
+/// Where the latent map's standard deviation under each observable core point goes. The
+/// estimation's iterations pass `()`, which compiles to nothing: gathering the map inside every
+/// iteration made the covering loop 5–9 % slower through its code generation alone (stop 22), so
+/// only the iterations whose map is kept (the first and the last) run the recording copy.
+trait LatentStdSink {
+    const RECORDS: bool;
+    fn add(&mut self, x: f64, y: f64, std_m: f64);
+}
+
+impl LatentStdSink for () {
+    const RECORDS: bool = false;
+    #[inline(always)]
+    fn add(&mut self, _: f64, _: f64, _: f64) {}
+}
+
+impl LatentStdSink for LatentStdMap {
+    const RECORDS: bool = true;
+    #[inline]
+    fn add(&mut self, x: f64, y: f64, std_m: f64) {
+        LatentStdMap::add(self, x, y, std_m);
+    }
+}
+
+fn estimate_tile_into<S: LatentStdSink>(
+    tile: TileKey,
+    chunks: &[TileChunk],
+    corrections: &[TrajectoryCorrections],
+    params: &Parameters,
+    step: &IterationStep,
     mut used: Option<&mut Vec<UsedPoint>>,
+    latent_std: &mut S,
 ) -> Result<TileEstimate, EstimateError> {
     for c in chunks {
         if c.tile != tile {
@@ -417,11 +464,12 @@ pub fn estimate_tile_recording(
                 f if f > 0.0 => f * threshold,
                 _ => f64::INFINITY,
             };
-            point_latent(&triangles, index, solves_field.then_some(vehicle.as_slice()), pulls, agreement, &mut stats)
+            let vehicle = solves_field.then_some(vehicle.as_slice());
+            point_latent(&triangles, index, vehicle, pulls, agreement, &mut stats, latent_std)
         }
         None => {
-            let (latent, others) =
-                raster_latent(&triangles, grid, &in_core, solves_field.then_some(vehicle.as_slice()), &mut stats);
+            let vehicle = solves_field.then_some(vehicle.as_slice());
+            let (latent, others) = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, latent_std);
             Latent { height: latent, others, covering: Vec::new(), pull: Vec::new() }
         }
     };
@@ -501,7 +549,7 @@ pub fn estimate_tile_recording(
         .into_iter()
         .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
         .collect();
-    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish) })
+    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish), latent_std: None })
 }
 
 /// The points of one strip segment in one cell whose normals agree.
@@ -724,12 +772,13 @@ impl Triangles<'_> {
 /// With `vehicle` it also returns, per point, the mean scan-head position of everything its
 /// latent height averages (its own pass included, which makes the field's row
 /// `φ(v) − φ(v̄)` carry the other passes' share by itself) and a share of 1, `[x, y, 1]`.
-fn raster_latent(
+fn raster_latent<S: LatentStdSink>(
     t: &Triangles,
     grid: f64,
     in_core: &impl Fn(&[f64; 3]) -> bool,
     vehicle: Option<&[[f64; 2]]>,
     stats: &mut TileStats,
+    latent_std: &mut S,
 ) -> (Vec<f64>, Vec<[f64; 3]>) {
     let models = t.models;
     // Raster extents from the member points; one pixel of margin on each side keeps bilinear
@@ -808,13 +857,29 @@ fn raster_latent(
             let r = &rasters[id as usize];
             let (u, v, _) = m.project(p);
             let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
-            if let (false, Some(o)) = (h.is_nan(), others.get_mut(a)) {
-                *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
+            if !h.is_nan() {
+                if S::RECORDS {
+                    latent_std.add(p[0], p[1], raster_std(r, &pixels, u, v, grid));
+                }
+                if let Some(o) = others.get_mut(a) {
+                    *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
+                }
             }
             h
         })
         .collect();
     (latent, others)
+}
+
+/// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
+/// [`latent_height`] interpolated from, so it has contributions).
+fn raster_std(r: &Raster, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> f64 {
+    let i = (floor((u - r.u0) / grid) as usize).min(r.nu as usize - 1);
+    let j = (floor((v - r.v0) / grid) as usize).min(r.nv as usize - 1);
+    let p = &pixels[r.offset + j * r.nu as usize + i];
+    let n = p.count as f64;
+    let mean = p.sum as f64 / n;
+    (p.sum2 as f64 / n - mean * mean).max(0.0).sqrt()
 }
 
 /// Mean scan-head position of the contributions to the four pixels a point's latent height
@@ -1041,13 +1106,14 @@ struct CoveringTriangle {
 /// `[item, corner the triangle hangs off, model]`, and the last vector returned holds, per item,
 /// what the point's residual pulls on each of its covering triangles ([`ItemPull`]); the two are
 /// what [`corner_pulls`] gathers. Without `pulls` that vector is empty.
-fn point_latent(
+fn point_latent<S: LatentStdSink>(
     t: &Triangles,
     index: &CoreIndex,
     vehicle: Option<&[[f64; 2]]>,
     pulls: Option<(&mut Vec<[u32; 3]>, ItemPull)>,
     agreement: f64,
     stats: &mut TileStats,
+    latent_std: &mut S,
 ) -> Latent {
     let n = t.position.len();
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
@@ -1127,6 +1193,10 @@ fn point_latent(
         stats.pixels_shared += 1;
         let var = ((h * h + s.sum2) / (c + 1.0) - mean * mean).max(0.0);
         stats.pixel_std_sum_m += var.sqrt();
+        if S::RECORDS {
+            let p = &t.position[a as usize];
+            latent_std.add(p[0], p[1], var.sqrt());
+        }
         if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
             latent[a as usize] = mean;
             covering[a as usize] = s.count;
@@ -1500,6 +1570,56 @@ mod tests {
         let params =
             Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds: gate, ..Default::default() };
         estimate_tile(tile, chunks, &corrections, &params, &step).unwrap().stats
+    }
+
+    /// The QC map of the latent map's standard deviation holds what the tile statistics sum
+    /// (point-sampled: one entry per sampled core point), in cells of the tile's core, and both
+    /// routes see three passes 2 mm apart as σ = 2·√(2/3) mm.
+    #[test]
+    fn the_latent_std_map_holds_the_spread_of_the_passes_where_they_are() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let up = [0.0, 0.0, 1.0];
+        let chunks = [
+            strip_on(tile, 0, [0.0, 0.0], 1, |_, _| 0.0, up),
+            strip_on(tile, 1, [0.033, 0.21], 1, |_, _| 0.002, up),
+            strip_on(tile, 2, [0.017, 0.11], 1, |_, _| -0.002, up),
+        ];
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); chunks.len()];
+        let expected = 0.002 * (2.0f64 / 3.0).sqrt();
+        for (grid, sampled) in [(0.01, true), (0.05, false)] {
+            let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
+            let step = IterationStep::new(grid, 0.05);
+            let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, None, true).unwrap();
+            let map = e.latent_std.take().expect("asked for the map");
+            // Recording the map changes nothing else.
+            assert_eq!(e, estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap());
+            assert_eq!(map.side, 15);
+            let count: u64 = map.count.iter().map(|&c| c as u64).sum();
+            let sum: f64 = map.std_sum_m.iter().sum();
+            if sampled {
+                assert_eq!(count, e.stats.pixels_shared);
+                assert!(
+                    (sum - e.stats.pixel_std_sum_m).abs() < 1e-9 * sum.max(1.0),
+                    "{sum} {}",
+                    e.stats.pixel_std_sum_m
+                );
+            }
+            assert!(count > 100, "{count} points mapped");
+            // Every observed cell lies under the strips (x in [2, 6.1] m, y in [2, 7.8] m) and
+            // holds about the three passes' spread.
+            for j in 0..map.side {
+                for i in 0..map.side {
+                    if let Some(mean) = map.mean_m(i, j) {
+                        let (x, y) = (i as f64 + 0.5, j as f64 + 0.5);
+                        assert!((2.0..7.0).contains(&x) && (2.0..8.0).contains(&y), "cell ({i}, {j})");
+                        assert!(
+                            (mean - expected).abs() < 0.35 * expected,
+                            "cell ({i}, {j}) {mean} (sampled {sampled})"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// A car that one of three passes saw on a road (4.5 cm high, in the road's segment and

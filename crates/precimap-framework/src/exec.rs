@@ -11,8 +11,8 @@ use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
     CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult, StripInput, TaskInput,
-    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_POSITIONS, PREVIOUS_PREFIX,
-    SEGMENTS_PREFIX, START_PREFIX,
+    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS,
+    PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
@@ -303,7 +303,17 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let result = SegmentResult { strip: strip.index, stats, tiles, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
-        TaskInput::EstimateTile { prefix, iteration, tile, step, params, trajectories, chunks, corrections } => {
+        TaskInput::EstimateTile {
+            prefix,
+            iteration,
+            tile,
+            step,
+            params,
+            trajectories,
+            chunks,
+            corrections,
+            std_map,
+        } => {
             let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
             let bytes = ctx.get_many(&chunk_keys).await?;
             let decoded: Vec<(String, Bytes)> = chunk_keys.into_iter().zip(bytes).collect();
@@ -322,7 +332,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                         TileChunk::decode(&bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                precimap_estimate::estimate_tile(tile, &chunks, &all, &params, &step)
+                precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, std_map)
                     .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))
             })
             .await??;
@@ -334,6 +344,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             if let Some(field) = &estimate.field {
                 let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");
                 objects.push((OUTPUT_FIELD.into(), key, encode_field(field)));
+            }
+            if let Some(map) = &estimate.latent_std {
+                let key = format!("{prefix}/it/{iteration}/latent-std/{tile}.{tag}.json");
+                objects.push((OUTPUT_LATENT_STD.into(), key, to_bytes(map)?));
             }
             let outputs = ctx.put_many(objects).await?;
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
@@ -501,12 +515,25 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 outputs: vec![OutputKey { name, object_key: key }, OutputKey { name: plot_name, object_key: plot_key }],
             })
         }
-        TaskInput::WriteReport { prefix, report } => {
+        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m } => {
             let key = format!("{prefix}/out/{tag}/report.json");
             let json = serde_json::to_vec_pretty(&report)
                 .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
             let mut objects = vec![("report.json".to_string(), key, json)];
-            for (name, svg) in precimap_pipeline::qc::report_plots(&report) {
+            let mut maps = [Vec::new(), Vec::new()];
+            for (list, refs) in maps.iter_mut().zip([&latent_std.first, &latent_std.last]) {
+                let keys: Vec<String> = refs.iter().map(|(_, key)| key.clone()).collect();
+                for ((tile, key), bytes) in refs.iter().zip(ctx.get_many(&keys).await?) {
+                    let map: precimap_estimate::LatentStdMap = serde_json::from_slice(&bytes)
+                        .map_err(|e| TaskError::permanent(format!("latent-map QC object {key}: {e}")))?;
+                    list.push((*tile, map));
+                }
+            }
+            let [first, last] = &maps;
+            let plots = precimap_pipeline::qc::report_plots(&report)
+                .into_iter()
+                .chain(precimap_pipeline::qc::latent_std_plots(tile_size_m, first, last));
+            for (name, svg) in plots {
                 let key = format!("{prefix}/out/{tag}/{name}");
                 objects.push((name, key, svg.into_bytes()));
             }
@@ -514,6 +541,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
         }
     }
+}
+
+fn to_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, TaskError> {
+    serde_json::to_vec(value).map_err(|e| TaskError::permanent(format!("object does not serialise: {e}")))
 }
 
 fn to_json<T: serde::Serialize>(value: &T) -> Result<serde_json::Value, TaskError> {

@@ -49,6 +49,16 @@ pub const PREVIOUS_PREFIX: &str = "previous/";
 /// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
 /// task (from the trajectory files) and read by the later ones instead of those files.
 pub const OUTPUT_POSITIONS: &str = "anchor_positions";
+/// The latent-map standard-deviation objects (tile, object key) of a campaign's first and latest
+/// map stage, in tile order.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LatentStdKeys {
+    pub first: Vec<(TileKey, String)>,
+    pub last: Vec<(TileKey, String)>,
+}
+
+/// `estimate_tile` output: the tile's latent-map standard deviation per cell (QC, JSON).
+pub const OUTPUT_LATENT_STD: &str = "latent_std";
 /// A strip's per-point segment ids (a result, like the exported strips).
 pub const SEGMENTS_PREFIX: &str = "segments/";
 
@@ -105,6 +115,10 @@ pub enum TaskInput {
         trajectories: u32,
         chunks: Vec<ChunkRef>,
         corrections: Vec<CorrectionsRef>,
+        /// Also write the tile's latent-map standard deviation (QC: the first and the last
+        /// iteration).
+        #[serde(default)]
+        std_map: bool,
     },
     SolveField {
         prefix: String,
@@ -151,6 +165,11 @@ pub enum TaskInput {
     WriteReport {
         prefix: String,
         report: Box<Report>,
+        /// The tiles' latent-map standard-deviation objects of the first and the last iteration.
+        #[serde(default)]
+        latent_std: LatentStdKeys,
+        #[serde(default)]
+        tile_size_m: f64,
     },
 }
 
@@ -255,6 +274,9 @@ pub struct PlanState {
     pub anchor_positions: Option<String>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
+    /// The latent-map standard-deviation objects of the first and the latest map stage (QC).
+    #[serde(default)]
+    pub latent_std: LatentStdKeys,
     pub pending_seconds: f64,
     /// When the current iteration's map stage was enqueued (database clock, ms).
     #[serde(default)]
@@ -330,6 +352,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_field_max_m: 0.0,
         anchor_positions: None,
         pending_stats: None,
+        latent_std: LatentStdKeys::default(),
         pending_seconds: 0.0,
         iteration_enqueued_at_ms: None,
         task_s: 0.0,
@@ -496,6 +519,12 @@ fn after_prepare(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<(Vec<T
     Ok((records, seconds))
 }
 
+/// Whether the current iteration runs the schedule's last step (the run always ends on it:
+/// early convergence jumps to it).
+fn is_last_step(state: &PlanState) -> bool {
+    state.step_index + 1 == state.params.schedule.len()
+}
+
 fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
     CorrectionsRef {
         trajectory,
@@ -507,6 +536,7 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
+    let std_map = state.iterations.is_empty() || is_last_step(state);
     let tasks = state
         .tiles
         .iter()
@@ -523,6 +553,7 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 trajectories: state.trajectories.len() as u32,
                 chunks: chunks.clone(),
                 corrections: used.into_iter().map(|t| corrections_ref(state, t)).collect(),
+                std_map,
             }
             .task(tile.to_string())
         })
@@ -543,13 +574,18 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     let mut blocks: Vec<Vec<String>> = vec![Vec::new(); state.trajectories.len()];
     let mut equations = Vec::new();
     let mut seconds = 0.0;
-    for (_, task) in &per_tile {
+    let mut latent_std = Vec::with_capacity(per_tile.len());
+    for (tile, task) in &per_tile {
         let r: EstimateResult = parse(task)?;
         stats.merge(&r.stats);
         seconds += r.seconds;
         for out in &task.outputs {
             if out.name == OUTPUT_FIELD {
                 equations.push(out.object_key.clone());
+                continue;
+            }
+            if out.name == OUTPUT_LATENT_STD {
+                latent_std.push((*tile, out.object_key.clone()));
                 continue;
             }
             let t: usize = out
@@ -563,6 +599,13 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
+    // The same rule as the in-process driver: the first iteration and the last.
+    if state.iterations.is_empty() {
+        state.latent_std.first = latent_std.clone();
+    }
+    if is_last_step(state) {
+        state.latent_std.last = latent_std;
+    }
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let momentum = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
     if !step.solves_field(&state.params) {
@@ -642,7 +685,7 @@ fn solve_stage(
     previous: Option<Vec<Option<String>>>,
 ) -> Next {
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let with_sigma = state.step_index + 1 == state.params.schedule.len();
+    let with_sigma = is_last_step(state);
     let reference = |keys: &[Option<String>], t: u32| CorrectionsRef {
         trajectory: t,
         anchors: state.anchor_ranges[t as usize],
@@ -794,6 +837,12 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
             task_s: Some(state.task_s),
         },
     };
-    let task = TaskInput::WriteReport { prefix: state.prefix.clone(), report: Box::new(report) }.task("report".into());
+    let task = TaskInput::WriteReport {
+        prefix: state.prefix.clone(),
+        report: Box::new(report),
+        latent_std: state.latent_std.clone(),
+        tile_size_m: state.params.tile_size_m,
+    }
+    .task("report".into());
     Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })
 }

@@ -5,7 +5,8 @@
 
 use crate::report::{IterationReport, Report};
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_estimate::ResidualHistogram;
+use precimap_core::TileKey;
+use precimap_estimate::{LatentStdMap, ResidualHistogram};
 use std::fmt::Write;
 
 /// Folder of the QC plots inside a result folder.
@@ -27,6 +28,23 @@ pub fn report_plots(report: &Report) -> [(String, String); 2] {
     [
         (format!("{QC_DIR}/residuals.svg"), residuals_svg(&report.residual_histogram)),
         (format!("{QC_DIR}/convergence.svg"), convergence_svg(&report.iterations)),
+    ]
+}
+
+/// The latent map's standard-deviation maps of the first iteration (before any correction) and
+/// the last, as (path inside a result folder, SVG).
+pub fn latent_std_plots(
+    tile_size_m: f64,
+    first: &[(TileKey, LatentStdMap)],
+    last: &[(TileKey, LatentStdMap)],
+) -> [(String, String); 2] {
+    let title = |which: &str| format!("Standard deviation of the latent map, {which} iteration");
+    [
+        (
+            format!("{QC_DIR}/latent-std-first.svg"),
+            latent_std_svg(&title("first (before any correction)"), tile_size_m, first),
+        ),
+        (format!("{QC_DIR}/latent-std-last.svg"), latent_std_svg(&title("last"), tile_size_m, last)),
     ]
 }
 
@@ -154,6 +172,129 @@ pub fn convergence_svg(iterations: &[IterationReport]) -> String {
         }
     }
     svg.finish()
+}
+
+/// The latent map's standard deviation seen from above, one pixel per [`LatentStdMap`] cell, on
+/// the paper's temperature scale (Figures 11–12: blue 0 mm … red [`STD_MAP_RED_MM`] mm or more;
+/// grey where no point was observed), as a PNG inside an SVG that carries the title, the colour
+/// scale and a scale bar. `tiles` in any order; `tile_size_m` places them.
+pub fn latent_std_svg(title: &str, tile_size_m: f64, tiles: &[(TileKey, LatentStdMap)]) -> String {
+    let side = tiles.iter().map(|(_, m)| m.side).max().unwrap_or(1).max(1);
+    let cell_m = tiles.first().map_or(LatentStdMap::CELL_M, |(_, m)| m.cell_m);
+    let (tx0, tx1) = tiles.iter().fold((i32::MAX, i32::MIN), |(a, b), (k, _)| (a.min(k.tx), b.max(k.tx)));
+    let (ty0, ty1) = tiles.iter().fold((i32::MAX, i32::MIN), |(a, b), (k, _)| (a.min(k.ty), b.max(k.ty)));
+    let (columns, rows) =
+        if tiles.is_empty() { (1, 1) } else { ((tx1 - tx0 + 1) as u32 * side, (ty1 - ty0 + 1) as u32 * side) };
+    let mut rgba = vec![0u8; (columns * rows * 4) as usize];
+    let mut means = Vec::new();
+    for (key, map) in tiles {
+        for j in 0..map.side {
+            for i in 0..map.side {
+                let Some(mean) = map.mean_m(i, j) else { continue };
+                means.push(mean);
+                let x = (key.tx - tx0) as u32 * side + i;
+                // North up: the image's first row is the northernmost cell.
+                let y = rows - 1 - ((key.ty - ty0) as u32 * side + j);
+                let at = ((y * columns + x) * 4) as usize;
+                let [r, g, b] = temperature(mean * 1e3 / STD_MAP_RED_MM);
+                rgba[at..at + 4].copy_from_slice(&[r, g, b, 255]);
+            }
+        }
+    }
+    means.sort_by(f64::total_cmp);
+    let median = means.get(means.len() / 2).map_or("–".into(), |m| number(m * 1e3));
+    let red = means.iter().filter(|m| **m * 1e3 >= STD_MAP_RED_MM).count();
+    let red_share = if means.is_empty() { 0.0 } else { 100.0 * red as f64 / means.len() as f64 };
+    // Shown at a whole number of screen pixels per cell, up to the page width.
+    let zoom = ((WIDTH - LEFT - RIGHT) / columns as f64).floor().clamp(1.0, 8.0);
+    let (w, h) = (columns as f64 * zoom, rows as f64 * zoom);
+    let legend_top = TOP + h + 24.0;
+    let mut svg = Svg::new(legend_top + 70.0);
+    svg.title(title);
+    let _ = write!(
+        svg.out,
+        r##"<text x="{LEFT}" y="44">{} cells of {} m observed: median {median} mm, {} % at {} mm or more; north up, tiles {}…{} × {}…{} of {} m</text>"##,
+        means.len(),
+        number(cell_m),
+        number(red_share),
+        number(STD_MAP_RED_MM),
+        tx0.min(tx1),
+        tx1.max(tx0),
+        ty0.min(ty1),
+        ty1.max(ty0),
+        number(tile_size_m)
+    );
+    let _ = write!(
+        svg.out,
+        r##"<rect x="{LEFT}" y="{TOP}" width="{w}" height="{h}" fill="#d8d8d8"/><image x="{LEFT}" y="{TOP}" width="{w}" height="{h}" image-rendering="pixelated" preserveAspectRatio="none" href="data:image/png;base64,{}"/>"##,
+        base64(&encode_png(columns, rows, &rgba))
+    );
+    // Colour scale in 1 mm steps, and a scale bar of a round length.
+    for k in 0..=STD_MAP_RED_MM as usize {
+        let [r, g, b] = temperature(k as f64 / STD_MAP_RED_MM);
+        let x = LEFT + k as f64 * 36.0;
+        let label = if k == STD_MAP_RED_MM as usize { format!("≥ {k} mm") } else { format!("{k}") };
+        let _ = write!(
+            svg.out,
+            r##"<rect x="{x}" y="{legend_top}" width="36" height="14" fill="rgb({r},{g},{b})"/><text x="{x}" y="{:.1}">{label}</text>"##,
+            legend_top + 28.0
+        );
+    }
+    let bar_m = round_below(columns as f64 * cell_m / 4.0).max(cell_m);
+    let bar = bar_m / cell_m * zoom;
+    let x = LEFT + 8.0 * 36.0 + 40.0;
+    let _ = write!(
+        svg.out,
+        r##"<rect x="{x}" y="{legend_top}" width="{bar:.1}" height="6" fill="#222222"/><text x="{x}" y="{:.1}">{} m</text>"##,
+        legend_top + 28.0,
+        number(bar_m)
+    );
+    svg.finish()
+}
+
+/// Standard deviation at which the map turns fully red (mm), the paper's scale.
+pub const STD_MAP_RED_MM: f64 = 7.0;
+
+/// The temperature scale: 0 blue, ¼ cyan, ½ green, ¾ yellow, 1 (and above) red.
+fn temperature(t: f64) -> [u8; 3] {
+    const STOPS: [[f64; 3]; 5] =
+        [[0.0, 0.0, 255.0], [0.0, 255.0, 255.0], [0.0, 200.0, 0.0], [255.0, 230.0, 0.0], [230.0, 0.0, 0.0]];
+    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 1.0 } * 4.0;
+    let k = (t.floor() as usize).min(3);
+    let f = t - k as f64;
+    let (a, b) = (STOPS[k], STOPS[k + 1]);
+    [0, 1, 2].map(|c| (a[c] + (b[c] - a[c]) * f).round() as u8)
+}
+
+fn encode_png(width: u32, height: u32, rgba: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut encoder = png::Encoder::new(&mut out, width, height);
+    encoder.set_color(png::ColorType::Rgba);
+    encoder.set_depth(png::BitDepth::Eight);
+    // Writing to memory: the only failure is a size the header cannot hold, which a map of
+    // whole tiles never reaches; an empty image is then still a valid SVG.
+    if let Ok(mut writer) = encoder.write_header() {
+        let _ = writer.write_image_data(rgba);
+    }
+    out
+}
+
+/// Standard base64 (RFC 4648, with padding).
+fn base64(bytes: &[u8]) -> String {
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
+        let n = (u32::from(b[0]) << 16) | (u32::from(b[1]) << 8) | u32::from(b[2]);
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[((n >> (18 - 6 * k)) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
 }
 
 /// A line of a plot: its colour and its (x, y) vertices.
@@ -335,6 +476,12 @@ fn ticks(lo: f64, hi: f64, count: usize) -> Vec<f64> {
     (first..=last).map(|k| k as f64 * step).collect()
 }
 
+/// The largest 1, 2 or 5 × a power of ten not above `v` (positive).
+fn round_below(v: f64) -> f64 {
+    let power = 10f64.powf(v.log10().floor());
+    [5.0, 2.0, 1.0].into_iter().map(|m| m * power).find(|r| *r <= v).unwrap_or(power)
+}
+
 /// The powers of ten within `[lo, hi]` (both positive).
 fn decades(lo: f64, hi: f64) -> Vec<f64> {
     let (a, b) = (lo.log10().ceil() as i32, hi.log10().floor() as i32);
@@ -398,7 +545,15 @@ mod tests {
         assert!(svg.ends_with("</svg>\n"));
         assert_eq!(svg.matches("<text").count(), svg.matches("</text>").count());
         assert_eq!(svg.matches('<').count(), svg.matches('>').count());
-        assert!(!svg.contains("NaN") && !svg.contains("inf"), "non-finite coordinates");
+        // Outside an embedded image's base64 (where any letters may follow each other).
+        let text = match svg.find("base64,") {
+            Some(start) => {
+                let end = start + svg[start..].find('"').unwrap();
+                format!("{}{}", &svg[..start], &svg[end..])
+            }
+            None => svg.to_string(),
+        };
+        assert!(!text.contains("NaN") && !text.contains("inf"), "non-finite coordinates");
     }
 
     #[test]
@@ -500,6 +655,70 @@ mod tests {
         assert!(steps.iter().all(|s| (s - steps[0]).abs() < 0.11 && *s > 0.0), "{steps:?}");
         assert!(svg.contains(">0.001<") && svg.contains(">10<"), "decade labels");
         assert_well_formed(&convergence_svg(&[]));
+    }
+
+    /// The PNG inside a map's SVG, decoded: (width, height, RGBA).
+    fn embedded_png(svg: &str) -> (u32, u32, Vec<u8>) {
+        let start = svg.find("base64,").unwrap() + "base64,".len();
+        let text = &svg[start..start + svg[start..].find('"').unwrap()];
+        let value = |c: u8| ALPHABET_INDEX.iter().position(|&a| a == c).unwrap() as u32;
+        let mut bytes = Vec::new();
+        for quad in text.as_bytes().chunks(4) {
+            let pad = quad.iter().filter(|&&c| c == b'=').count();
+            let n = quad.iter().take(4 - pad).enumerate().fold(0, |n, (k, &c)| n | value(c) << (18 - 6 * k));
+            bytes.extend_from_slice(&[(n >> 16) as u8, (n >> 8) as u8, n as u8][..3 - pad]);
+        }
+        let mut reader = png::Decoder::new(std::io::Cursor::new(bytes)).read_info().unwrap();
+        let mut rgba = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut rgba).unwrap();
+        (info.width, info.height, rgba)
+    }
+    const ALPHABET_INDEX: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+
+    #[test]
+    fn the_latent_map_is_drawn_north_up_on_the_papers_scale() {
+        // Two tiles side by side east–west, one row apart north–south: (10, 20) and (11, 21).
+        let mut south_west = LatentStdMap::new(15.0);
+        south_west.add(0.5, 0.5, 0.001); // its south-west cell: 1 mm
+        south_west.add(0.6, 0.4, 0.003); // the same cell again: mean 2 mm
+        south_west.add(14.5, 14.5, 0.010); // its north-east cell: 10 mm, beyond red
+        let mut north_east = LatentStdMap::new(15.0);
+        north_east.add(7.2, 3.9, 0.0);
+        north_east.add(-0.1, 3.0, 0.5); // outside the core: not counted
+        north_east.add(3.0, 3.0, f64::NAN); // not counted
+        let tiles = [(TileKey { tx: 11, ty: 21 }, north_east), (TileKey { tx: 10, ty: 20 }, south_west)];
+        let svg = latent_std_svg("A & B", 15.0, &tiles);
+        assert_well_formed(&svg);
+        assert!(svg.contains("A &amp; B"));
+        assert!(svg.contains("3 cells of 1 m observed: median 2 mm, 33.33 % at 7 mm or more"), "{svg}");
+        let (w, h, rgba) = embedded_png(&svg);
+        assert_eq!((w, h), (30, 30));
+        let pixel = |x: u32, y: u32| rgba[((y * w + x) * 4) as usize..][..4].to_vec();
+        // South-west tile's south-west cell: the image's bottom-left pixel, 2 mm of 7.
+        assert_eq!(pixel(0, 29), [temperature(2.0 / 7.0).to_vec(), vec![255]].concat());
+        assert_eq!(pixel(14, 15), vec![230, 0, 0, 255], "10 mm is red");
+        // North-east tile, cell (7, 3): x 15 + 7, y 29 − (15 + 3); 0 mm is blue.
+        assert_eq!(pixel(22, 11), vec![0, 0, 255, 255]);
+        // Everything else is transparent (the grey background shows).
+        let opaque = rgba.chunks(4).filter(|p| p[3] != 0).count();
+        assert_eq!(opaque, 3);
+        // No tiles at all still renders.
+        assert_well_formed(&latent_std_svg("empty", 15.0, &[]));
+    }
+
+    #[test]
+    fn base64_and_the_temperature_scale() {
+        assert_eq!(base64(b"Man"), "TWFu");
+        assert_eq!(base64(b"Ma"), "TWE=");
+        assert_eq!(base64(b"M"), "TQ==");
+        assert_eq!(base64(b""), "");
+        assert_eq!(temperature(0.0), [0, 0, 255]);
+        assert_eq!(temperature(0.5), [0, 200, 0]);
+        assert_eq!(temperature(1.0), [230, 0, 0]);
+        assert_eq!(temperature(3.0), [230, 0, 0]);
+        assert_eq!(temperature(f64::NAN), [230, 0, 0]);
+        assert_eq!(round_below(67.5), 50.0);
+        assert_eq!(round_below(3.0), 2.0);
     }
 
     #[test]

@@ -7,11 +7,11 @@ use crate::error::PipelineError;
 use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use crate::tasks::{
     anchor_positions, estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task,
-    solve_trajectory_task,
+    solve_trajectory_task, Gather,
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, TileStats};
+use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -104,6 +104,18 @@ pub struct Iterated {
     /// The corrections the per-trajectory solves started from: the input corrections plus the
     /// field (the input itself without one). Momentum measures the next step from these.
     pub started_from: Vec<TrajectoryCorrections>,
+    /// Every tile's latent-map standard deviation (QC), in tile order; empty unless asked for.
+    pub latent_std: Vec<(TileKey, LatentStdMap)>,
+}
+
+/// Where an iteration stands in a run, which decides what it reports besides the corrections.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Place {
+    /// The run's first iteration: its latent map's σ is kept (QC, before any correction).
+    pub first: bool,
+    /// The schedule's last step, where every run ends (early convergence jumps to it): the
+    /// corrections' posterior σ and the latent map's σ are reported.
+    pub last: bool,
 }
 
 /// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
@@ -115,18 +127,20 @@ pub fn iterate(
     corrections: &[TrajectoryCorrections],
     previous: Option<&[TrajectoryCorrections]>,
     step: &precimap_core::IterationStep,
-    with_sigma: bool,
+    place: Place,
 ) -> Result<Iterated, PipelineError> {
+    let std_map = place.first || place.last;
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
-    let estimates = tiles
+    let mut estimates = tiles
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, None)
+            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, std_map })
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
     let mut per_trajectory: Vec<Vec<&precimap_estimate::AnchorBlock>> = vec![Vec::new(); corrections.len()];
+    let latent_std: Vec<_> = estimates.iter_mut().filter_map(|e| Some((e.tile, e.latent_std.take()?))).collect();
     for e in &estimates {
         stats.merge(&e.stats);
         for tb in &e.blocks {
@@ -165,10 +179,10 @@ pub fn iterate(
         .enumerate()
         .map(|(t, blocks)| {
             let before = previous.as_ref().map(|p| &p[t]);
-            solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, with_sigma)
+            solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, place.last)
         })
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Iterated { solutions, stats, field, started_from })
+    Ok(Iterated { solutions, stats, field, started_from, latent_std })
 }
 
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
@@ -198,6 +212,9 @@ pub fn run_campaign(
     let mut solutions;
     let mut step_index = 0;
     let mut robust_sigma: Option<f64> = None;
+    // The latent map's standard deviation per tile in the first and the latest iteration (QC).
+    let mut first_latent_std = Vec::new();
+    let mut last_latent_std = Vec::new();
     // The corrections before the last iteration and that iteration's step (for momentum).
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     loop {
@@ -208,8 +225,17 @@ pub fn run_campaign(
             previous.as_ref().filter(|(_, s)| step.momentum_continues(s, &campaign.params)).map(|(c, _)| c.as_slice());
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
-        let Iterated { solutions: sol, stats, field, started_from } =
-            iterate(&campaign, &work, &prepared, &corrections, before, step, last)?;
+        // The latent map's σ is gathered in the first and the last iteration only (the rule the
+        // framework's planner follows too).
+        let first = iterations.is_empty();
+        let Iterated { solutions: sol, stats, field, started_from, latent_std } =
+            iterate(&campaign, &work, &prepared, &corrections, before, step, Place { first, last })?;
+        if first {
+            first_latent_std = latent_std.clone();
+        }
+        if last {
+            last_latent_std = latent_std;
+        }
         let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
         let mut changes = precimap_core::ChangeHistogram::default();
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
@@ -280,6 +306,7 @@ pub fn run_campaign(
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
     crate::tasks::write_report_plots(&report, out)?;
+    crate::tasks::write_latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, out)?;
     Ok(report)
 }
 
@@ -301,7 +328,15 @@ fn write_assignments(
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
             let mut used = Vec::new();
-            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Some(&mut used))?;
+            estimate_tile_task(
+                work,
+                **tile,
+                &ids,
+                corrections,
+                campaign,
+                step,
+                Gather { used: Some(&mut used), std_map: false },
+            )?;
             Ok(used)
         })
         .collect::<Result<Vec<_>, PipelineError>>()?;

@@ -154,8 +154,17 @@ pub fn load_tile(work: &Path, tile: TileKey, strip_ids: &[&str]) -> Result<Vec<T
         .collect()
 }
 
-/// `estimate_tile` over chunk files; with `used`, also every observation's surface model
-/// ([`precimap_estimate::estimate_tile_recording`], the assignment audit).
+/// What an estimate task gathers besides its blocks and statistics
+/// ([`precimap_estimate::estimate_tile_recording`]).
+#[derive(Debug, Default)]
+pub struct Gather<'a> {
+    /// Every observation's surface model (the assignment audit).
+    pub used: Option<&'a mut Vec<UsedPoint>>,
+    /// The latent map's standard deviation per cell (QC).
+    pub std_map: bool,
+}
+
+/// `estimate_tile` over chunk files, gathering what `gather` asks for.
 pub fn estimate_tile_task(
     work: &Path,
     tile: TileKey,
@@ -163,10 +172,10 @@ pub fn estimate_tile_task(
     corrections: &[TrajectoryCorrections],
     campaign: &Campaign,
     step: &IterationStep,
-    used: Option<&mut Vec<UsedPoint>>,
+    gather: Gather,
 ) -> Result<TileEstimate, PipelineError> {
     let chunks = load_tile(work, tile, strip_ids)?;
-    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, used)
+    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, gather.used, gather.std_map)
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
 }
 
@@ -263,6 +272,20 @@ pub fn export_trajectory_task(
 /// Writes the report's QC plots (`qc/residuals.svg`, `qc/convergence.svg`) into `out_dir`.
 pub fn write_report_plots(report: &crate::Report, out_dir: &Path) -> Result<(), PipelineError> {
     for (name, svg) in crate::qc::report_plots(report) {
+        write_atomic(&out_dir.join(name), svg.as_bytes())?;
+    }
+    Ok(())
+}
+
+/// Writes the latent map's standard-deviation maps of the first and the last iteration
+/// (`qc/latent-std-first.svg`, `qc/latent-std-last.svg`) into `out_dir`.
+pub fn write_latent_std_plots(
+    tile_size_m: f64,
+    first: &[(TileKey, precimap_estimate::LatentStdMap)],
+    last: &[(TileKey, precimap_estimate::LatentStdMap)],
+    out_dir: &Path,
+) -> Result<(), PipelineError> {
+    for (name, svg) in crate::qc::latent_std_plots(tile_size_m, first, last) {
         write_atomic(&out_dir.join(name), svg.as_bytes())?;
     }
     Ok(())
