@@ -92,6 +92,50 @@ async fn wait_finished(jobs: &JobStore, id: uuid::Uuid, limit: Duration) -> prec
     }
 }
 
+/// Two tiny campaigns in `dir`: seed 5 as simulated, and seed 6 with strip v02-right cut to a
+/// third of its bytes (its prepare task fails with a message naming the strip).
+fn good_and_corrupt_campaigns(dir: &Path) -> (PathBuf, PathBuf) {
+    let good = simulate_tiny(dir, 5);
+    let bad = simulate_tiny(dir, 6);
+    let las = bad.join("strips/v02-right.las");
+    let bytes = std::fs::read(&las).unwrap();
+    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+    (good, bad)
+}
+
+/// The embedded backends in `dir`: SQLite `jobs.db` and a file store `store/`.
+async fn local_framework(dir: &Path) -> (JobStore, Objects, Framework) {
+    let jobs = JobStore::connect(&format!("sqlite://{}", dir.join("jobs.db").display())).await.unwrap();
+    let objects = Objects::from_url(&format!("file://{}", dir.join("store").display())).unwrap();
+    let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+    (jobs, objects, framework)
+}
+
+/// The API over `framework` on a free loopback port (writers need the token `t0ken`).
+async fn serve_api(framework: &Framework) -> std::net::SocketAddr {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap();
+    let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
+    tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
+    address
+}
+
+/// Works the store's queue with [`LocalExecutors`] until every campaign of `ids` has finished.
+async fn run_until_finished(
+    jobs: &JobStore,
+    objects: &Objects,
+    scratch: &Path,
+    ids: &[uuid::Uuid],
+) -> Vec<precimap_jobs::CampaignRecord> {
+    let workers = LocalExecutors::start(jobs, objects, scratch);
+    let mut finished = Vec::with_capacity(ids.len());
+    for &id in ids {
+        finished.push(wait_finished(jobs, id, Duration::from_secs(600)).await);
+    }
+    workers.stop().await;
+    finished
+}
+
 /// Executors in this process (two tasks at a time) working the store's queue until stopped.
 struct LocalExecutors {
     stop: tokio::sync::watch::Sender<bool>,
@@ -138,13 +182,8 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
     // 2. Over a real port: `submit`, `status`, `results` through the HTTP client.
     let via_http = dir.path().join("via-http");
     rt.block_on(async {
-        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
-        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
-        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let address = listener.local_addr().unwrap();
-        let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
-        tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
+        let (jobs, objects, framework) = local_framework(dir.path()).await;
+        let address = serve_api(&framework).await;
         let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
 
         let server = format!("http://{address}");
@@ -223,25 +262,19 @@ fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
 #[test]
 fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
     let dir = tempfile::tempdir().unwrap();
-    let good = simulate_tiny(dir.path(), 5);
-    let bad = simulate_tiny(dir.path(), 6);
-    let las = bad.join("strips/v02-right.las");
-    let bytes = std::fs::read(&las).unwrap();
-    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+    let (good, bad) = good_and_corrupt_campaigns(dir.path());
 
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
-        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
-        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+        let (jobs, objects, framework) = local_framework(dir.path()).await;
         let good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
         let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
         let bad_id = framework.submit(&bad_manifest).await.unwrap();
         let good_id = framework.submit(&good_manifest).await.unwrap();
-        let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
-        let failed = wait_finished(&jobs, bad_id, Duration::from_secs(600)).await;
-        let succeeded = wait_finished(&jobs, good_id, Duration::from_secs(600)).await;
-        workers.stop().await;
+        let [failed, succeeded] = run_until_finished(&jobs, &objects, &dir.path().join("scratch"), &[bad_id, good_id])
+            .await
+            .try_into()
+            .unwrap();
         assert_eq!(failed.state, CampaignState::Failed);
         let error = failed.error.unwrap();
         assert!(error.contains("v02-right"), "the error names the strip: {error}");
@@ -591,22 +624,13 @@ fn element<'a>(dom: &'a str, id: &str, closing: &str) -> &'a str {
 fn the_dashboard_shows_campaigns_in_headless_chromium() {
     let Some(chromium) = chromium() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let good = simulate_tiny(dir.path(), 5);
-    let bad = simulate_tiny(dir.path(), 6);
-    let las = bad.join("strips/v02-right.las");
-    let bytes = std::fs::read(&las).unwrap();
-    std::fs::write(&las, &bytes[..bytes.len() / 3]).unwrap();
+    let (good, bad) = good_and_corrupt_campaigns(dir.path());
     const MARKUP_NAME: &str = "town <img src=x onerror=alert(1)> & co";
 
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let jobs = JobStore::connect(&format!("sqlite://{}", dir.path().join("jobs.db").display())).await.unwrap();
-        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
-        let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let address = listener.local_addr().unwrap();
-        let state = ApiState::new(framework.clone(), Auth::Token("t0ken".into()));
-        tokio::spawn(async move { axum::serve(listener, app(state)).await.unwrap() });
+        let (jobs, objects, framework) = local_framework(dir.path()).await;
+        let address = serve_api(&framework).await;
 
         let mut good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
         good_manifest.name = MARKUP_NAME.into();
@@ -615,10 +639,10 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         assert!(jobs.cancel_campaign(cancelled_id).await.unwrap());
         let bad_id = framework.submit(&bad_manifest).await.unwrap();
         let good_id = framework.submit(&good_manifest).await.unwrap();
-        let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
-        let failed = wait_finished(&jobs, bad_id, Duration::from_secs(600)).await;
-        let succeeded = wait_finished(&jobs, good_id, Duration::from_secs(600)).await;
-        workers.stop().await;
+        let [failed, succeeded] = run_until_finished(&jobs, &objects, &dir.path().join("scratch"), &[bad_id, good_id])
+            .await
+            .try_into()
+            .unwrap();
         assert_eq!(failed.state, CampaignState::Failed);
         assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
         let iterations = jobs.iterations(good_id).await.unwrap().len();

@@ -49,7 +49,7 @@ pub const PREVIOUS_PREFIX: &str = "previous/";
 /// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
 /// task (from the trajectory files) and read by the later ones instead of those files.
 pub const OUTPUT_POSITIONS: &str = "anchor_positions";
-/// The latent-map standard-deviation objects (tile, object key) of a campaign's first and latest
+/// The latent-map standard-deviation objects (tile, object key) of a campaign's first and last
 /// map stage, in tile order.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LatentStdKeys {
@@ -274,7 +274,7 @@ pub struct PlanState {
     pub anchor_positions: Option<String>,
     /// Statistics of the current iteration's map stage, reported once its reduce stage is done.
     pub pending_stats: Option<TileStats>,
-    /// The latent-map standard-deviation objects of the first and the latest map stage (QC).
+    /// The latent-map standard-deviation objects of the first and the last iteration (QC).
     #[serde(default)]
     pub latent_std: LatentStdKeys,
     pub pending_seconds: f64,

@@ -212,7 +212,7 @@ pub fn run_campaign(
     let mut solutions;
     let mut step_index = 0;
     let mut robust_sigma: Option<f64> = None;
-    // The latent map's standard deviation per tile in the first and the latest iteration (QC).
+    // The latent map's standard deviation per tile in the first and the last iteration (QC).
     let mut first_latent_std = Vec::new();
     let mut last_latent_std = Vec::new();
     // The corrections before the last iteration and that iteration's step (for momentum).
