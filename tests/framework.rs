@@ -120,20 +120,23 @@ async fn serve_api(framework: &Framework) -> std::net::SocketAddr {
     address
 }
 
-/// Works the store's queue with [`LocalExecutors`] until every campaign of `ids` has finished.
-async fn run_until_finished(
-    jobs: &JobStore,
-    objects: &Objects,
+/// Submits the corrupt campaign's manifest `bad`, then `good`, works the queue until both have
+/// finished, and checks that the first failed and the second succeeded; returns their ids.
+async fn submit_failing_and_succeeding(
+    framework: &Framework,
     scratch: &Path,
-    ids: &[uuid::Uuid],
-) -> Vec<precimap_jobs::CampaignRecord> {
-    let workers = LocalExecutors::start(jobs, objects, scratch);
-    let mut finished = Vec::with_capacity(ids.len());
-    for &id in ids {
-        finished.push(wait_finished(jobs, id, Duration::from_secs(600)).await);
-    }
+    bad: &precimap_formats::Manifest,
+    good: &precimap_formats::Manifest,
+) -> ((uuid::Uuid, precimap_jobs::CampaignRecord), (uuid::Uuid, precimap_jobs::CampaignRecord)) {
+    let bad_id = framework.submit(bad).await.unwrap();
+    let good_id = framework.submit(good).await.unwrap();
+    let workers = LocalExecutors::start(&framework.jobs, &framework.objects, scratch);
+    let failed = wait_finished(&framework.jobs, bad_id, Duration::from_secs(600)).await;
+    let succeeded = wait_finished(&framework.jobs, good_id, Duration::from_secs(600)).await;
     workers.stop().await;
-    finished
+    assert_eq!(failed.state, CampaignState::Failed);
+    assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
+    ((bad_id, failed), (good_id, succeeded))
 }
 
 /// Executors in this process (two tasks at a time) working the store's queue until stopped.
@@ -269,16 +272,10 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         let (jobs, objects, framework) = local_framework(dir.path()).await;
         let good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
         let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
-        let bad_id = framework.submit(&bad_manifest).await.unwrap();
-        let good_id = framework.submit(&good_manifest).await.unwrap();
-        let [failed, succeeded] = run_until_finished(&jobs, &objects, &dir.path().join("scratch"), &[bad_id, good_id])
-            .await
-            .try_into()
-            .unwrap();
-        assert_eq!(failed.state, CampaignState::Failed);
+        let ((bad_id, failed), (good_id, _)) =
+            submit_failing_and_succeeding(&framework, &dir.path().join("scratch"), &bad_manifest, &good_manifest).await;
         let error = failed.error.unwrap();
         assert!(error.contains("v02-right"), "the error names the strip: {error}");
-        assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
         // The failed campaign stops: nothing of it stays queued or leased.
         let counts = jobs.task_counts(bad_id).await.unwrap();
         assert_eq!(counts.queued + counts.leased, 0, "{counts:?}");
@@ -637,14 +634,8 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
         let cancelled_id = framework.submit(&bad_manifest).await.unwrap();
         assert!(jobs.cancel_campaign(cancelled_id).await.unwrap());
-        let bad_id = framework.submit(&bad_manifest).await.unwrap();
-        let good_id = framework.submit(&good_manifest).await.unwrap();
-        let [failed, succeeded] = run_until_finished(&jobs, &objects, &dir.path().join("scratch"), &[bad_id, good_id])
-            .await
-            .try_into()
-            .unwrap();
-        assert_eq!(failed.state, CampaignState::Failed);
-        assert_eq!(succeeded.state, CampaignState::Succeeded, "{:?}", succeeded.error);
+        let ((bad_id, _), (good_id, _)) =
+            submit_failing_and_succeeding(&framework, &dir.path().join("scratch"), &bad_manifest, &good_manifest).await;
         let iterations = jobs.iterations(good_id).await.unwrap().len();
         let qc_plots = framework.results(good_id).await.unwrap().iter().filter(|(n, _)| n.starts_with("qc/")).count();
         assert!(iterations > 1 && qc_plots >= 3, "{iterations} iterations, {qc_plots} plots");

@@ -18,7 +18,7 @@ use precimap_jobs::{
     StagePlanner, StageSpan, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
 };
 use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
-use precimap_pipeline::{after_iteration, effective_step, iteration_report, AfterIteration};
+use precimap_pipeline::{after_iteration, effective_step, iteration_report, AfterIteration, Place};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -525,6 +525,11 @@ fn is_last_step(state: &PlanState) -> bool {
     state.step_index + 1 == state.params.schedule.len()
 }
 
+/// Where the current iteration stands in the run, as the in-process driver tells it.
+fn place(state: &PlanState) -> Place {
+    Place { first: state.iterations.is_empty(), last: is_last_step(state) }
+}
+
 fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
     CorrectionsRef {
         trajectory,
@@ -536,7 +541,7 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let std_map = state.iterations.is_empty() || is_last_step(state);
+    let std_map = place(state).gathers_std_map();
     let tasks = state
         .tiles
         .iter()
@@ -599,11 +604,11 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     state.pending_stats = Some(stats);
     state.pending_seconds = seconds;
-    // The same rule as the in-process driver: the first iteration and the last.
-    if state.iterations.is_empty() {
+    let place = place(state);
+    if place.first {
         state.latent_std.first = latent_std.clone();
     }
-    if is_last_step(state) {
+    if place.last {
         state.latent_std.last = latent_std;
     }
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);

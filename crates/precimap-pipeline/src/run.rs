@@ -118,6 +118,15 @@ pub struct Place {
     pub last: bool,
 }
 
+impl Place {
+    /// Whether the iteration gathers the latent map's standard deviation (QC): the first and
+    /// the last do, every other runs the estimation without it (the framework's planner asks
+    /// the same).
+    pub fn gathers_std_map(self) -> bool {
+        self.first || self.last
+    }
+}
+
 /// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
 /// then every trajectory's reduce task.
 pub fn iterate(
@@ -129,7 +138,7 @@ pub fn iterate(
     step: &precimap_core::IterationStep,
     place: Place,
 ) -> Result<Iterated, PipelineError> {
-    let std_map = place.first || place.last;
+    let std_map = place.gathers_std_map();
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
     let mut estimates = tiles
         .par_iter()
@@ -225,8 +234,6 @@ pub fn run_campaign(
             previous.as_ref().filter(|(_, s)| step.momentum_continues(s, &campaign.params)).map(|(c, _)| c.as_slice());
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
-        // The latent map's σ is gathered in the first and the last iteration only (the rule the
-        // framework's planner follows too).
         let first = iterations.is_empty();
         let Iterated { solutions: sol, stats, field, started_from, latent_std } =
             iterate(&campaign, &work, &prepared, &corrections, before, step, Place { first, last })?;
@@ -305,8 +312,8 @@ pub fn run_campaign(
     let path = out.join("report.json");
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
-    crate::tasks::write_report_plots(&report, out)?;
-    crate::tasks::write_latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, out)?;
+    let latent_std = crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std);
+    crate::tasks::write_plots(out, crate::qc::report_plots(&report).into_iter().chain(latent_std))?;
     Ok(report)
 }
 

@@ -264,28 +264,14 @@ pub fn export_trajectory_task(
     let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
     export_trajectory_file(entry, campaign.params.anchor_spacing_m, corrections, &dst)?;
-    let (plot, svg) = crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, corrections);
-    write_atomic(&out_dir.join(plot), svg.as_bytes())?;
+    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, corrections)])?;
     Ok(dst)
 }
 
-/// Writes the report's QC plots (`qc/residuals.svg`, `qc/convergence.svg`) into `out_dir`.
-pub fn write_report_plots(report: &crate::Report, out_dir: &Path) -> Result<(), PipelineError> {
-    for (name, svg) in crate::qc::report_plots(report) {
-        write_atomic(&out_dir.join(name), svg.as_bytes())?;
-    }
-    Ok(())
-}
-
-/// Writes the latent map's standard-deviation maps of the first and the last iteration
-/// (`qc/latent-std-first.svg`, `qc/latent-std-last.svg`) into `out_dir`.
-pub fn write_latent_std_plots(
-    tile_size_m: f64,
-    first: &[(TileKey, precimap_estimate::LatentStdMap)],
-    last: &[(TileKey, precimap_estimate::LatentStdMap)],
-    out_dir: &Path,
-) -> Result<(), PipelineError> {
-    for (name, svg) in crate::qc::latent_std_plots(tile_size_m, first, last) {
+/// Writes QC plots, given as (path inside a result folder, SVG) like the [`crate::qc`]
+/// functions return them, into `out_dir`.
+pub fn write_plots(out_dir: &Path, plots: impl IntoIterator<Item = (String, String)>) -> Result<(), PipelineError> {
+    for (name, svg) in plots {
         write_atomic(&out_dir.join(name), svg.as_bytes())?;
     }
     Ok(())
