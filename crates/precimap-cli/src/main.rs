@@ -238,8 +238,10 @@ fn real_main() -> Result<()> {
             service::run_framework(&campaign.join("manifest.json"), &result, false)?;
             evaluate(&campaign.join("truth"), &result, false)?;
             eprintln!(
-                "\ncorrected strips and trajectories: {}\nreport: {}\nQC plots (SVG, open in a browser): {}",
+                "\ncorrected strips and trajectories: {}\nlatent map (LAS, one file per tile): {}\nreport: {}\n\
+                 QC plots (SVG, open in a browser): {}",
                 result.display(),
+                result.join("latent").display(),
                 result.join("report.json").display(),
                 result.join(precimap_pipeline::qc::QC_DIR).display()
             );

@@ -2,17 +2,20 @@
 //!
 //! Nothing in here does I/O: rotations and poses ([`geom`]), trajectories with arc length
 //! ([`trajectory`]), the estimation parameters with the paper's defaults ([`params`]), tile keys
-//! ([`tile`]) and the per-anchor pose corrections ([`corrections`]).
+//! ([`tile`]), the per-anchor pose corrections ([`corrections`]) and the exported latent map's
+//! points ([`latent`]).
 
 pub mod corrections;
 pub mod geom;
 pub mod histogram;
+pub mod latent;
 pub mod params;
 pub mod tile;
 pub mod trajectory;
 
 pub use corrections::{ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
+pub use latent::LatentMapPoint;
 pub use params::{IterationStep, Parameters};
 pub use tile::TileKey;
 pub use trajectory::{Pose, Trajectory, TrajectoryError};

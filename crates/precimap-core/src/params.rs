@@ -187,6 +187,10 @@ pub struct Parameters {
     pub schedule: Vec<IterationStep>,
     /// Converged when no anchor moves a point at 10 m range by more than this between iterations.
     pub convergence_tolerance_m: f64,
+    /// Voxel edge of the exported latent map (`OUT/latent/`): one point per voxel and surface
+    /// side, the mean of the last iteration's observations moved onto the latent surface. 0
+    /// writes no latent map.
+    pub latent_map_grid_m: f64,
 }
 
 impl Default for Parameters {
@@ -217,6 +221,7 @@ impl Default for Parameters {
             consistent_gradient: true,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
+            latent_map_grid_m: 0.1,
         }
     }
 }
@@ -345,6 +350,15 @@ impl Parameters {
                 problem: format!(
                     "must be 0 (off) or a node spacing of at least {MIN_FIELD_SPACING_M} m, got {}",
                     self.common_mode_field_m
+                ),
+            });
+        }
+        if !(self.latent_map_grid_m.is_finite() && (self.latent_map_grid_m == 0.0 || self.latent_map_grid_m >= 0.005)) {
+            out.push(ParameterProblem {
+                field: "latent_map_grid_m".into(),
+                problem: format!(
+                    "must be 0 (no latent map) or a voxel edge of at least 0.005 m, got {}",
+                    self.latent_map_grid_m
                 ),
             });
         }

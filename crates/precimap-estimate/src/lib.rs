@@ -3,7 +3,7 @@
 //! - [`prepare`]: per strip — point geometry against the trajectory, scan image, normals,
 //!   points keyed into tiles ([`chunk::TileChunk`]);
 //! - [`tile::estimate_tile`]: the map task — latent map of one tile and its normal-equation
-//!   blocks per trajectory;
+//!   blocks per trajectory, and on request the latent map itself ([`latent`]);
 //! - [`solve::solve_trajectory`]: the reduce task — one exact block-tridiagonal Gauss–Newton
 //!   step per trajectory with prior and smoothness.
 
@@ -11,6 +11,7 @@ pub mod blocks;
 pub mod chunk;
 pub mod field;
 mod hash;
+pub mod latent;
 pub mod prepare;
 pub mod solve;
 pub mod stats;
@@ -19,6 +20,7 @@ pub mod tile;
 pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
 pub use chunk::TileChunk;
 pub use field::{solve_field, FieldEquations, FieldSolution, FieldTrajectory};
+pub use latent::{LatentMapGrid, LatentSample};
 pub use precimap_segment::{NormalMethod, DROPPED as DROPPED_COLUMN};
 pub use prepare::{
     measurement_geometry, prepare_strip, prepare_strip_observed, GeometryCursor, PrepareError, PreparePhase,
@@ -27,4 +29,4 @@ pub use prepare::{
 };
 pub use solve::{solve_trajectory, TrajectorySolution};
 pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
-pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, TileEstimate, UsedPoint};
+pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, LatentGather, TileEstimate, UsedPoint};

@@ -25,10 +25,11 @@ use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use crate::field::{FieldAccumulator, FieldEquations};
 use crate::hash::FxHashMap;
+use crate::latent::{LatentMapGrid, LatentRecord, LatentSample, LatentSink};
 use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::{ceil, floor, rotate_small};
-use precimap_core::{IterationStep, Parameters, TileKey};
+use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey};
 use std::collections::BTreeMap;
 
 const NONE: u32 = u32::MAX;
@@ -63,6 +64,10 @@ pub struct TileEstimate {
     /// [`estimate_tile_recording`] asked for it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub latent_std: Option<LatentStdMap>,
+    /// The latent map thinned to voxels (a product; only from [`estimate_tile_recording`] asked
+    /// for it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latent_map: Option<Vec<LatentMapPoint>>,
 }
 
 #[derive(Clone, Copy, Default)]
@@ -238,7 +243,7 @@ pub fn estimate_tile(
     params: &Parameters,
     step: &IterationStep,
 ) -> Result<TileEstimate, EstimateError> {
-    estimate_tile_recording(tile, chunks, corrections, params, step, None, false)
+    estimate_tile_recording(tile, chunks, corrections, params, step, None, LatentGather::default())
 }
 
 /// A point of a tile's core that became an observation: its strip, its index in the strip file
@@ -250,9 +255,19 @@ pub struct UsedPoint {
     pub model: u32,
 }
 
+/// What [`estimate_tile_recording`] gathers of the latent map besides the estimate.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LatentGather {
+    /// Its standard deviation per cell ([`TileEstimate::latent_std`], QC).
+    pub std_map: bool,
+    /// The map itself, thinned to voxels of `Parameters::latent_map_grid_m`
+    /// ([`TileEstimate::latent_map`], a product).
+    pub map: bool,
+}
+
 /// [`estimate_tile`], also appending to `used` every point that became an observation (what the
-/// assignment audit compares with the simulator's true surfaces) and, with `std_map`, returning
-/// the latent map's standard deviation per cell ([`TileEstimate::latent_std`], QC).
+/// assignment audit compares with the simulator's true surfaces) and gathering what `gather`
+/// asks of the latent map.
 pub fn estimate_tile_recording(
     tile: TileKey,
     chunks: &[TileChunk],
@@ -260,48 +275,29 @@ pub fn estimate_tile_recording(
     params: &Parameters,
     step: &IterationStep,
     used: Option<&mut Vec<UsedPoint>>,
-    std_map: bool,
+    gather: LatentGather,
 ) -> Result<TileEstimate, EstimateError> {
-    if std_map {
-        let mut map = LatentStdMap::new(params.tile_size_m);
-        let estimate = estimate_tile_into(tile, chunks, corrections, params, step, used, &mut map)?;
-        Ok(TileEstimate { latent_std: Some(map), ..estimate })
-    } else {
-        estimate_tile_into(tile, chunks, corrections, params, step, used, &mut ())
+    let map = gather.map && params.latent_map_grid_m > 0.0;
+    if !(gather.std_map || map) {
+        return estimate_tile_into(tile, chunks, corrections, params, step, used, &mut ());
     }
+    let mut record = LatentRecord {
+        std: gather.std_map.then(|| LatentStdMap::new(params.tile_size_m)),
+        map: map.then(|| LatentMapGrid::new(params.latent_map_grid_m, step.threshold_m)),
+    };
+    let estimate = estimate_tile_into(tile, chunks, corrections, params, step, used, &mut record)?;
+    let (ox, oy) = tile.origin(params.tile_size_m);
+    Ok(TileEstimate { latent_std: record.std, latent_map: record.map.map(|g| g.finish([ox, oy])), ..estimate })
 }
 
-/// Where the latent map's standard deviation under each observable core point goes. The
-/// estimation's iterations pass `()`, which compiles to nothing: gathering the map inside every
-/// iteration made the covering loop 5–9 % slower through its code generation alone (stop 22), so
-/// only the iterations whose map is kept (the first and the last) run the recording copy.
-trait LatentStdSink {
-    const RECORDS: bool;
-    fn add(&mut self, x: f64, y: f64, std_m: f64);
-}
-
-impl LatentStdSink for () {
-    const RECORDS: bool = false;
-    #[inline(always)]
-    fn add(&mut self, _: f64, _: f64, _: f64) {}
-}
-
-impl LatentStdSink for LatentStdMap {
-    const RECORDS: bool = true;
-    #[inline]
-    fn add(&mut self, x: f64, y: f64, std_m: f64) {
-        LatentStdMap::add(self, x, y, std_m);
-    }
-}
-
-fn estimate_tile_into<S: LatentStdSink>(
+fn estimate_tile_into<S: LatentSink>(
     tile: TileKey,
     chunks: &[TileChunk],
     corrections: &[TrajectoryCorrections],
     params: &Parameters,
     step: &IterationStep,
     mut used: Option<&mut Vec<UsedPoint>>,
-    latent_std: &mut S,
+    sink: &mut S,
 ) -> Result<TileEstimate, EstimateError> {
     for c in chunks {
         if c.tile != tile {
@@ -465,11 +461,11 @@ fn estimate_tile_into<S: LatentStdSink>(
                 _ => f64::INFINITY,
             };
             let vehicle = solves_field.then_some(vehicle.as_slice());
-            point_latent(&triangles, index, vehicle, pulls, agreement, &mut stats, latent_std)
+            point_latent(&triangles, index, vehicle, pulls, agreement, &mut stats, sink)
         }
         None => {
             let vehicle = solves_field.then_some(vehicle.as_slice());
-            let (latent, others) = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, latent_std);
+            let (latent, others) = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, sink);
             Latent { height: latent, others, covering: Vec::new(), pull: Vec::new() }
         }
     };
@@ -549,7 +545,14 @@ fn estimate_tile_into<S: LatentStdSink>(
         .into_iter()
         .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
         .collect();
-    Ok(TileEstimate { tile, blocks, stats, field: field.map(FieldAccumulator::finish), latent_std: None })
+    Ok(TileEstimate {
+        tile,
+        blocks,
+        stats,
+        field: field.map(FieldAccumulator::finish),
+        latent_std: None,
+        latent_map: None,
+    })
 }
 
 /// The points of one strip segment in one cell whose normals agree.
@@ -772,13 +775,13 @@ impl Triangles<'_> {
 /// With `vehicle` it also returns, per point, the mean scan-head position of everything its
 /// latent height averages (its own pass included, which makes the field's row
 /// `φ(v) − φ(v̄)` carry the other passes' share by itself) and a share of 1, `[x, y, 1]`.
-fn raster_latent<S: LatentStdSink>(
+fn raster_latent<S: LatentSink>(
     t: &Triangles,
     grid: f64,
     in_core: &impl Fn(&[f64; 3]) -> bool,
     vehicle: Option<&[[f64; 2]]>,
     stats: &mut TileStats,
-    latent_std: &mut S,
+    sink: &mut S,
 ) -> (Vec<f64>, Vec<[f64; 3]>) {
     let models = t.models;
     // Raster extents from the member points; one pixel of margin on each side keeps bilinear
@@ -855,11 +858,19 @@ fn raster_latent<S: LatentStdSink>(
             }
             let m = &models[id as usize];
             let r = &rasters[id as usize];
-            let (u, v, _) = m.project(p);
+            let (u, v, own) = m.project(p);
             let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
             if !h.is_nan() {
                 if S::RECORDS {
-                    latent_std.add(p[0], p[1], raster_std(r, &pixels, u, v, grid));
+                    let (std_m, contributions) = raster_std(r, &pixels, u, v, grid);
+                    sink.add(&LatentSample {
+                        position: lifted(p, m.w, h - own),
+                        normal: m.w,
+                        residual_m: own - h,
+                        std_m,
+                        passes: contributions,
+                        used: true,
+                    });
                 }
                 if let Some(o) = others.get_mut(a) {
                     *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
@@ -872,14 +883,21 @@ fn raster_latent<S: LatentStdSink>(
 }
 
 /// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
-/// [`latent_height`] interpolated from, so it has contributions).
-fn raster_std(r: &Raster, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> f64 {
+/// [`latent_height`] interpolated from, so it has contributions), and that pixel's count of
+/// surface contributions.
+fn raster_std(r: &Raster, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> (f64, u32) {
     let i = (floor((u - r.u0) / grid) as usize).min(r.nu as usize - 1);
     let j = (floor((v - r.v0) / grid) as usize).min(r.nv as usize - 1);
     let p = &pixels[r.offset + j * r.nu as usize + i];
     let n = p.count as f64;
     let mean = p.sum as f64 / n;
-    (p.sum2 as f64 / n - mean * mean).max(0.0).sqrt()
+    ((p.sum2 as f64 / n - mean * mean).max(0.0).sqrt(), p.count)
+}
+
+/// `p` moved by `by` along the unit normal `w`.
+#[inline]
+fn lifted(p: &[f64; 3], w: [f64; 3], by: f64) -> [f64; 3] {
+    [p[0] + by * w[0], p[1] + by * w[1], p[2] + by * w[2]]
 }
 
 /// Mean scan-head position of the contributions to the four pixels a point's latent height
@@ -1106,14 +1124,14 @@ struct CoveringTriangle {
 /// `[item, corner the triangle hangs off, model]`, and the last vector returned holds, per item,
 /// what the point's residual pulls on each of its covering triangles ([`ItemPull`]); the two are
 /// what [`corner_pulls`] gathers. Without `pulls` that vector is empty.
-fn point_latent<S: LatentStdSink>(
+fn point_latent<S: LatentSink>(
     t: &Triangles,
     index: &CoreIndex,
     vehicle: Option<&[[f64; 2]]>,
     pulls: Option<(&mut Vec<[u32; 3]>, ItemPull)>,
     agreement: f64,
     stats: &mut TileStats,
-    latent_std: &mut S,
+    sink: &mut S,
 ) -> Latent {
     let n = t.position.len();
     // Every triangle adds its height (and slope) to the core points of other passes it covers.
@@ -1193,11 +1211,19 @@ fn point_latent<S: LatentStdSink>(
         stats.pixels_shared += 1;
         let var = ((h * h + s.sum2) / (c + 1.0) - mean * mean).max(0.0);
         stats.pixel_std_sum_m += var.sqrt();
+        let usable = gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE;
         if S::RECORDS {
-            let p = &t.position[a as usize];
-            latent_std.add(p[0], p[1], var.sqrt());
+            let w = t.models[t.model_of[a as usize] as usize].w;
+            sink.add(&LatentSample {
+                position: lifted(&t.position[a as usize], w, mean - h),
+                normal: w,
+                residual_m: h - mean,
+                std_m: var.sqrt(),
+                passes: s.count + 1,
+                used: usable,
+            });
         }
-        if gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE {
+        if usable {
             latent[a as usize] = mean;
             covering[a as usize] = s.count;
             if let Some(o) = others.get_mut(a as usize) {
@@ -1589,10 +1615,25 @@ mod tests {
         for (grid, sampled) in [(0.01, true), (0.05, false)] {
             let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
             let step = IterationStep::new(grid, 0.05);
-            let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, None, true).unwrap();
-            let map = e.latent_std.take().expect("asked for the map");
-            // Recording the map changes nothing else.
+            let gather = LatentGather { std_map: true, map: true };
+            let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, None, gather).unwrap();
+            let map = e.latent_std.take().expect("asked for the σ map");
+            let latent = e.latent_map.take().expect("asked for the latent map");
+            // Recording the maps changes nothing else.
             assert_eq!(e, estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap());
+            // The exported map: every observation in one voxel point, on the passes' mean
+            // surface (z = 0 where all three overlap, ±1 mm where two do), facing up.
+            let observations: u64 = latent.iter().map(|p| p.observations as u64).sum();
+            assert_eq!(observations, e.stats.points_used, "sampled {sampled}");
+            assert!(latent.len() > 100, "{} map points", latent.len());
+            let mut heights: Vec<f64> = latent.iter().map(|p| p.position[2].abs()).collect();
+            heights.sort_by(f64::total_cmp);
+            assert!(heights[heights.len() / 2] < 2e-4, "median |z| {} (sampled {sampled})", heights[heights.len() / 2]);
+            assert!(heights[heights.len() - 1] < 1.05e-3, "largest |z| {}", heights[heights.len() - 1]);
+            for p in &latent {
+                assert!(p.normal[2] > 0.999 && (2.0..8.2).contains(&p.position[0]), "{p:?}");
+                assert!(p.passes >= 2 && p.std_m < 0.0021, "{p:?}");
+            }
             assert_eq!(map.side, 15);
             let count: u64 = map.count.iter().map(|&c| c as u64).sum();
             let sum: f64 = map.std_sum_m.iter().sum();

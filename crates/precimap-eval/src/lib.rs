@@ -9,18 +9,22 @@
 //! - `CAMP/truth/trajectories/{trajectory}.csv`: the true trajectories;
 //! - `OUT/strips/{strip}.las|.laz`, `OUT/trajectories/{trajectory}.csv`, `OUT/report.json`;
 //! - `OUT/segments/{strip}.seg` (optional): the segment id of every point, as `precimap run` wrote
-//!   it; with it, the segmentation is measured too ([`SegmentEvaluation`]).
+//!   it; with it, the segmentation is measured too ([`SegmentEvaluation`]);
+//! - `OUT/latent/*.las` (optional): the exported latent map, measured against the true surfaces
+//!   ([`LatentMapEvaluation`]).
 //!
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
 
 mod assignments;
+mod latent;
 mod normals;
 mod segments;
 mod stats;
 mod trajectory;
 
 pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
+pub use latent::{evaluate_latent_map, read_latent_maps, LatentClassFigures, LatentMapEvaluation};
 pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
@@ -185,6 +189,15 @@ pub struct Evaluation {
     /// After the adjustment, the tiles whose strips disagree most (see
     /// [`TileStripMeans::worst_tiles`]): where the remaining spread comes from.
     pub worst_tiles_after: Vec<TileDisagreement>,
+    /// The exported latent map against the true surfaces (when `OUT/latent` exists). It has no
+    /// `before`: the input has no map.
+    pub latent_map: Option<LatentMapEvaluation>,
+    /// `latent_map.error_rms_m`: the map's absolute error, the datum included.
+    pub latent_map_error_rms_m: Option<f64>,
+    /// `latent_map.error_without_campaign_shift_rms_m`: the map's error without the datum.
+    pub latent_map_error_without_campaign_shift_rms_m: Option<f64>,
+    /// `latent_map.error_without_tile_shift_rms_m`: the map's error where one datum holds.
+    pub latent_map_error_without_tile_shift_rms_m: Option<f64>,
 }
 
 /// One tile's strips and their offsets from the tile's mean (metres, strip ids).
@@ -284,8 +297,22 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         .map(|t| (trajectory_errors(&t.input, &t.truth), trajectory_errors(&t.result, &t.truth)))
         .collect();
     let report = read_report(&result_dir.join("report.json"))?;
-
-    Ok(assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, report))
+    let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, report);
+    // The map keeps the result's datum: it is matched to the truth without the campaign's shift.
+    let latent_map = match read_latent_maps(result_dir)? {
+        Some(map) => {
+            let ids: Vec<String> = strip_jobs.iter().map(|(id, _)| id.clone()).collect();
+            Some(evaluate_latent_map(&map, &ids, &truth_dir, evaluation.campaign_shift_m.after)?)
+        }
+        None => None,
+    };
+    evaluation.latent_map_error_rms_m = latent_map.as_ref().map(|l| l.error_rms_m);
+    evaluation.latent_map_error_without_campaign_shift_rms_m =
+        latent_map.as_ref().map(|l| l.error_without_campaign_shift_rms_m);
+    evaluation.latent_map_error_without_tile_shift_rms_m =
+        latent_map.as_ref().map(|l| l.error_without_tile_shift_rms_m);
+    evaluation.latent_map = latent_map;
+    Ok(evaluation)
 }
 
 fn check_id(what: &'static str, id: &str) -> Result<(), EvalError> {
@@ -652,6 +679,10 @@ fn assemble(
         points_used_last_iteration: points_used,
         tile_strip_pairs: pairs,
         worst_tiles_after,
+        latent_map: None,
+        latent_map_error_rms_m: None,
+        latent_map_error_without_campaign_shift_rms_m: None,
+        latent_map_error_without_tile_shift_rms_m: None,
         surface_points,
         points,
         strips: strip_jobs.len(),
@@ -730,6 +761,39 @@ impl Evaluation {
                 100.0 * a.wrong_share,
                 a.points,
                 a.models,
+                classes.join(", ")
+            );
+        }
+        if let Some(l) = &self.latent_map {
+            let classes: Vec<String> = l
+                .per_class
+                .iter()
+                .map(|(name, c)| {
+                    format!(
+                        "{name} {:.2} / {:.2} / {:.2}",
+                        c.error_rms_m * 1e3,
+                        c.error_without_campaign_shift_rms_m * 1e3,
+                        c.error_without_tile_shift_rms_m * 1e3
+                    )
+                })
+                .collect();
+            let _ = writeln!(
+                out,
+                "latent map: {} points, {} matched; error RMS {:.3} mm (mean {:+.3}), without the campaign's \
+                 shift {:.3} mm (|error| 95th percentile {:.3}), without each tile's shift {:.3} mm; the \
+                 strips' spread about it (median) {:.3} mm",
+                l.points,
+                l.matched,
+                l.error_rms_m * 1e3,
+                l.error_mean_m * 1e3,
+                l.error_without_campaign_shift_rms_m * 1e3,
+                l.error_without_campaign_shift_p95_abs_m * 1e3,
+                l.error_without_tile_shift_rms_m * 1e3,
+                l.std_median_m * 1e3
+            );
+            let _ = writeln!(
+                out,
+                "  by class, RMS / without the campaign's shift / without each tile's (mm): {}",
                 classes.join(", ")
             );
         }

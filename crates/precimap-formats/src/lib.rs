@@ -1,4 +1,5 @@
-//! Public file formats at the edge: campaign manifest, trajectory CSV, LAS/LAZ strips.
+//! Public file formats at the edge: campaign manifest, trajectory CSV, LAS/LAZ strips, and the
+//! exported latent map (LAS with extra bytes).
 //!
 //! Everything read here comes from users, so nothing panics on file contents: every problem is an
 //! error naming the file and the place in it (JSON path, line, point index) and what to do.
@@ -6,12 +7,14 @@
 
 mod atomic;
 mod error;
+pub mod latent_map;
 pub mod manifest;
 pub mod segments;
 pub mod strip;
 pub mod trajectory_csv;
 
 pub use error::FormatError;
+pub use latent_map::{encode_latent_map, read_latent_map, write_latent_map};
 pub use manifest::{
     load_manifest, parse_manifest, resolve_uri, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
     TrajectoryRef,

@@ -313,6 +313,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             chunks,
             corrections,
             std_map,
+            latent_map,
         } => {
             let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
             let bytes = ctx.get_many(&chunk_keys).await?;
@@ -324,7 +325,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     .ok_or_else(|| TaskError::permanent(format!("tile {tile}: unknown trajectory {}", c.trajectory)))?;
                 *slot = read;
             }
-            let estimate = blocking(move || {
+            let (estimate, latent_map) = blocking(move || {
                 // Each object's bytes are dropped once decoded, as the in-process driver reads them.
                 let chunks = decoded
                     .into_iter()
@@ -332,8 +333,18 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                         TileChunk::decode(&bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, std_map)
-                    .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))
+                let gather = precimap_estimate::LatentGather { std_map, map: latent_map };
+                let mut estimate =
+                    precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, gather)
+                        .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
+                let map =
+                    match estimate.latent_map.take() {
+                        Some(points) => Some(precimap_formats::encode_latent_map(&points).map_err(|e| {
+                            TaskError::permanent(format!("tile {tile}: latent map does not encode: {e}"))
+                        })?),
+                        None => None,
+                    };
+                Ok::<_, TaskError>((estimate, map))
             })
             .await??;
             let mut objects = Vec::with_capacity(estimate.blocks.len() + 1);
@@ -348,6 +359,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             if let Some(map) = &estimate.latent_std {
                 let key = format!("{prefix}/it/{iteration}/latent-std/{tile}.{tag}.json");
                 objects.push((OUTPUT_LATENT_STD.into(), key, to_bytes(map)?));
+            }
+            if let Some(bytes) = latent_map {
+                let key = format!("{prefix}/it/{iteration}/latent/{tile}.{tag}.las");
+                objects.push((precimap_pipeline::tasks::latent_map_name(tile), key, bytes));
             }
             let outputs = ctx.put_many(objects).await?;
             let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
@@ -515,7 +530,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 outputs: vec![OutputKey { name, object_key: key }, OutputKey { name: plot_name, object_key: plot_key }],
             })
         }
-        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m } => {
+        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map } => {
             let key = format!("{prefix}/out/{tag}/report.json");
             let json = serde_json::to_vec_pretty(&report)
                 .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
@@ -537,7 +552,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 let key = format!("{prefix}/out/{tag}/{name}");
                 objects.push((name, key, svg.into_bytes()));
             }
-            let outputs = ctx.put_many(objects).await?;
+            let mut outputs = ctx.put_many(objects).await?;
+            // The latent map's tiles stay where their estimate tasks recorded them.
+            outputs.extend(latent_map.into_iter().map(|(name, object_key)| OutputKey { name, object_key }));
             Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
         }
     }

@@ -61,6 +61,9 @@ pub struct LatentStdKeys {
 pub const OUTPUT_LATENT_STD: &str = "latent_std";
 /// A strip's per-point segment ids (a result, like the exported strips).
 pub const SEGMENTS_PREFIX: &str = "segments/";
+/// `estimate_tile` output of the last iteration: the tile's latent map (LAS), a result the
+/// report task records under the same name (`latent/{tile}.las`).
+pub const LATENT_MAP_PREFIX: &str = "latent/";
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct StripInput {
@@ -119,6 +122,9 @@ pub enum TaskInput {
         /// iteration).
         #[serde(default)]
         std_map: bool,
+        /// Also write the tile's latent map (the product: the last iteration).
+        #[serde(default)]
+        latent_map: bool,
     },
     SolveField {
         prefix: String,
@@ -170,6 +176,10 @@ pub enum TaskInput {
         latent_std: LatentStdKeys,
         #[serde(default)]
         tile_size_m: f64,
+        /// The last iteration's latent-map objects as `(result name, object key)`: recorded as
+        /// the report's outputs, so the results list them without a copy.
+        #[serde(default)]
+        latent_map: Vec<(String, String)>,
     },
 }
 
@@ -277,6 +287,9 @@ pub struct PlanState {
     /// The latent-map standard-deviation objects of the first and the last iteration (QC).
     #[serde(default)]
     pub latent_std: LatentStdKeys,
+    /// The last iteration's latent-map objects, `(result name, object key)`.
+    #[serde(default)]
+    pub latent_map: Vec<(String, String)>,
     pub pending_seconds: f64,
     /// When the current iteration's map stage was enqueued (database clock, ms).
     #[serde(default)]
@@ -353,6 +366,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         anchor_positions: None,
         pending_stats: None,
         latent_std: LatentStdKeys::default(),
+        latent_map: Vec::new(),
         pending_seconds: 0.0,
         iteration_enqueued_at_ms: None,
         task_s: 0.0,
@@ -541,7 +555,7 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
-    let std_map = place(state).gathers_std_map();
+    let gather = place(state).latent_gather();
     let tasks = state
         .tiles
         .iter()
@@ -558,7 +572,8 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 trajectories: state.trajectories.len() as u32,
                 chunks: chunks.clone(),
                 corrections: used.into_iter().map(|t| corrections_ref(state, t)).collect(),
-                std_map,
+                std_map: gather.std_map,
+                latent_map: gather.map,
             }
             .task(tile.to_string())
         })
@@ -580,6 +595,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     let mut equations = Vec::new();
     let mut seconds = 0.0;
     let mut latent_std = Vec::with_capacity(per_tile.len());
+    let mut latent_map = Vec::new();
     for (tile, task) in &per_tile {
         let r: EstimateResult = parse(task)?;
         stats.merge(&r.stats);
@@ -591,6 +607,10 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
             }
             if out.name == OUTPUT_LATENT_STD {
                 latent_std.push((*tile, out.object_key.clone()));
+                continue;
+            }
+            if out.name.starts_with(LATENT_MAP_PREFIX) {
+                latent_map.push((out.name.clone(), out.object_key.clone()));
                 continue;
             }
             let t: usize = out
@@ -610,6 +630,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     }
     if place.last {
         state.latent_std.last = latent_std;
+        state.latent_map = latent_map;
     }
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let momentum = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
@@ -847,6 +868,7 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
         report: Box::new(report),
         latent_std: state.latent_std.clone(),
         tile_size_m: state.params.tile_size_m,
+        latent_map: state.latent_map.clone(),
     }
     .task("report".into());
     Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })

@@ -7,11 +7,11 @@ use crate::error::PipelineError;
 use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use crate::tasks::{
     anchor_positions, estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task,
-    solve_trajectory_task, Gather,
+    solve_trajectory_task, Gather, LATENT_DIR,
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentStdMap, TileStats};
+use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -114,16 +114,16 @@ pub struct Place {
     /// The run's first iteration: its latent map's σ is kept (QC, before any correction).
     pub first: bool,
     /// The schedule's last step, where every run ends (early convergence jumps to it): the
-    /// corrections' posterior σ and the latent map's σ are reported.
+    /// corrections' posterior σ, the latent map's σ and the latent map itself are reported.
     pub last: bool,
 }
 
 impl Place {
-    /// Whether the iteration gathers the latent map's standard deviation (QC): the first and
-    /// the last do, every other runs the estimation without it (the framework's planner asks
-    /// the same).
-    pub fn gathers_std_map(self) -> bool {
-        self.first || self.last
+    /// What the iteration gathers of the latent map: its standard deviation (QC) in the first
+    /// and the last iteration, the map itself (a product) in the last; every other iteration
+    /// runs the estimation without either (the framework's planner asks the same).
+    pub fn latent_gather(self) -> LatentGather {
+        LatentGather { std_map: self.first || self.last, map: self.last }
     }
 }
 
@@ -138,13 +138,19 @@ pub fn iterate(
     step: &precimap_core::IterationStep,
     place: Place,
 ) -> Result<Iterated, PipelineError> {
-    let std_map = place.gathers_std_map();
+    let latent = place.latent_gather();
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
     let mut estimates = tiles
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-            estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, std_map })
+            let mut estimate =
+                estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, latent })?;
+            // Written as each tile finishes, so the map never has to fit in memory whole.
+            if let Some(points) = estimate.latent_map.take() {
+                crate::tasks::write_latent_map_tile(work, **tile, &points)?;
+            }
+            Ok::<_, PipelineError>(estimate)
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
@@ -285,6 +291,14 @@ pub fn run_campaign(
         let step = effective_step(&campaign.params, schedule.len() - 1, robust_sigma);
         write_assignments(&campaign, &work, &prepared, &corrections, &step, out)?;
     }
+    // The last iteration's latent map, one file per tile, replaces any an earlier run left.
+    let latent = out.join(LATENT_DIR);
+    if latent.exists() {
+        std::fs::remove_dir_all(&latent).map_err(|e| PipelineError::io(&latent, e))?;
+    }
+    if work.join(LATENT_DIR).exists() {
+        std::fs::rename(work.join(LATENT_DIR), &latent).map_err(|e| PipelineError::io(&latent, e))?;
+    }
     // The segmentation is a result too (evaluate measures its purity against the truth).
     let segments = out.join("segments");
     if segments.exists() {
@@ -342,7 +356,7 @@ fn write_assignments(
                 corrections,
                 campaign,
                 step,
-                Gather { used: Some(&mut used), std_map: false },
+                Gather { used: Some(&mut used), latent: LatentGather::default() },
             )?;
             Ok(used)
         })

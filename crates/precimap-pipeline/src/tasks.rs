@@ -6,10 +6,11 @@ use crate::campaign::{Campaign, StripEntry, TrajectoryEntry};
 use crate::error::PipelineError;
 use precimap_core::corrections::{apply, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
-use precimap_core::{IterationStep, Parameters, TileKey, Vec3};
+use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey, Vec3};
 use precimap_estimate::{
-    estimate_tile_recording, prepare_strip_observed, AnchorBlock, GeometryCursor, PreparePhase, PrepareStats,
-    PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate, TrajectorySolution, UsedPoint,
+    estimate_tile_recording, prepare_strip_observed, AnchorBlock, GeometryCursor, LatentGather, PreparePhase,
+    PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate,
+    TrajectorySolution, UsedPoint,
 };
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -160,8 +161,8 @@ pub fn load_tile(work: &Path, tile: TileKey, strip_ids: &[&str]) -> Result<Vec<T
 pub struct Gather<'a> {
     /// Every observation's surface model (the assignment audit).
     pub used: Option<&'a mut Vec<UsedPoint>>,
-    /// The latent map's standard deviation per cell (QC).
-    pub std_map: bool,
+    /// What it keeps of the latent map: its standard deviation per cell (QC), the map itself.
+    pub latent: LatentGather,
 }
 
 /// `estimate_tile` over chunk files, gathering what `gather` asks for.
@@ -175,7 +176,7 @@ pub fn estimate_tile_task(
     gather: Gather,
 ) -> Result<TileEstimate, PipelineError> {
     let chunks = load_tile(work, tile, strip_ids)?;
-    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, gather.used, gather.std_map)
+    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, gather.used, gather.latent)
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
 }
 
@@ -275,6 +276,22 @@ pub fn write_plots(out_dir: &Path, plots: impl IntoIterator<Item = (String, Stri
         write_atomic(&out_dir.join(name), svg.as_bytes())?;
     }
     Ok(())
+}
+
+/// The folder of the latent map's tiles inside a result folder.
+pub const LATENT_DIR: &str = "latent";
+
+/// Where a tile's latent map lies inside a result folder (the framework names its output so).
+pub fn latent_map_name(tile: TileKey) -> String {
+    format!("{LATENT_DIR}/{tile}.las")
+}
+
+/// Writes one tile's latent map into `out_dir` ([`latent_map_name`]).
+pub fn write_latent_map_tile(out_dir: &Path, tile: TileKey, points: &[LatentMapPoint]) -> Result<(), PipelineError> {
+    let path = out_dir.join(latent_map_name(tile));
+    let dir = path.parent().unwrap_or(Path::new("."));
+    fs::create_dir_all(dir).map_err(|e| PipelineError::io(dir, e))?;
+    Ok(precimap_formats::write_latent_map(&path, points)?)
 }
 
 /// Writes `entry`'s corrected trajectory CSV to `dst`.

@@ -1,0 +1,325 @@
+//! The exported latent map (`OUT/latent/*.las`) against the true surfaces: how far the map
+//! itself, the product, lies from where the surfaces really are.
+//!
+//! The map keeps the campaign's absolute datum error (tens of millimetres to decimetres on the
+//! simulated campaigns, more than the distance between map points), which no relative
+//! adjustment observes. So each map point, moved back by the campaign's shift (the translation
+//! that best explains the corrected strips' surface errors), is compared with the nearest
+//! noise-free truth point within [`MATCH_RADIUS_M`] whose true normal agrees with the map
+//! point's (|cos| ≥ [`MATCH_MIN_COS`]): its error is the distance from that point's tangent
+//! plane along the true normal (turned to face the map normal's way), and the shift's share
+//! along that normal is added back for the absolute error. Memory holds the map, not the
+//! truth: the truth streams past it strip by strip.
+
+use crate::EvalError;
+use precimap_core::LatentMapPoint;
+use precimap_sim::truth::{SurfaceClass, TruthReader};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+/// Farthest truth point a map point is compared with (half the default voxel).
+pub const MATCH_RADIUS_M: f64 = 0.05;
+/// The true normal must agree with the map's to within ~37°.
+pub const MATCH_MIN_COS: f64 = 0.8;
+/// A tile takes part in the figure without its shift with at least this many matched points.
+pub const TILE_MIN_POINTS: usize = 50;
+
+/// The latent map's error against the truth, in metres.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct LatentMapEvaluation {
+    /// Map points (all tiles).
+    pub points: u64,
+    /// Of those, points with a true surface point within the match radius.
+    pub matched: u64,
+    /// RMS of the signed error: the map's absolute error, the datum included.
+    pub error_rms_m: f64,
+    pub error_mean_m: f64,
+    /// RMS without the campaign's shift (the absolute datum).
+    pub error_without_campaign_shift_rms_m: f64,
+    /// 95th percentile of |error| without the campaign's shift.
+    pub error_without_campaign_shift_p95_abs_m: f64,
+    /// RMS after removing each 15 m tile's mean error (tiles with at least [`TILE_MIN_POINTS`]
+    /// matched points): how precise the map is where one datum holds, what relative
+    /// adjustment can reach.
+    pub error_without_tile_shift_rms_m: f64,
+    /// Median of the map points' `StdDev` (the strips' spread about the map).
+    pub std_median_m: f64,
+    /// By surface class of the matched truth point.
+    pub per_class: BTreeMap<String, LatentClassFigures>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct LatentClassFigures {
+    pub matched: u64,
+    pub error_rms_m: f64,
+    pub error_without_campaign_shift_rms_m: f64,
+    pub error_without_tile_shift_rms_m: f64,
+}
+
+/// The best truth match of one map point so far: its error without the campaign's shift, and
+/// the shift's share along the true normal.
+#[derive(Clone, Copy)]
+struct Match {
+    distance2: f32,
+    error: f32,
+    shift_along: f32,
+    class: u8,
+}
+
+const NO_MATCH: Match = Match { distance2: f32::INFINITY, error: 0.0, shift_along: 0.0, class: u8::MAX };
+
+/// Reads `OUT/latent/*.las`; `None` when the folder does not exist (a result without a map).
+pub fn read_latent_maps(result_dir: &Path) -> Result<Option<Vec<LatentMapPoint>>, EvalError> {
+    let dir = result_dir.join("latent");
+    if !dir.is_dir() {
+        return Ok(None);
+    }
+    let io = |source| EvalError::Report { path: dir.clone(), message: format!("cannot list the latent map: {source}") };
+    let mut files: Vec<PathBuf> =
+        std::fs::read_dir(&dir).map_err(io)?.map(|e| e.map(|e| e.path())).collect::<Result<_, _>>().map_err(io)?;
+    files.retain(|p| p.extension().is_some_and(|e| e == "las"));
+    files.sort();
+    let maps = files.par_iter().map(|p| precimap_formats::read_latent_map(p)).collect::<Result<Vec<_>, _>>()?;
+    Ok(Some(maps.into_iter().flatten().collect()))
+}
+
+/// Compares `map` with the truth of every strip (`CAMP/truth/{strip}.truth`), the map moved
+/// back by `campaign_shift` (metres) first.
+pub fn evaluate_latent_map(
+    map: &[LatentMapPoint],
+    strip_ids: &[String],
+    truth_dir: &Path,
+    campaign_shift: [f64; 3],
+) -> Result<LatentMapEvaluation, EvalError> {
+    let cell = 2.0 * MATCH_RADIUS_M;
+    let key = |p: [f64; 3]| p.map(|v| (v / cell).floor() as i64);
+    let shifted: Vec<[f64; 3]> = map.iter().map(|p| [0, 1, 2].map(|k| p.position[k] - campaign_shift[k])).collect();
+    let mut cells: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
+    for (i, p) in shifted.iter().enumerate() {
+        cells.entry(key(*p)).or_default().push(i as u32);
+    }
+    let best = strip_ids
+        .par_iter()
+        .map(|id| -> Result<Vec<Match>, EvalError> {
+            let mut best = vec![NO_MATCH; map.len()];
+            let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
+            while let Some(t) = truth.next_point()? {
+                if !t.class.is_surface() {
+                    continue;
+                }
+                let n = t.normal.map(f64::from);
+                // The cells a sphere of the match radius can reach: the point's own and, per
+                // axis, the neighbour on its nearer side (cells are twice the radius).
+                let base = key(t.position);
+                let toward = [0, 1, 2].map(|k| {
+                    let f = t.position[k] / cell - base[k] as f64;
+                    if f < 0.5 {
+                        -1
+                    } else {
+                        1
+                    }
+                });
+                for corner in 0..8 {
+                    let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
+                    let Some(members) = cells.get(&c) else { continue };
+                    for &i in members {
+                        let m = &map[i as usize];
+                        let d = [0, 1, 2].map(|k| shifted[i as usize][k] - t.position[k]);
+                        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                        let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
+                        let slot = &mut best[i as usize];
+                        if d2 > MATCH_RADIUS_M * MATCH_RADIUS_M
+                            || cos.abs() < MATCH_MIN_COS
+                            || d2 as f32 >= slot.distance2
+                        {
+                            continue;
+                        }
+                        let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+                        let shift = campaign_shift[0] * n[0] + campaign_shift[1] * n[1] + campaign_shift[2] * n[2];
+                        *slot = Match {
+                            distance2: d2 as f32,
+                            error: (along * cos.signum()) as f32,
+                            shift_along: (shift * cos.signum()) as f32,
+                            class: t.class as u8,
+                        };
+                    }
+                }
+            }
+            Ok(best)
+        })
+        .try_reduce(
+            || vec![NO_MATCH; map.len()],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    if y.distance2 < x.distance2 {
+                        *x = y;
+                    }
+                }
+                Ok(a)
+            },
+        )?;
+    Ok(figures(map, &best))
+}
+
+fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
+    let tile_of = |p: &LatentMapPoint| {
+        let t = crate::SPREAD_TILE_M;
+        ((p.position[0] / t).floor() as i64, (p.position[1] / t).floor() as i64)
+    };
+    // Per tile: sum and count of the errors, for its shift.
+    let mut tiles: HashMap<(i64, i64), (f64, usize)> = HashMap::new();
+    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class != u8::MAX) {
+        let t = tiles.entry(tile_of(p)).or_default();
+        t.0 += m.error as f64;
+        t.1 += 1;
+    }
+    let mut all = Tally::default();
+    let mut classes: BTreeMap<u8, Tally> = BTreeMap::new();
+    let mut abs = Vec::new();
+    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class != u8::MAX) {
+        let e = m.error as f64;
+        let (sum, count) = tiles[&tile_of(p)];
+        let tile_free = (count >= TILE_MIN_POINTS).then(|| e - sum / count as f64);
+        let absolute = e + m.shift_along as f64;
+        all.add(absolute, e, tile_free);
+        classes.entry(m.class).or_default().add(absolute, e, tile_free);
+        abs.push(e.abs());
+    }
+    let mut std: Vec<f64> = map.iter().map(|p| p.std_m as f64).collect();
+    LatentMapEvaluation {
+        points: map.len() as u64,
+        matched: all.count,
+        error_rms_m: all.rms(),
+        error_mean_m: all.mean(),
+        error_without_campaign_shift_rms_m: all.campaign_free_rms(),
+        error_without_campaign_shift_p95_abs_m: quantile(&mut abs, 0.95),
+        error_without_tile_shift_rms_m: all.shift_free_rms(),
+        std_median_m: quantile(&mut std, 0.5),
+        per_class: classes
+            .into_iter()
+            .map(|(c, t)| {
+                let name = SurfaceClass::from_u8(c).map_or("unknown", SurfaceClass::name).to_string();
+                (
+                    name,
+                    LatentClassFigures {
+                        matched: t.count,
+                        error_rms_m: t.rms(),
+                        error_without_campaign_shift_rms_m: t.campaign_free_rms(),
+                        error_without_tile_shift_rms_m: t.shift_free_rms(),
+                    },
+                )
+            })
+            .collect(),
+    }
+}
+
+#[derive(Default)]
+struct Tally {
+    count: u64,
+    sum: f64,
+    sum2: f64,
+    campaign_free_sum2: f64,
+    tile_free_count: u64,
+    tile_free_sum2: f64,
+}
+
+impl Tally {
+    /// One point's absolute error, its error without the campaign's shift and, where its tile
+    /// has enough points, without the tile's.
+    fn add(&mut self, absolute: f64, campaign_free: f64, tile_free: Option<f64>) {
+        self.count += 1;
+        self.sum += absolute;
+        self.sum2 += absolute * absolute;
+        self.campaign_free_sum2 += campaign_free * campaign_free;
+        if let Some(s) = tile_free {
+            self.tile_free_count += 1;
+            self.tile_free_sum2 += s * s;
+        }
+    }
+    fn rms(&self) -> f64 {
+        (self.sum2 / self.count as f64).sqrt()
+    }
+    fn campaign_free_rms(&self) -> f64 {
+        (self.campaign_free_sum2 / self.count as f64).sqrt()
+    }
+    fn mean(&self) -> f64 {
+        self.sum / self.count as f64
+    }
+    fn shift_free_rms(&self) -> f64 {
+        (self.tile_free_sum2 / self.tile_free_count as f64).sqrt()
+    }
+}
+
+/// The `q` quantile (nearest rank); NaN for no values.
+fn quantile(values: &mut [f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    values[((values.len() - 1) as f64 * q).round() as usize]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use precimap_sim::truth::{TruthPoint, TruthWriter};
+
+    fn map_point(position: [f64; 3], normal: [f32; 3]) -> LatentMapPoint {
+        LatentMapPoint { position, normal, std_m: 0.002, observations: 5, passes: 3 }
+    }
+
+    /// A map 3 ± 1 mm above a true road whose normals face down, 1 mm in front of a wall, plus a
+    /// point far from any truth and one whose normal agrees with no surface near it: the road
+    /// and the wall are measured along the map's normals, per class, and the tile's shift
+    /// comes off; foliage beside the map is never a match.
+    #[test]
+    fn map_points_are_measured_against_the_nearest_agreeing_true_surface() {
+        let dir = std::env::temp_dir().join(format!("precimap-eval-latent-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut w = TruthWriter::create(&dir.join("s1.truth")).unwrap();
+        let point = |position, normal, class| TruthPoint { position, normal, surface_id: class as u32, class };
+        for i in 0..100 {
+            for j in 0..100 {
+                let (x, y) = (1.0 + 0.02 * i as f64, 1.0 + 0.02 * j as f64);
+                w.push(&point([x, y, 0.0], [0.0, 0.0, -1.0], SurfaceClass::Road)).unwrap();
+                w.push(&point([3.0, x, 0.5 + 0.02 * j as f64], [-1.0, 0.0, 0.0], SurfaceClass::Facade)).unwrap();
+                w.push(&point([x, y, 0.004], [0.0, 0.0, 1.0], SurfaceClass::Foliage)).unwrap();
+            }
+        }
+        w.finish().unwrap();
+        let mut map = Vec::new();
+        for i in 0..100 {
+            let (x, y) = (1.05 + 0.1 * (i % 10) as f64, 1.05 + 0.1 * (i / 10) as f64);
+            let z = if i % 2 == 0 { 0.004 } else { 0.002 };
+            map.push(map_point([x, y, z], [0.0, 0.0, 1.0]));
+            map.push(map_point([3.001, x, 0.6 + 0.1 * (i / 10) as f64], [1.0, 0.0, 0.0]));
+        }
+        map.push(map_point([5.0, 5.0, 5.0], [0.0, 0.0, 1.0]));
+        map.push(map_point([1.5, 1.5, 0.003], [0.0, 1.0, 0.0]));
+        // The map as the strips would place it with a datum error of (+40, −30, +20) mm.
+        let shift = [0.04, -0.03, 0.02];
+        for p in &mut map {
+            for k in 0..3 {
+                p.position[k] += shift[k];
+            }
+        }
+        let f = evaluate_latent_map(&map, &["s1".to_string()], &dir, shift).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!((f.points, f.matched), (202, 200), "{f:?}");
+        let road = &f.per_class["road"];
+        let facade = &f.per_class["facade"];
+        assert_eq!((road.matched, facade.matched), (100, 100), "{f:?}");
+        let rms = |a: f64, b: f64| ((a * a + b * b) / 2.0).sqrt();
+        assert!((road.error_without_campaign_shift_rms_m - rms(0.004, 0.002)).abs() < 1e-5, "{f:?}");
+        assert!((facade.error_without_campaign_shift_rms_m - 0.001).abs() < 1e-5, "{f:?}");
+        // With the datum: the road 20 mm higher, the wall 40 mm further out.
+        assert!((road.error_rms_m - rms(0.024, 0.022)).abs() < 1e-5, "{f:?}");
+        assert!((facade.error_rms_m - 0.041).abs() < 1e-5, "{f:?}");
+        assert!((f.error_mean_m - (0.023 + 0.041) / 2.0).abs() < 1e-5, "{f:?}");
+        // One tile: its mean (2 mm) comes off every point.
+        let want = ((100.0 * 0.001f64.powi(2) + 100.0 * 0.001f64.powi(2) + 100.0 * 0.001f64.powi(2)) / 200.0).sqrt();
+        assert!((f.error_without_tile_shift_rms_m - want).abs() < 1e-5, "{} {want}", f.error_without_tile_shift_rms_m);
+    }
+}
