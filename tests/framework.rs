@@ -637,8 +637,11 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         let ((bad_id, _), (good_id, _)) =
             submit_failing_and_succeeding(&framework, &dir.path().join("scratch"), &bad_manifest, &good_manifest).await;
         let iterations = jobs.iterations(good_id).await.unwrap().len();
-        let qc_plots = framework.results(good_id).await.unwrap().iter().filter(|(n, _)| n.starts_with("qc/")).count();
+        let results = framework.results(good_id).await.unwrap();
+        let in_folder = |folder: &str| results.iter().filter(|(n, _)| n.starts_with(&format!("{folder}/"))).count();
+        let (qc_plots, latent_tiles) = (in_folder("qc"), in_folder("latent"));
         assert!(iterations > 1 && qc_plots >= 3, "{iterations} iterations, {qc_plots} plots");
+        assert!(latent_tiles > 10, "{latent_tiles} latent-map tiles");
 
         let server = format!("http://{address}");
         let (chromium, profile) = (chromium.clone(), dir.path().join("chromium"));
@@ -670,6 +673,14 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         let qc = element(dom, "qc", "</section>");
         assert_eq!(qc.matches("<img").count(), qc_plots, "{qc}");
         assert_eq!(qc.matches("data-loaded=\"1\"").count(), qc_plots, "every plot loads as an image: {qc}");
+        // Result files folded per folder (the latent map is one file per tile), top-level files
+        // as links.
+        let files = element(dom, "result-list", "</section>");
+        for (folder, count) in [("strips", in_folder("strips")), ("latent", latent_tiles), ("qc", qc_plots)] {
+            let summary = format!("<details data-folder=\"{folder}\"><summary>{folder}/ ({count} files)</summary>");
+            assert!(files.contains(&summary), "{summary} in {files}");
+        }
+        assert!(files.contains("download=\"\">report.json</a>"), "{files}");
         let events = element(dom, "events", "</ol>");
         assert!(events.contains("<strong>succeeded</strong>"), "{events}");
         // The failed campaign's page names the broken strip.

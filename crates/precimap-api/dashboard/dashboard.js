@@ -268,6 +268,32 @@ function qcOrder(name) {
   return 2;
 }
 
+// Files at the top (report.json) as links, each folder (strips/, latent/: one file per tile…)
+// folded under its name and count, so a campaign of thousands of tiles stays one screen.
+function resultGroups(results) {
+  const link = (r) => el("li", {}, el("a", { href: r.href, download: "" }, r.name));
+  const folders = new Map();
+  const files = [];
+  for (const r of results) {
+    const slash = r.name.indexOf("/");
+    if (slash < 0) {
+      files.push(link(r));
+      continue;
+    }
+    const folder = r.name.slice(0, slash);
+    if (!folders.has(folder)) folders.set(folder, []);
+    folders.get(folder).push(r);
+  }
+  const groups = [...folders].map(([folder, members]) =>
+    el(
+      "li",
+      {},
+      el("details", { "data-folder": folder }, el("summary", {}, `${folder}/ (${members.length} files)`), el("ul", {}, ...members.map(link))),
+    ),
+  );
+  return [...files, ...groups];
+}
+
 async function showResults(id) {
   const results = await getJson(`/v1/campaigns/${id}/results`);
   if (selected !== id) return;
@@ -282,7 +308,7 @@ async function showResults(id) {
       return el("figure", {}, el("a", { href: r.href, target: "_blank", rel: "noopener" }, img), el("figcaption", {}, r.name));
     }),
   );
-  $("result-list").replaceChildren(...results.map((r) => el("li", {}, el("a", { href: r.href, download: "" }, r.name))));
+  $("result-list").replaceChildren(...resultGroups(results));
   $("results").hidden = false;
   resultsShown = id;
 }
