@@ -50,15 +50,17 @@ TOML
     sleep 1
 fi
 
-if ! command -v chromium >/dev/null; then
-    log "installing Debian's chromium for the dashboard test (first time only, ~1-2 min)"
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    log "installing Debian's chromium and chromedriver for the dashboard tests (first time only, ~1-2 min)"
     SUDO=$([ "$(id -u)" = 0 ] || echo sudo)
-    { $SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q chromium; } >&2
+    { $SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q chromium chromium-driver; } >&2
 fi
 CHROMIUM=$(command -v chromium) || { log "chromium is not installed"; exit 1; }
+CHROMEDRIVER=$(command -v chromedriver) || { log "chromedriver is not installed"; exit 1; }
 
 cat <<ENV
 export PRECIMAP_TEST_CHROMIUM=$CHROMIUM
+export PRECIMAP_TEST_CHROMEDRIVER=$CHROMEDRIVER
 export PRECIMAP_TEST_POSTGRES=postgres://postgres@127.0.0.1:5432/postgres
 export PRECIMAP_TEST_S3=s3://precimap/test
 export AWS_ACCESS_KEY_ID=$ACCESS_KEY

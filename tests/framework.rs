@@ -688,3 +688,188 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         assert!(error.contains("v02-right") && !error.contains(" hidden"), "{error}");
     });
 }
+
+/// chromedriver (Debian's `chromium-driver`), or `None` (the test is skipped) outside
+/// `./scripts/test.sh`, which installs it.
+fn chromedriver() -> Option<PathBuf> {
+    let path = std::env::var_os("PRECIMAP_TEST_CHROMEDRIVER")
+        .map(PathBuf::from)
+        .or_else(|| Some(PathBuf::from("/usr/bin/chromedriver")).filter(|p| p.exists()));
+    if path.is_none() {
+        assert!(
+            std::env::var("PRECIMAP_REQUIRE_SERVICES").as_deref() != Ok("1"),
+            "chromedriver is required for the dashboard's cancel test (run ./scripts/test.sh, which installs it)"
+        );
+        eprintln!("SKIPPED: no chromedriver; ./scripts/test.sh installs Debian's chromium-driver");
+    }
+    path
+}
+
+/// A WebDriver session (W3C protocol, JSON over HTTP) in headless Chromium; the driver process
+/// ends with it.
+struct Browser {
+    http: reqwest::Client,
+    session: String,
+    driver: std::process::Child,
+}
+
+impl Browser {
+    async fn start(chromedriver: &Path, chromium: &Path, profile: &Path) -> Browser {
+        let port = free_port();
+        let driver = std::process::Command::new(chromedriver)
+            .arg(format!("--port={port}"))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start chromedriver");
+        let mut browser = Browser { http: reqwest::Client::new(), session: format!("http://127.0.0.1:{port}"), driver };
+        let started = Instant::now();
+        while browser.http.get(format!("{}/status", browser.session)).send().await.is_err() {
+            assert!(started.elapsed() < Duration::from_secs(30), "chromedriver did not start");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        let capabilities = serde_json::json!({ "capabilities": { "alwaysMatch": {
+            "browserName": "chrome",
+            "unhandledPromptBehavior": "ignore",
+            "goog:chromeOptions": {
+                "binary": chromium,
+                // The test runs as root in CI.
+                "args": ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                         format!("--user-data-dir={}", profile.display())],
+            },
+        }}});
+        let created = browser.command(reqwest::Method::POST, "session", capabilities).await;
+        let id = created["sessionId"].as_str().expect("a session id").to_string();
+        browser.session = format!("{}/session/{id}", browser.session);
+        browser
+    }
+
+    /// One command (`path` under the session); its `value`. A WebDriver error fails the test.
+    async fn command(&self, method: reqwest::Method, path: &str, body: serde_json::Value) -> serde_json::Value {
+        let url = if path.is_empty() { self.session.clone() } else { format!("{}/{path}", self.session) };
+        let request = self.http.request(method, &url);
+        let request = if body.is_null() { request } else { request.json(&body) };
+        let reply: serde_json::Value = request.send().await.unwrap().json().await.unwrap();
+        let value = reply["value"].clone();
+        assert!(value.get("error").is_none(), "WebDriver {path}: {value}");
+        value
+    }
+
+    async fn script(&self, script: &str) -> serde_json::Value {
+        self.command(reqwest::Method::POST, "execute/sync", serde_json::json!({ "script": script, "args": [] })).await
+    }
+
+    /// Waits until `condition` (a JavaScript expression) is true in the page.
+    async fn wait_for(&self, condition: &str) {
+        let started = Instant::now();
+        while self.script(&format!("return Boolean({condition});")).await != serde_json::json!(true) {
+            assert!(started.elapsed() < Duration::from_secs(30), "never true in the page: {condition}");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    async fn element(&self, css: &str) -> String {
+        let found = self
+            .command(reqwest::Method::POST, "element", serde_json::json!({ "using": "css selector", "value": css }))
+            .await;
+        found.as_object().and_then(|o| o.values().next()).and_then(|v| v.as_str()).expect("an element").to_string()
+    }
+
+    async fn click(&self, css: &str) {
+        let id = self.element(css).await;
+        self.command(reqwest::Method::POST, &format!("element/{id}/click"), serde_json::json!({})).await;
+    }
+
+    async fn type_into(&self, css: &str, text: &str) {
+        let id = self.element(css).await;
+        self.command(reqwest::Method::POST, &format!("element/{id}/clear"), serde_json::json!({})).await;
+        self.command(reqwest::Method::POST, &format!("element/{id}/value"), serde_json::json!({ "text": text })).await;
+    }
+
+    /// Waits for the page's `confirm()` and answers it; returns its text.
+    async fn answer_confirm(&self, accept: bool) -> String {
+        let started = Instant::now();
+        loop {
+            let reply: serde_json::Value =
+                self.http.get(format!("{}/alert/text", self.session)).send().await.unwrap().json().await.unwrap();
+            if let Some(text) = reply["value"].as_str() {
+                let answer = if accept { "alert/accept" } else { "alert/dismiss" };
+                self.command(reqwest::Method::POST, answer, serde_json::json!({})).await;
+                return text.to_string();
+            }
+            assert!(started.elapsed() < Duration::from_secs(10), "no confirmation dialog: {reply}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    async fn text(&self, css: &str) -> String {
+        let script = format!("return document.querySelector({css:?}).textContent;");
+        self.script(&script).await.as_str().unwrap_or_default().to_string()
+    }
+}
+
+impl Browser {
+    /// Ends the session, which closes Chromium.
+    async fn quit(&self) {
+        self.command(reqwest::Method::DELETE, "", serde_json::Value::Null).await;
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.driver.kill();
+        let _ = self.driver.wait();
+    }
+}
+
+/// The dashboard's one writing action, clicked in a real browser: cancelling a running campaign
+/// asks for the writer token first, refuses a wrong one (the server answers 401 and the campaign
+/// runs on), does nothing when the confirmation is dismissed, and cancels with the right token.
+#[test]
+fn the_dashboard_cancels_a_campaign_only_with_the_writer_token() {
+    let (Some(chromium), Some(chromedriver)) = (chromium(), chromedriver()) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 11);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let (jobs, objects, framework) = local_framework(dir.path()).await;
+        let address = serve_api(&framework).await;
+        // No executor works the queue: the campaign stays running until cancelled.
+        let manifest = upload_local_inputs(&objects, &campaign.join("manifest.json")).await.unwrap();
+        let id = framework.submit(&manifest).await.unwrap();
+        let state = |jobs: JobStore| async move { jobs.campaign(id).await.unwrap().unwrap().state };
+
+        let browser = Browser::start(&chromedriver, &chromium, &dir.path().join("chromium")).await;
+        let page = format!("http://{address}/#{id}");
+        browser.command(reqwest::Method::POST, "url", serde_json::json!({ "url": page })).await;
+        browser.wait_for("!document.getElementById('cancel').hidden").await;
+
+        // 1. No token: the page asks for it and sends nothing.
+        browser.click("#cancel").await;
+        browser.wait_for("document.getElementById('token-box').open").await;
+        assert!(browser.text("#action-message").await.contains("writer token"));
+        assert_eq!(state(jobs.clone()).await, CampaignState::Running);
+
+        // 2. A wrong token: confirmed, refused by the server, still running.
+        browser.type_into("#token", "not-the-token").await;
+        browser.click("#cancel").await;
+        assert!(browser.answer_confirm(true).await.contains("Cancel this campaign?"));
+        browser.wait_for("document.getElementById('action-message').textContent.startsWith('not cancelled')").await;
+        assert_eq!(state(jobs.clone()).await, CampaignState::Running);
+
+        // 3. The right token, but the confirmation dismissed: nothing happens.
+        browser.type_into("#token", "t0ken").await;
+        browser.click("#cancel").await;
+        browser.answer_confirm(false).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        assert_eq!(state(jobs.clone()).await, CampaignState::Running);
+
+        // 4. Confirmed: cancelled, and the page says so.
+        browser.click("#cancel").await;
+        browser.answer_confirm(true).await;
+        browser.wait_for("document.getElementById('action-message').textContent === 'cancelled'").await;
+        assert_eq!(state(jobs.clone()).await, CampaignState::Cancelled);
+        browser.wait_for("document.getElementById('cancel').hidden").await;
+        browser.quit().await;
+    });
+}
