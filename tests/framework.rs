@@ -550,20 +550,30 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
     }
 }
 
-/// Headless Chromium, as `scripts/services.sh` installs it (`PRECIMAP_TEST_CHROMIUM`); like the
-/// other services, required when the test command sets `PRECIMAP_REQUIRE_SERVICES=1`.
-fn chromium() -> Option<PathBuf> {
-    let path = std::env::var_os("PRECIMAP_TEST_CHROMIUM").map(PathBuf::from).or_else(|| {
-        ["/usr/bin/chromium", "/usr/bin/chromium-browser"].into_iter().map(PathBuf::from).find(|p| p.exists())
-    });
+/// A program the browser tests need: `$env`, else the first of `candidates` that exists; `None`
+/// (the test is skipped) outside `./scripts/test.sh`, which installs Debian's `package`.
+fn browser_test_program(env: &str, candidates: &[&str], package: &str) -> Option<PathBuf> {
+    let path =
+        std::env::var_os(env).map(PathBuf::from).or_else(|| candidates.iter().map(PathBuf::from).find(|p| p.exists()));
     if path.is_none() {
         assert!(
             std::env::var("PRECIMAP_REQUIRE_SERVICES").as_deref() != Ok("1"),
-            "Chromium is required for the dashboard test (run ./scripts/test.sh, which installs it)"
+            "{package} is required for the dashboard tests (run ./scripts/test.sh, which installs it)"
         );
-        eprintln!("SKIPPED: no Chromium; ./scripts/test.sh installs Debian's chromium");
+        eprintln!("SKIPPED: no {package}; ./scripts/test.sh installs Debian's {package}");
     }
     path
+}
+
+/// Headless Chromium (`PRECIMAP_TEST_CHROMIUM`), required when the test command sets
+/// `PRECIMAP_REQUIRE_SERVICES=1`, like the other services.
+fn chromium() -> Option<PathBuf> {
+    browser_test_program("PRECIMAP_TEST_CHROMIUM", &["/usr/bin/chromium", "/usr/bin/chromium-browser"], "chromium")
+}
+
+/// chromedriver, for the tests that click.
+fn chromedriver() -> Option<PathBuf> {
+    browser_test_program("PRECIMAP_TEST_CHROMEDRIVER", &["/usr/bin/chromedriver"], "chromium-driver")
 }
 
 /// The DOM of `url` after its scripts ran for `budget_ms` of virtual time (which waits for
@@ -687,22 +697,6 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         let error = element(&failed_page, "d-error", "</p>");
         assert!(error.contains("v02-right") && !error.contains(" hidden"), "{error}");
     });
-}
-
-/// chromedriver (Debian's `chromium-driver`), or `None` (the test is skipped) outside
-/// `./scripts/test.sh`, which installs it.
-fn chromedriver() -> Option<PathBuf> {
-    let path = std::env::var_os("PRECIMAP_TEST_CHROMEDRIVER")
-        .map(PathBuf::from)
-        .or_else(|| Some(PathBuf::from("/usr/bin/chromedriver")).filter(|p| p.exists()));
-    if path.is_none() {
-        assert!(
-            std::env::var("PRECIMAP_REQUIRE_SERVICES").as_deref() != Ok("1"),
-            "chromedriver is required for the dashboard's cancel test (run ./scripts/test.sh, which installs it)"
-        );
-        eprintln!("SKIPPED: no chromedriver; ./scripts/test.sh installs Debian's chromium-driver");
-    }
-    path
 }
 
 /// A WebDriver session (W3C protocol, JSON over HTTP) in headless Chromium; the driver process
