@@ -1249,9 +1249,11 @@ impl JobStore {
         Ok(out)
     }
 
-    /// Every object key recorded for the campaign, sorted (for orphan clean-up by the caller).
+    /// Every object key recorded for the campaign, sorted, each once however many tasks recorded
+    /// it (the report task records the latent map's tiles again as results), for orphan
+    /// clean-up by the caller.
     pub async fn recorded_keys(&self, campaign: Uuid) -> Result<Vec<String>, JobError> {
-        let q = "SELECT object_key FROM task_outputs WHERE campaign = $1";
+        let q = "SELECT DISTINCT object_key FROM task_outputs WHERE campaign = $1";
         let mut keys: Vec<String> = with_pool!(self, p => sqlx::query_scalar(q).bind(campaign).fetch_all(p).await?);
         keys.sort();
         Ok(keys)
