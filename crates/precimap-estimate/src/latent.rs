@@ -3,6 +3,7 @@
 
 use crate::hash::FxHashMap;
 use crate::stats::LatentStdMap;
+use crate::tile::dominant_axis;
 use precimap_core::geom::floor;
 use precimap_core::LatentMapPoint;
 
@@ -93,13 +94,7 @@ impl LatentMapGrid {
             return;
         }
         let n = s.normal;
-        let axis: usize = if n[0].abs() >= n[1].abs() && n[0].abs() >= n[2].abs() {
-            0
-        } else if n[1].abs() >= n[2].abs() {
-            1
-        } else {
-            2
-        };
+        let axis = dominant_axis(&n);
         let side = 2 * axis as i64 + (n[axis] < 0.0) as i64;
         let inv = 1.0 / self.cell_m;
         let key = [

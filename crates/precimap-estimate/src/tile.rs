@@ -205,7 +205,7 @@ fn cell_key(p: &[f64; 3], inv_cell: f64, unbounded: Option<usize>) -> u64 {
 
 /// The axis along which `n` points most.
 #[inline]
-fn dominant_axis(n: &[f64; 3]) -> usize {
+pub(crate) fn dominant_axis(n: &[f64; 3]) -> usize {
     let a = n.map(f64::abs);
     if a[0] >= a[1] && a[0] >= a[2] {
         0

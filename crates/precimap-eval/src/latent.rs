@@ -11,7 +11,7 @@
 //! along that normal is added back for the absolute error. Memory holds the map, not the
 //! truth: the truth streams past it strip by strip.
 
-use crate::EvalError;
+use crate::{AbsHistogram, ErrorStats, EvalError};
 use precimap_core::LatentMapPoint;
 use precimap_sim::truth::{SurfaceClass, TruthReader};
 use rayon::prelude::*;
@@ -38,13 +38,13 @@ pub struct LatentMapEvaluation {
     pub error_mean_m: f64,
     /// RMS without the campaign's shift (the absolute datum).
     pub error_without_campaign_shift_rms_m: f64,
-    /// 95th percentile of |error| without the campaign's shift.
+    /// 95th percentile of |error| without the campaign's shift (±0.25 %, as the surface errors').
     pub error_without_campaign_shift_p95_abs_m: f64,
     /// RMS after removing each 15 m tile's mean error (tiles with at least [`TILE_MIN_POINTS`]
     /// matched points): how precise the map is where one datum holds, what relative
     /// adjustment can reach.
     pub error_without_tile_shift_rms_m: f64,
-    /// Median of the map points' `StdDev` (the strips' spread about the map).
+    /// Median of the map points' `StdDev` (the strips' spread about the map; ±0.25 %).
     pub std_median_m: f64,
     /// By surface class of the matched truth point.
     pub per_class: BTreeMap<String, LatentClassFigures>,
@@ -86,7 +86,8 @@ pub fn read_latent_maps(result_dir: &Path) -> Result<Option<Vec<LatentMapPoint>>
 }
 
 /// Compares `map` with the truth of every strip (`CAMP/truth/{strip}.truth`), the map moved
-/// back by `campaign_shift` (metres) first.
+/// back by `campaign_shift` (metres) first. A second pass over the truth after the strips' own:
+/// the shift is known only once every strip has been compared.
 pub fn evaluate_latent_map(
     map: &[LatentMapPoint],
     strip_ids: &[String],
@@ -175,9 +176,8 @@ fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
         t.0 += m.error as f64;
         t.1 += 1;
     }
-    let mut all = Tally::default();
-    let mut classes: BTreeMap<u8, Tally> = BTreeMap::new();
-    let mut abs = Vec::new();
+    let mut all = Errors::default();
+    let mut classes: BTreeMap<u8, Errors> = BTreeMap::new();
     for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class != u8::MAX) {
         let e = m.error as f64;
         let (sum, count) = tiles[&tile_of(p)];
@@ -185,18 +185,18 @@ fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
         let absolute = e + m.shift_along as f64;
         all.add(absolute, e, tile_free);
         classes.entry(m.class).or_default().add(absolute, e, tile_free);
-        abs.push(e.abs());
     }
-    let mut std: Vec<f64> = map.iter().map(|p| p.std_m as f64).collect();
+    let mut std = AbsHistogram::new();
+    map.iter().for_each(|p| std.add(p.std_m as f64));
     LatentMapEvaluation {
         points: map.len() as u64,
-        matched: all.count,
-        error_rms_m: all.rms(),
-        error_mean_m: all.mean(),
-        error_without_campaign_shift_rms_m: all.campaign_free_rms(),
-        error_without_campaign_shift_p95_abs_m: quantile(&mut abs, 0.95),
-        error_without_tile_shift_rms_m: all.shift_free_rms(),
-        std_median_m: quantile(&mut std, 0.5),
+        matched: all.absolute.count(),
+        error_rms_m: all.absolute.rms(),
+        error_mean_m: all.absolute.mean(),
+        error_without_campaign_shift_rms_m: all.campaign_free.rms(),
+        error_without_campaign_shift_p95_abs_m: all.campaign_free.abs_quantile(0.95),
+        error_without_tile_shift_rms_m: all.tile_free.rms(),
+        std_median_m: std.quantile(0.5),
         per_class: classes
             .into_iter()
             .map(|(c, t)| {
@@ -204,10 +204,10 @@ fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
                 (
                     name,
                     LatentClassFigures {
-                        matched: t.count,
-                        error_rms_m: t.rms(),
-                        error_without_campaign_shift_rms_m: t.campaign_free_rms(),
-                        error_without_tile_shift_rms_m: t.shift_free_rms(),
+                        matched: t.absolute.count(),
+                        error_rms_m: t.absolute.rms(),
+                        error_without_campaign_shift_rms_m: t.campaign_free.rms(),
+                        error_without_tile_shift_rms_m: t.tile_free.rms(),
                     },
                 )
             })
@@ -215,50 +215,23 @@ fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
     }
 }
 
+/// The three error figures of a set of map points: absolute, without the campaign's shift and
+/// (where the point's tile has enough points) without the tile's.
 #[derive(Default)]
-struct Tally {
-    count: u64,
-    sum: f64,
-    sum2: f64,
-    campaign_free_sum2: f64,
-    tile_free_count: u64,
-    tile_free_sum2: f64,
+struct Errors {
+    absolute: ErrorStats,
+    campaign_free: ErrorStats,
+    tile_free: ErrorStats,
 }
 
-impl Tally {
-    /// One point's absolute error, its error without the campaign's shift and, where its tile
-    /// has enough points, without the tile's.
+impl Errors {
     fn add(&mut self, absolute: f64, campaign_free: f64, tile_free: Option<f64>) {
-        self.count += 1;
-        self.sum += absolute;
-        self.sum2 += absolute * absolute;
-        self.campaign_free_sum2 += campaign_free * campaign_free;
-        if let Some(s) = tile_free {
-            self.tile_free_count += 1;
-            self.tile_free_sum2 += s * s;
+        self.absolute.add(absolute);
+        self.campaign_free.add(campaign_free);
+        if let Some(e) = tile_free {
+            self.tile_free.add(e);
         }
     }
-    fn rms(&self) -> f64 {
-        (self.sum2 / self.count as f64).sqrt()
-    }
-    fn campaign_free_rms(&self) -> f64 {
-        (self.campaign_free_sum2 / self.count as f64).sqrt()
-    }
-    fn mean(&self) -> f64 {
-        self.sum / self.count as f64
-    }
-    fn shift_free_rms(&self) -> f64 {
-        (self.tile_free_sum2 / self.tile_free_count as f64).sqrt()
-    }
-}
-
-/// The `q` quantile (nearest rank); NaN for no values.
-fn quantile(values: &mut [f64], q: f64) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    values.sort_by(f64::total_cmp);
-    values[((values.len() - 1) as f64 * q).round() as usize]
 }
 
 #[cfg(test)]

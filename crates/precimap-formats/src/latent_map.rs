@@ -91,8 +91,7 @@ pub fn write_latent_map(path: &Path, points: &[LatentMapPoint]) -> Result<(), Fo
 /// Reads a map [`write_latent_map`] wrote; a LAS file without its extra bytes is an error.
 pub fn read_latent_map(path: &Path) -> Result<Vec<LatentMapPoint>, FormatError> {
     let bad = |m: String| FormatError::file(path, m);
-    let bytes = std::fs::read(path).map_err(|e| FormatError::io(path, "read latent map", e))?;
-    let mut reader = Reader::new(Cursor::new(bytes)).map_err(|e| bad(format!("not a readable LAS file: {e}")))?;
+    let mut reader = Reader::from_path(path).map_err(|e| bad(format!("not a readable LAS file: {e}")))?;
     let header = reader.header();
     let described = header.vlrs().iter().find(|v| v.user_id == "LASF_Spec" && v.record_id == 4);
     let names_match = described.is_some_and(|v| {

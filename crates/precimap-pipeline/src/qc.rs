@@ -4,6 +4,7 @@
 //! framework write the same bytes; a browser shows them.
 
 use crate::report::{IterationReport, Report};
+use base64::Engine as _;
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
 use precimap_estimate::{LatentStdMap, ResidualHistogram};
@@ -279,22 +280,9 @@ fn encode_png(width: u32, height: u32, rgba: &[u8]) -> Vec<u8> {
     out
 }
 
-/// Standard base64 (RFC 4648, with padding).
+/// Standard base64 (RFC 4648 alphabet, with padding), as a `data:` URL needs it.
 fn base64(bytes: &[u8]) -> String {
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
-        let n = (u32::from(b[0]) << 16) | (u32::from(b[1]) << 8) | u32::from(b[2]);
-        for k in 0..4 {
-            if k <= chunk.len() {
-                out.push(ALPHABET[((n >> (18 - 6 * k)) & 63) as usize] as char);
-            } else {
-                out.push('=');
-            }
-        }
-    }
-    out
+    base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
 /// A line of a plot: its colour and its (x, y) vertices.
