@@ -22,6 +22,10 @@ pub enum BenchCommand {
         /// Where the simulated campaign and its tile chunks are cached between runs.
         #[arg(long, default_value = "target/bench")]
         cache: PathBuf,
+        /// Estimation parameters to change, as a manifest's `parameters` object (e.g.
+        /// `'{"latent_pixel_share": 0}'` for the exact point-sampled route), to measure a variant.
+        #[arg(long, value_name = "JSON")]
+        parameters: Option<String>,
         #[arg(long)]
         json: bool,
     },
@@ -99,7 +103,9 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Estimate { scale, seed, cache, json } => bench_estimate(scale, seed, &cache, json),
+        BenchCommand::Estimate { scale, seed, cache, parameters, json } => {
+            bench_estimate(scale, seed, &cache, parameters.as_deref(), json)
+        }
         BenchCommand::Queue {
             postgres,
             tasks,
@@ -191,9 +197,18 @@ struct EstimateBench {
     consistent_gradient_cpu_ratio: f64,
 }
 
-fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: bool) -> Result<()> {
+fn bench_estimate(
+    scale: precimap_sim::Scale,
+    seed: u64,
+    cache: &Path,
+    parameters: Option<&str>,
+    json: bool,
+) -> Result<()> {
     let (dir, manifest) = cached_campaign(cache, scale, seed, false)?;
-    let campaign = Campaign::load(&manifest)?;
+    let mut campaign = Campaign::load(&manifest)?;
+    if let Some(changes) = parameters {
+        campaign.params = with_changes(&campaign.params, changes)?;
+    }
     let work = dir.join("work");
     eprintln!("preparing tile chunks in {}", work.display());
     let prepared = precimap_pipeline::run::prepare_all(&campaign, &work, &|_| {})?;
@@ -292,6 +307,25 @@ fn bench_estimate(scale: precimap_sim::Scale, seed: u64, cache: &Path, json: boo
         );
     }
     Ok(())
+}
+
+/// `params` with the fields of the JSON object `changes` replaced (unknown fields and
+/// out-of-range values are errors, as in a manifest).
+fn with_changes(params: &precimap_core::Parameters, changes: &str) -> Result<precimap_core::Parameters> {
+    let changes: serde_json::Value = serde_json::from_str(changes).context("--parameters is not JSON")?;
+    let serde_json::Value::Object(changes) = changes else {
+        anyhow::bail!("--parameters must be a JSON object, like a manifest's \"parameters\"");
+    };
+    let mut merged = serde_json::to_value(params)?;
+    if let serde_json::Value::Object(fields) = &mut merged {
+        fields.extend(changes);
+    }
+    let params: precimap_core::Parameters = serde_json::from_value(merged).context("--parameters")?;
+    let problems = params.problems();
+    if let Some(first) = problems.first() {
+        anyhow::bail!("--parameters: {first}");
+    }
+    Ok(params)
 }
 
 #[derive(Serialize)]

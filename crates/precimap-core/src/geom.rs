@@ -68,18 +68,42 @@ pub fn so3_log(r: &Mat3) -> Vec3 {
 /// precision; larger angles use Rodrigues.
 #[inline]
 pub fn rotate_small(theta: [f64; 3], r: [f64; 3]) -> [f64; 3] {
-    let [tx, ty, tz] = theta;
-    let angle2 = tx * tx + ty * ty + tz * tz;
-    let (a, b) = if angle2 < 1e-4 {
-        (1.0 - angle2 / 6.0 * (1.0 - angle2 / 20.0), 0.5 - angle2 / 24.0 * (1.0 - angle2 / 30.0))
-    } else {
-        let angle = angle2.sqrt();
-        (angle.sin() / angle, (1.0 - angle.cos()) / angle2)
-    };
-    // θ × r and θ × (θ × r)
-    let c1 = [ty * r[2] - tz * r[1], tz * r[0] - tx * r[2], tx * r[1] - ty * r[0]];
-    let c2 = [ty * c1[2] - tz * c1[1], tz * c1[0] - tx * c1[2], tx * c1[1] - ty * c1[0]];
-    [r[0] + a * c1[0] + b * c2[0], r[1] + a * c1[1] + b * c2[1], r[2] + a * c1[2] + b * c2[2]]
+    SmallRotation::new(theta).apply(r)
+}
+
+/// `Exp(θ)` ready to rotate several vectors ([`rotate_small`] for each, with the coefficients of
+/// the series computed once).
+#[derive(Clone, Copy, Debug)]
+pub struct SmallRotation {
+    theta: [f64; 3],
+    a: f64,
+    b: f64,
+}
+
+impl SmallRotation {
+    #[inline]
+    pub fn new(theta: [f64; 3]) -> Self {
+        let [tx, ty, tz] = theta;
+        let angle2 = tx * tx + ty * ty + tz * tz;
+        let (a, b) = if angle2 < 1e-4 {
+            (1.0 - angle2 / 6.0 * (1.0 - angle2 / 20.0), 0.5 - angle2 / 24.0 * (1.0 - angle2 / 30.0))
+        } else {
+            let angle = angle2.sqrt();
+            (angle.sin() / angle, (1.0 - angle.cos()) / angle2)
+        };
+        Self { theta, a, b }
+    }
+
+    /// `Exp(θ)·r`.
+    #[inline]
+    pub fn apply(&self, r: [f64; 3]) -> [f64; 3] {
+        let [tx, ty, tz] = self.theta;
+        let (a, b) = (self.a, self.b);
+        // θ × r and θ × (θ × r)
+        let c1 = [ty * r[2] - tz * r[1], tz * r[0] - tx * r[2], tx * r[1] - ty * r[0]];
+        let c2 = [ty * c1[2] - tz * c1[1], tz * c1[0] - tx * c1[2], tx * c1[1] - ty * c1[0]];
+        [r[0] + a * c1[0] + b * c2[0], r[1] + a * c1[1] + b * c2[1], r[2] + a * c1[2] + b * c2[2]]
+    }
 }
 
 /// `x.floor()`, inlined: on the baseline x86-64 target (no SSE4.1 `roundsd`) `f64::floor` is a

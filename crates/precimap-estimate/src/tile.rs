@@ -28,9 +28,11 @@ use crate::hash::FxHashMap;
 use crate::latent::{LatentMapGrid, LatentRecord, LatentSample, LatentSink};
 use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_core::geom::{ceil, floor, rotate_small};
+use precimap_core::geom::{ceil, floor, SmallRotation};
 use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey};
 use std::collections::BTreeMap;
+
+mod pixels;
 
 const NONE: u32 = u32::MAX;
 /// Pixel tag once two different strip passes contributed.
@@ -340,16 +342,15 @@ fn estimate_tile_into<S: LatentSink>(
         let mut last = ((u64::MAX, 0u32, 0u32), CellModels::default());
         for k in 0..chunk.len() {
             let c = corr.at(chunk.anchor[k], chunk.lambda[k]);
-            let theta = [c[3], c[4], c[5]];
-            let r = chunk.r[k].map(f64::from);
-            let rr = rotate_small(theta, r);
+            let rotation = SmallRotation::new([c[3], c[4], c[5]]);
+            let rr = rotation.apply(chunk.r[k].map(f64::from));
             let t0 = chunk.t0[k];
             let p = [
                 t0[0] as f64 + shift[0] + c[0] + rr[0],
                 t0[1] as f64 + shift[1] + c[1] + rr[1],
                 t0[2] as f64 + shift[2] + c[2] + rr[2],
             ];
-            let n = rotate_small(theta, chunk.normal[k].map(f64::from));
+            let n = rotation.apply(chunk.normal[k].map(f64::from));
             if solves_field {
                 vehicle.push([chunk.origin[0] + t0[0] as f64, chunk.origin[1] + t0[1] as f64]);
             }
@@ -373,10 +374,15 @@ fn estimate_tile_into<S: LatentSink>(
             let mut best_cos = cos_group;
             for &id in &slots.ids[..slots.len as usize] {
                 let m = &patches[id as usize];
-                let norm = dot(m.sum_normal, m.sum_normal).sqrt();
-                let cos = dot(n, m.sum_normal) / norm;
-                if cos > best_cos && (!normal_columns || m.plane_distance(&p, norm) <= PATCH_PLANE_M) {
-                    best_cos = cos;
+                // `cos > best_cos` and the plane distance, squared and multiplied out: a root
+                // and a division only for the patch the point joins (the test runs per point).
+                let norm2 = dot(m.sum_normal, m.sum_normal);
+                let along = dot(n, m.sum_normal);
+                if along > 0.0
+                    && along * along > best_cos * best_cos * norm2
+                    && (!normal_columns || m.within_plane(&p, norm2))
+                {
+                    best_cos = along / norm2.sqrt();
                     best = id;
                 }
             }
@@ -451,9 +457,28 @@ fn estimate_tile_into<S: LatentSink>(
     stats.surface_models = models.len() as u64;
     let in_core = |p: &[f64; 3]| p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size;
     // 2. The latent height under every point of the tile's core (NaN: not observable).
-    let index = (grid < params.point_latent_below_grid_m).then(|| CoreIndex::new(&triangles, &in_core));
+    let sampled = grid < params.point_latent_below_grid_m;
+    let by_pixel = sampled && params.latent_pixel_share > 0.0 && params.cover_agreement_thresholds <= 0.0;
+    let index = (sampled && !by_pixel).then(|| CoreIndex::new(&triangles, &in_core));
     let mut covers = Vec::new();
+    let mut pixel_pulls = None;
     let Latent { height: latent, others, covering, pull } = match &index {
+        _ if by_pixel => {
+            let vehicle = solves_field.then_some(vehicle.as_slice());
+            let pulls = params.consistent_gradient.then_some(ItemPull { threshold, weight });
+            let (latent, pulls) = pixels::pixel_latent(
+                &triangles,
+                &in_core,
+                grid,
+                params.latent_pixel_share,
+                vehicle,
+                pulls,
+                &mut stats,
+                sink,
+            );
+            pixel_pulls = pulls;
+            latent
+        }
         Some(index) => {
             let pulls = params.consistent_gradient.then_some((&mut covers, ItemPull { threshold, weight }));
             let agreement = match params.cover_agreement_thresholds {
@@ -471,7 +496,10 @@ fn estimate_tile_into<S: LatentSink>(
     };
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
     //     the other passes' triangles that cover it.
-    let mut pulls = (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull));
+    let mut pulls = match pixel_pulls {
+        Some(pulls) => Some(pulls),
+        None => (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull)),
+    };
     drop((index, covers, pull));
     let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
 
@@ -568,10 +596,14 @@ struct Patch {
 }
 
 impl Patch {
-    /// Distance of `p` from the patch's plane (`norm`: the length of its normal sum).
+    /// Whether `p` lies within [`PATCH_PLANE_M`] of the patch's plane (`norm2`: the squared length
+    /// of its normal sum): `|(p − Σp/n)·Σw| / |Σw|`, multiplied out by `n·|Σw|` and squared.
     #[inline]
-    fn plane_distance(&self, p: &[f64; 3], norm: f64) -> f64 {
-        offset_along(self.sum_normal, &self.sum_position, self.count as f64, p) / norm
+    fn within_plane(&self, p: &[f64; 3], norm2: f64) -> bool {
+        let c = self.count as f64;
+        let s = &self.sum_position;
+        let d = dot([c * p[0] - s[0], c * p[1] - s[1], c * p[2] - s[2]], self.sum_normal);
+        d * d <= PATCH_PLANE_M * PATCH_PLANE_M * c * c * norm2
     }
 }
 
@@ -700,12 +732,13 @@ struct Triangles<'a> {
 }
 
 impl Triangles<'_> {
-    /// Calls `visit(model, corners, strip, anchor, first)` (`first`: index of the corner the
-    /// triangle hangs off) for every triangle and every surface model one
+    /// Calls `visit(model, corners, indices, strip, anchor, first)` (the corners' positions and
+    /// point indices; `first`: index of the corner the triangle hangs off) for every triangle and
+    /// every surface model one
     /// of its corners belongs to, provided the triangle is continuous surface (short edges) lying
     /// on that model (facet and model normals agree, and the corners' models are not at odds)
     /// and, with `within_segment`, within one segment.
-    fn for_each(&self, mut visit: impl FnMut(u32, [[f64; 3]; 3], u32, u32, usize)) {
+    fn for_each(&self, mut visit: impl FnMut(u32, [[f64; 3]; 3], [usize; 3], u32, u32, usize)) {
         let mut base = 0usize;
         for chunk in self.chunks {
             for k in 0..chunk.len() {
@@ -720,13 +753,13 @@ impl Triangles<'_> {
                 let segment = &chunk.segment;
                 let joined = |i: u32, j: u32| !self.within_segment || segment[i as usize] == segment[j as usize];
                 if joined(k as u32, right) && joined(k as u32, down) {
-                    self.triangle([a, b, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor, a));
+                    self.triangle([a, b, c], limit as f64, |m, p, v| visit(m, p, v, chunk.strip, anchor, a));
                 }
                 let diagonal = chunk.down[right as usize];
                 if diagonal != NO_NEIGHBOUR && joined(diagonal, right) && joined(diagonal, down) {
                     let d = base + diagonal as usize;
                     let limit = limit.max(chunk.edge_limit[diagonal as usize]);
-                    self.triangle([b, d, c], limit as f64, |m, p| visit(m, p, chunk.strip, anchor, a));
+                    self.triangle([b, d, c], limit as f64, |m, p, v| visit(m, p, v, chunk.strip, anchor, a));
                 }
             }
             base += chunk.len();
@@ -734,7 +767,7 @@ impl Triangles<'_> {
     }
 
     #[inline]
-    fn triangle(&self, v: [usize; 3], limit: f64, mut visit: impl FnMut(u32, [[f64; 3]; 3])) {
+    fn triangle(&self, v: [usize; 3], limit: f64, mut visit: impl FnMut(u32, [[f64; 3]; 3], [usize; 3])) {
         let ids = [self.model_of[v[0]], self.model_of[v[1]], self.model_of[v[2]]];
         if ids.contains(&NONE) {
             return;
@@ -748,22 +781,24 @@ impl Triangles<'_> {
             return;
         }
         let face = cross(ab, ac);
-        let area2 = dot(face, face).sqrt();
-        if area2 < 1e-12 {
+        let area2_sq = dot(face, face);
+        if area2_sq < 1e-24 {
             return;
         }
-        let face = [face[0] / area2, face[1] / area2, face[2] / area2];
+        // |cos| of the facet against a unit model normal, compared squared: no root, no division.
+        let facet_limit = FACET_COS * FACET_COS * area2_sq;
         for (slot, &id) in ids.iter().enumerate() {
             if ids[..slot].contains(&id) {
                 continue;
             }
             let m = &self.models[id as usize];
-            if dot(face, m.w).abs() < FACET_COS
+            let along = dot(face, m.w);
+            if along * along < facet_limit
                 || ids.iter().any(|&other| other != id && dot(self.models[other as usize].w, m.w) < self.cos_group)
             {
                 continue;
             }
-            visit(id, [pa, pb, pc]);
+            visit(id, [pa, pb, pc], v);
         }
     }
 }
@@ -815,7 +850,7 @@ fn raster_latent<S: LatentSink>(
         .collect();
     let mut pixels = vec![Pixel::default(); pixel_count];
     let mut pixel_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { pixel_count } else { 0 }];
-    t.for_each(|id, p, strip, anchor, first| {
+    t.for_each(|id, p, _, strip, anchor, first| {
         let from = vehicle.map_or([0.0; 2], |v| v[first]);
         let (m, r) = (&models[id as usize], &rasters[id as usize]);
         let tag = pass_tag(strip, anchor);
@@ -1041,7 +1076,7 @@ impl CoreIndex {
         mut visit: impl FnMut(&CoveringTriangle, usize, bool, f64, f64),
     ) {
         let models = t.models;
-        t.for_each(|id, p, strip, anchor, first| {
+        t.for_each(|id, p, _, strip, anchor, first| {
             let (m, g) = (&models[id as usize], &self.grids[id as usize]);
             if g.nu == 0 {
                 return;
@@ -1571,30 +1606,42 @@ mod tests {
             }
             c
         };
-        let run = |split: bool| {
-            let up = [0.0, 0.0, 1.0];
-            let chunks = [
-                with_segments(strip_on(tile, 0, [0.0, 0.0], 1, height, up), split),
-                with_segments(strip_on(tile, 1, [0.033, 0.21], 1, height, up), split),
-            ];
-            fine_pass_stats(tile, &chunks, 0.05, 0.0)
-        };
-        let rms = |s: &TileStats| (s.residual_sum2_m2 / s.points_used as f64).sqrt();
-        let (split, merged) = (run(true), run(false));
-        assert!(split.points_used > 500, "{}", split.points_used);
-        assert!(rms(&split) < 1e-5, "{}", rms(&split));
-        // One pass's points beside the step sit under the other's bridges: 2.5 cm residuals.
-        assert!(merged.points_used > split.points_used);
-        assert!(rms(&merged) > 5e-3, "{}", rms(&merged));
+        // Both routes: exact sampling at the points, and at pixel centres.
+        for share in [0.0, 0.7] {
+            let run = |split: bool| {
+                let up = [0.0, 0.0, 1.0];
+                let chunks = [
+                    with_segments(strip_on(tile, 0, [0.0, 0.0], 1, height, up), split),
+                    with_segments(strip_on(tile, 1, [0.033, 0.21], 1, height, up), split),
+                ];
+                fine_pass_stats_on(tile, &chunks, 0.05, 0.0, share)
+            };
+            let rms = |s: &TileStats| (s.residual_sum2_m2 / s.points_used as f64).sqrt();
+            let (split, merged) = (run(true), run(false));
+            assert!(split.points_used > 500, "share {share}: {}", split.points_used);
+            assert!(rms(&split) < 1e-5, "share {share}: {}", rms(&split));
+            // One pass's points beside the step sit under the other's bridges: 2.5 cm residuals.
+            assert!(merged.points_used > split.points_used, "share {share}");
+            assert!(rms(&merged) > 5e-3, "share {share}: {}", rms(&merged));
+        }
     }
 
-    /// One point-sampled 1 cm pass over `chunks` with the given outlier threshold and
-    /// [`Parameters::cover_agreement_thresholds`].
+    /// One point-sampled 1 cm pass over `chunks` on the exact route with the given outlier
+    /// threshold and [`Parameters::cover_agreement_thresholds`].
     fn fine_pass_stats(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate: f64) -> TileStats {
+        fine_pass_stats_on(tile, chunks, threshold, gate, 0.0)
+    }
+
+    /// [`fine_pass_stats`] with [`Parameters::latent_pixel_share`] (0: the exact route).
+    fn fine_pass_stats_on(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate: f64, share: f64) -> TileStats {
         let corrections = vec![TrajectoryCorrections::zeros(0, 8); chunks.len()];
         let step = IterationStep::new(0.01, threshold);
-        let params =
-            Parameters { point_latent_below_grid_m: 0.02, cover_agreement_thresholds: gate, ..Default::default() };
+        let params = Parameters {
+            point_latent_below_grid_m: 0.02,
+            cover_agreement_thresholds: gate,
+            latent_pixel_share: share,
+            ..Default::default()
+        };
         estimate_tile(tile, chunks, &corrections, &params, &step).unwrap().stats
     }
 
@@ -1714,40 +1761,96 @@ mod tests {
         assert!(gated.points_modelled > 1000 && gated.points_used < gated.points_modelled / 10, "{gated:?}");
     }
 
-    /// On a plane, the exact point-sampled latent surface and a fine raster give the same
-    /// residuals: two strips 4 mm apart meet in the middle (residuals ±2 mm), and the blocks agree.
+    /// On a plane, the exact point-sampled latent surface, the one sampled at pixel centres and
+    /// a fine raster give the same residuals: two strips 4 mm apart meet in the middle
+    /// (residuals ±2 mm), and the blocks agree.
     #[test]
     fn point_sampled_latent_matches_fine_raster() {
         let tile = TileKey { tx: 0, ty: 0 };
         let chunks = [plane_strip(tile, 0, 0.0, [0.0, 0.0]), plane_strip(tile, 1, 0.004, [0.033, 0.21])];
         let corrections = vec![TrajectoryCorrections::zeros(0, 8); 2];
         let step = IterationStep::new(0.01, 0.05);
-        // Both with the map held: the comparison is of the latent surfaces, and the consistent
+        // All with the map held: the comparison is of the latent surfaces, and the consistent
         // gradient (point-sampled steps only) spreads a point's pull over the covering passes.
-        let run = |below: f64| {
-            let params =
-                Parameters { point_latent_below_grid_m: below, consistent_gradient: false, ..Default::default() };
+        let run = |below: f64, share: f64| {
+            let params = Parameters {
+                point_latent_below_grid_m: below,
+                latent_pixel_share: share,
+                consistent_gradient: false,
+                ..Default::default()
+            };
             estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
         };
-        let (raster, exact) = (run(0.0), run(0.02));
-        for e in [&raster, &exact] {
+        let (raster, exact, by_pixel) = (run(0.0, 0.0), run(0.02, 0.0), run(0.02, 0.7));
+        for e in [&raster, &exact, &by_pixel] {
             assert!(e.stats.points_used > 500, "{:?}", e.stats.points_used);
             let mean = e.stats.residual_sum_m / e.stats.points_used as f64;
             let rms = (e.stats.residual_sum2_m2 / e.stats.points_used as f64).sqrt();
             assert!(mean.abs() < 2e-4 && (rms - 0.002).abs() < 2e-4, "mean {mean}, rms {rms}");
         }
         // Points near the overlap's edge need all four pixels in the raster, but only coverage
-        // when sampled exactly.
+        // when sampled exactly or at the pixel holding them.
         assert!(exact.stats.points_used >= raster.stats.points_used);
+        assert!(by_pixel.stats.points_used >= raster.stats.points_used);
         // The vertical pull per observation agrees.
-        for (a, b) in raster.blocks.iter().zip(&exact.blocks) {
-            let pull = |t: &TrajectoryBlocks| {
-                t.blocks.iter().map(|b| b.rhs[2]).sum::<f64>()
-                    / t.blocks.iter().map(|b| b.observations).sum::<u32>() as f64
-            };
-            let (ra, rb) = (pull(a), pull(b));
-            assert!(ra.abs() > 1.0 && (ra - rb).abs() < 0.05 * ra.abs(), "{ra} vs {rb}");
+        for other in [&exact, &by_pixel] {
+            for (a, b) in raster.blocks.iter().zip(&other.blocks) {
+                let pull = |t: &TrajectoryBlocks| {
+                    t.blocks.iter().map(|b| b.rhs[2]).sum::<f64>()
+                        / t.blocks.iter().map(|b| b.observations).sum::<u32>() as f64
+                };
+                let (ra, rb) = (pull(a), pull(b));
+                assert!(ra.abs() > 1.0 && (ra - rb).abs() < 0.05 * ra.abs(), "{ra} vs {rb}");
+            }
         }
+    }
+
+    /// Sampled at pixel centres, a point's own pass never counts as another: one pass alone
+    /// gives no observation, however its revolutions fall into the pixels; the same strip
+    /// coming back (more than 64 anchors later) is another pass, and the two meet in the middle.
+    /// On a tilted, slightly curved surface sampled by passes of different densities, the
+    /// latent heights agree with the exact route's to a fraction of a millimetre.
+    #[test]
+    fn pixel_sampled_latent_excludes_the_own_pass_and_matches_the_exact_route() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let alone = [plane_strip(tile, 0, 0.0, [0.0, 0.0])];
+        let stats = fine_pass_stats_on(tile, &alone, 0.05, 0.0, 0.7);
+        assert!(stats.points_modelled == 0 && stats.points_used == 0, "{stats:?}");
+        // The strip again 200 anchors later, 4 mm higher: another pass of the same strip.
+        let mut back = plane_strip(tile, 0, 0.004, [0.033, 0.21]);
+        back.anchor.iter_mut().for_each(|a| *a += 200);
+        let mut both = alone[0].clone();
+        let offset = both.len() as u32;
+        both.t0.extend_from_slice(&back.t0);
+        both.r.extend_from_slice(&back.r);
+        both.normal.extend_from_slice(&back.normal);
+        both.anchor.extend_from_slice(&back.anchor);
+        both.lambda.extend_from_slice(&back.lambda);
+        let link = |v: &u32| if *v == NO_NEIGHBOUR { NO_NEIGHBOUR } else { v + offset };
+        both.right.extend(back.right.iter().map(link));
+        both.down.extend(back.down.iter().map(link));
+        both.edge_limit.extend_from_slice(&back.edge_limit);
+        both.segment.extend(back.segment.iter().map(|s| s + 1));
+        both.source.extend(back.source.iter().map(|s| s + offset));
+        let stats = fine_pass_stats_on(tile, &[both], 0.05, 0.0, 0.7);
+        let rms = (stats.residual_sum2_m2 / stats.points_used as f64).sqrt();
+        assert!(stats.points_used > 500 && (rms - 0.002).abs() < 1e-4, "{} used, rms {rms}", stats.points_used);
+
+        // Three passes over a gently curved, tilted surface, one of them twice as dense.
+        let height = |x: f64, y: f64| 0.05 * x - 0.03 * y + 0.02 * (x - 4.0) * (x - 4.0);
+        let n = normalize([-0.05, 0.03, 1.0]);
+        let chunks = [
+            strip_on(tile, 0, [0.0, 0.0], 1, height, n),
+            strip_on(tile, 1, [0.033, 0.21], 2, |x, y| height(x, y) + 0.003, n),
+            strip_on(tile, 2, [0.071, 0.37], 1, |x, y| height(x, y) - 0.002, n),
+        ];
+        let (exact, by_pixel) =
+            (fine_pass_stats_on(tile, &chunks, 0.05, 0.0, 0.0), fine_pass_stats_on(tile, &chunks, 0.05, 0.0, 0.7));
+        let mean = |s: &TileStats| s.residual_sum_m / s.points_used as f64;
+        let rms = |s: &TileStats| (s.residual_sum2_m2 / s.points_used as f64).sqrt();
+        assert!(by_pixel.points_used as f64 >= 0.97 * exact.points_used as f64, "{by_pixel:?} {exact:?}");
+        assert!((mean(&by_pixel) - mean(&exact)).abs() < 1e-4, "{} {}", mean(&by_pixel), mean(&exact));
+        assert!((rms(&by_pixel) - rms(&exact)).abs() < 2e-4, "{} {}", rms(&by_pixel), rms(&exact));
     }
 
     /// With a consistent gradient, a trajectory's blocks carry the gradient of the cost the
@@ -1765,47 +1868,54 @@ mod tests {
             plane_strip(tile, 2, 0.5, [0.071, 0.37]),
         ];
         let step = IterationStep::new(0.01, 0.05);
-        let run = |consistent: bool, trajectory: usize, dz: f64| {
-            let params =
-                Parameters { point_latent_below_grid_m: 0.02, consistent_gradient: consistent, ..Default::default() };
-            let mut corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
-            corrections[trajectory].values.iter_mut().for_each(|c| c[2] = dz);
-            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
-        };
-        let weight = 1.0 / Parameters::default().sigma_distance_m.powi(2);
-        let cost = |e: &TileEstimate| 0.5 * weight * e.stats.residual_sum2_m2;
-        let h = 1e-6;
-        let (mut common_consistent, mut common_fixed_map) = (0.0, 0.0);
-        for trajectory in 0..3 {
-            let numeric = (cost(&run(true, trajectory, h)) - cost(&run(true, trajectory, -h))) / (2.0 * h);
-            let pull = |consistent: bool| -> f64 {
-                let e = run(consistent, trajectory, 0.0);
-                e.blocks
-                    .iter()
-                    .filter(|t| t.trajectory == trajectory as u32)
-                    .flat_map(|t| &t.blocks)
-                    .map(|b| b.rhs[2])
-                    .sum()
+        // Both routes: exact sampling at the points, and at pixel centres.
+        for share in [0.0, 0.7] {
+            let run = |consistent: bool, trajectory: usize, dz: f64| {
+                let params = Parameters {
+                    point_latent_below_grid_m: 0.02,
+                    consistent_gradient: consistent,
+                    latent_pixel_share: share,
+                    ..Default::default()
+                };
+                let mut corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
+                corrections[trajectory].values.iter_mut().for_each(|c| c[2] = dz);
+                estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
             };
-            // The blocks' right-hand side is the negative gradient (`H δ = rhs`).
-            let (consistent, fixed_map) = (-pull(true), -pull(false));
-            assert!(numeric.abs() > 1.0, "trajectory {trajectory}: {numeric}");
-            assert!(
-                (consistent - numeric).abs() < 0.01 * numeric.abs(),
-                "trajectory {trajectory}: {consistent} vs {numeric}"
-            );
-            eprintln!("trajectory {trajectory}: reduced-cost gradient {numeric:.3}, consistent {consistent:.3}, map held {fixed_map:.3}");
-            if trajectory == 0 {
-                // The sparse pass: the map-fixed pull misses what the dense pass's points pull.
-                assert!((fixed_map - numeric).abs() > 0.1 * numeric.abs(), "{fixed_map} vs {numeric}");
+            let weight = 1.0 / Parameters::default().sigma_distance_m.powi(2);
+            let cost = |e: &TileEstimate| 0.5 * weight * e.stats.residual_sum2_m2;
+            let h = 1e-6;
+            let (mut common_consistent, mut common_fixed_map) = (0.0, 0.0);
+            for trajectory in 0..3 {
+                let numeric = (cost(&run(true, trajectory, h)) - cost(&run(true, trajectory, -h))) / (2.0 * h);
+                let pull = |consistent: bool| -> f64 {
+                    let e = run(consistent, trajectory, 0.0);
+                    e.blocks
+                        .iter()
+                        .filter(|t| t.trajectory == trajectory as u32)
+                        .flat_map(|t| &t.blocks)
+                        .map(|b| b.rhs[2])
+                        .sum()
+                };
+                // The blocks' right-hand side is the negative gradient (`H δ = rhs`).
+                let (consistent, fixed_map) = (-pull(true), -pull(false));
+                assert!(numeric.abs() > 1.0, "trajectory {trajectory}: {numeric}");
+                assert!(
+                    (consistent - numeric).abs() < 0.01 * numeric.abs(),
+                    "trajectory {trajectory}: {consistent} vs {numeric}"
+                );
+                eprintln!("trajectory {trajectory}: reduced-cost gradient {numeric:.3}, consistent {consistent:.3}, map held {fixed_map:.3}");
+                if trajectory == 0 {
+                    // The sparse pass: the map-fixed pull misses what the dense pass's points pull.
+                    assert!((fixed_map - numeric).abs() > 0.1 * numeric.abs(), "{fixed_map} vs {numeric}");
+                }
+                common_consistent += consistent;
+                common_fixed_map += fixed_map;
             }
-            common_consistent += consistent;
-            common_fixed_map += fixed_map;
+            // Moving every pass together changes no residual, so the reduced cost has no gradient
+            // along it; holding the map fixed invents one, which only the prior would balance.
+            assert!(common_consistent.abs() < 1e-6 * 1000.0, "share {share}: {common_consistent}");
+            assert!(common_fixed_map.abs() > 100.0, "share {share}: {common_fixed_map}");
         }
-        // Moving every pass together changes no residual, so the reduced cost has no gradient
-        // along it; holding the map fixed invents one, which only the prior would balance.
-        assert!(common_consistent.abs() < 1e-6 * 1000.0, "{common_consistent}");
-        assert!(common_fixed_map.abs() > 100.0, "{common_fixed_map}");
     }
 
     /// Deterministic uniform numbers in [0, 1) (a linear congruential generator).

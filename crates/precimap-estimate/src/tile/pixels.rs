@@ -1,0 +1,459 @@
+//! The fine steps' latent heights sampled at pixel centres ([`pixel_latent`]): O(points) where
+//! [`super::point_latent`] is O(points × passes).
+//!
+//! Every scan-image triangle of every pass is sampled at the centres of the pixels it covers,
+//! in a raster per surface model whose pixel follows the local point spacing (a share of it, at
+//! least the step's grid): each triangle covers about one centre, whatever the number of passes.
+//! A core point then reads the entries of its own pixel only: the other passes' heights at the
+//! centre, carried to the point along the mean slope of those passes. The point's own pass
+//! contributes the point's own height, as on the exact route, so the residual, the pulls of the
+//! consistent gradient and the common-mode field's rows keep their meaning.
+//!
+//! Entries and core points are both sorted by pixel (counting sorts) and, within a pixel, by
+//! chunk and anchor, so that a point's own-pass entries form one contiguous run (same strip,
+//! fewer than [`SAME_PASS_ANCHORS`] anchors apart) and prefix sums give the other passes' sums
+//! in O(1): the work per pixel is linear in its entries and points.
+
+use super::{floor_i64, lifted, CornerPulls, ItemPull, Latent, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS};
+use crate::chunk::NO_NEIGHBOUR;
+use crate::latent::{LatentSample, LatentSink};
+use crate::stats::TileStats;
+
+/// Pixels per surface model at most, per member point (a floor on the pixel size where the
+/// points are denser than the step's grid would need).
+const PIXELS_PER_POINT: f64 = 4.0;
+
+/// One model's raster: pixel (i, j) has its centre at `u0 + (i + ½)·size`, `v0 + (j + ½)·size`.
+#[derive(Clone, Copy, Debug, Default)]
+struct PixelGrid {
+    u0: f64,
+    v0: f64,
+    size: f64,
+    inv: f64,
+    nu: u32,
+    nv: u32,
+    offset: usize,
+}
+
+impl PixelGrid {
+    /// The pixel holding `(u, v)` (clamped to the raster, whose margin keeps member points inside).
+    #[inline]
+    fn pixel(&self, u: f64, v: f64) -> usize {
+        let inv = self.inv;
+        let i = floor_i64((u - self.u0) * inv).clamp(0, self.nu as i64 - 1) as usize;
+        let j = floor_i64((v - self.v0) * inv).clamp(0, self.nv as i64 - 1) as usize;
+        self.offset + j * self.nu as usize + i
+    }
+}
+
+/// One triangle sampled at one pixel centre: its pass (chunk, and the anchor of the corner it
+/// hangs off), its height at the centre and its slope in the model's plane, and its index in
+/// triangle order (where its pull is written back, in order of the corner it hangs off).
+#[derive(Clone, Copy, Debug, Default)]
+struct Entry {
+    chunk: u32,
+    anchor: u32,
+    raw: u32,
+    h: f32,
+    hx: f32,
+    hy: f32,
+}
+
+/// An [`Entry`] in triangle order, with its pixel, the corner its triangle hangs off and the
+/// model (where its pull goes).
+#[derive(Clone, Copy, Debug)]
+struct RawEntry {
+    pixel: u32,
+    corner: u32,
+    model: u32,
+    entry: Entry,
+}
+
+/// A core point in pixel order: its index, pass (chunk and anchor) and plane coordinates.
+#[derive(Clone, Copy, Debug, Default)]
+struct Item {
+    point: u32,
+    chunk: u32,
+    anchor: u32,
+    u: f64,
+    v: f64,
+    h: f64,
+}
+
+/// Running sums over a pixel's entries, in entry order (prefix sums: the sums of a contiguous
+/// run of entries are one difference).
+#[derive(Clone, Copy, Debug, Default)]
+struct Sums {
+    h: f64,
+    h2: f64,
+    hx: f64,
+    hy: f64,
+    vehicle: [f64; 2],
+    count: f64,
+}
+
+impl Sums {
+    #[inline]
+    fn plus(&self, e: &Entry, vehicle: [f64; 2]) -> Self {
+        let h = e.h as f64;
+        Self {
+            h: self.h + h,
+            h2: self.h2 + h * h,
+            hx: self.hx + e.hx as f64,
+            hy: self.hy + e.hy as f64,
+            vehicle: [self.vehicle[0] + vehicle[0], self.vehicle[1] + vehicle[1]],
+            count: self.count + 1.0,
+        }
+    }
+
+    #[inline]
+    fn minus(&self, o: &Self) -> Self {
+        Self {
+            h: self.h - o.h,
+            h2: self.h2 - o.h2,
+            hx: self.hx - o.hx,
+            hy: self.hy - o.hy,
+            vehicle: [self.vehicle[0] - o.vehicle[0], self.vehicle[1] - o.vehicle[1]],
+            count: self.count - o.count,
+        }
+    }
+}
+
+/// Stable counting sort of `keys` (each `< buckets`): per bucket its first position (one more
+/// entry closes the last), and per position the index it came from.
+fn counting_sort(keys: impl Iterator<Item = u32> + Clone, buckets: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut start = vec![0u32; buckets + 1];
+    for k in keys.clone() {
+        start[k as usize + 1] += 1;
+    }
+    for b in 0..buckets {
+        start[b + 1] += start[b];
+    }
+    let mut fill = start.clone();
+    let mut order = vec![0u32; start[buckets] as usize];
+    for (i, k) in keys.enumerate() {
+        order[fill[k as usize] as usize] = i as u32;
+        fill[k as usize] += 1;
+    }
+    (start, order)
+}
+
+/// Latent heights of the tile's core points from the other passes' triangles sampled at pixel
+/// centres (module docs). `pixel_share` is the pixel size as a share of each model's mean
+/// point spacing (the geometric mean of a point's two scan-image edges), `grid` its least size.
+///
+/// Returns what [`super::point_latent`] returns and, with `pulls`, the pulls of the used points
+/// gathered per triangle corner ([`CornerPulls`]): an entry's triangle receives the pull of
+/// every point it is another pass to, `ω/(c+1)` and `ω/(c+1)·e`, as on the exact route.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn pixel_latent<S: LatentSink>(
+    t: &Triangles,
+    in_core: &impl Fn(&[f64; 3]) -> bool,
+    grid: f64,
+    pixel_share: f64,
+    vehicle: Option<&[[f64; 2]]>,
+    pulls: Option<ItemPull>,
+    stats: &mut TileStats,
+    sink: &mut S,
+) -> (Latent, Option<CornerPulls>) {
+    let models = t.models;
+    let n = t.position.len();
+
+    // 1. Every member point in its model's plane: the raster's extent and the point spacing;
+    //    core points are the items that read the raster.
+    let mut bounds = vec![[f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY]; models.len()];
+    // Per model: Σ spacing, spacing samples, member points, core points.
+    let mut spacing = vec![[0.0f64; 4]; models.len()];
+    let mut uvh = vec![[0.0f64; 3]; n];
+    // The core points, in point order.
+    let mut core: Vec<Item> = Vec::new();
+    let mut base = 0usize;
+    for (c, chunk) in t.chunks.iter().enumerate() {
+        for k in 0..chunk.len() {
+            let a = base + k;
+            let id = t.model_of[a];
+            if id == NONE {
+                continue;
+            }
+            let p = &t.position[a];
+            let (u, v, h) = models[id as usize].project(p);
+            uvh[a] = [u, v, h];
+            let b = &mut bounds[id as usize];
+            b[0] = b[0].min(u);
+            b[1] = b[1].max(u);
+            b[2] = b[2].min(v);
+            b[3] = b[3].max(v);
+            let s = &mut spacing[id as usize];
+            s[2] += 1.0;
+            if in_core(p) {
+                s[3] += 1.0;
+                core.push(Item { point: a as u32, chunk: c as u32, anchor: chunk.anchor[k], u, v, h });
+            }
+            let (right, down) = (chunk.right[k], chunk.down[k]);
+            if right != NO_NEIGHBOUR && down != NO_NEIGHBOUR {
+                let limit = chunk.edge_limit[k] as f64;
+                let d2 = |q: u32| {
+                    let q = &t.position[base + q as usize];
+                    let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                    d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                };
+                let (along, across) = (d2(right), d2(down));
+                if along <= limit * limit && across <= limit * limit {
+                    s[0] += (along * across).sqrt().sqrt();
+                    s[1] += 1.0;
+                }
+            }
+        }
+        base += chunk.len();
+    }
+
+    // 2. One raster per model with core points; the others are never read.
+    let mut pixel_count = 0usize;
+    let grids: Vec<PixelGrid> = bounds
+        .iter()
+        .zip(&spacing)
+        .map(|(b, s)| {
+            if s[3] == 0.0 {
+                return PixelGrid { offset: pixel_count, ..PixelGrid::default() };
+            }
+            let (du, dv) = (b[1] - b[0], b[3] - b[2]);
+            let mean_spacing = if s[1] > 0.0 { s[0] / s[1] } else { 0.0 };
+            let least = ((du + grid) * (dv + grid) / (PIXELS_PER_POINT * s[2])).sqrt();
+            let size = (pixel_share * mean_spacing).max(grid).max(least);
+            // The raster starts at the lowest member coordinates: the first centres lie half a
+            // pixel inside the members' extent (a centre on its edge is covered by one pass at
+            // most; measured: 1.3 points fewer of the surface points used on small seed 1), and
+            // the extreme points fall exactly on 0, never on a pixel edge that rounding could
+            // move them across between two nearly equal states.
+            let g = PixelGrid {
+                u0: b[0],
+                v0: b[2],
+                size,
+                inv: 1.0 / size,
+                nu: (du / size) as u32 + 1,
+                nv: (dv / size) as u32 + 1,
+                offset: pixel_count,
+            };
+            pixel_count += g.nu as usize * g.nv as usize;
+            g
+        })
+        .collect();
+
+    // 3. Every triangle at the pixel centres it covers, in triangle order (which is the order
+    //    of the corners they hang off), then sorted by pixel (stably: within a pixel, entries
+    //    stay in chunk and point order, so anchors rise within a chunk).
+    let chunk_of: Vec<u32> =
+        t.chunks.iter().enumerate().flat_map(|(c, chunk)| std::iter::repeat_n(c as u32, chunk.len())).collect();
+    let mut raw: Vec<RawEntry> = Vec::with_capacity(2 * n);
+    t.for_each(|id, p, corners, _strip, anchor, first| {
+        let g = &grids[id as usize];
+        if g.nu == 0 {
+            return;
+        }
+        let m = &models[id as usize];
+        // Corners on this model were projected above; a corner on another (agreeing) model is
+        // projected into this one's plane.
+        let corner = |k: usize| {
+            let a = corners[k];
+            if t.model_of[a] == id {
+                uvh[a]
+            } else {
+                let (u, v, h) = m.project(&p[k]);
+                [u, v, h]
+            }
+        };
+        let ([u0, v0, h0], [u1, v1, h1], [u2, v2, h2]) = (corner(0), corner(1), corner(2));
+        let (du1, dv1, dh1) = (u1 - u0, v1 - v0, h1 - h0);
+        let (du2, dv2, dh2) = (u2 - u0, v2 - v0, h2 - h0);
+        let area = du1 * dv2 - du2 * dv1;
+        if area.abs() < 1e-12 {
+            return;
+        }
+        let inv_area = 1.0 / area;
+        let hx = (dh1 * dv2 - dh2 * dv1) * inv_area;
+        let hy = (dh2 * du1 - dh1 * du2) * inv_area;
+        // The centres under the triangle's bounding box (a triangle covers about one), each
+        // tested by its barycentric coordinates.
+        let inv = g.inv;
+        let (xs, ys) = ((u0 - g.u0) * inv - 0.5, (v0 - g.v0) * inv - 0.5);
+        let (x1, x2) = (xs + du1 * inv, xs + du2 * inv);
+        let (y1, y2) = (ys + dv1 * inv, ys + dv2 * inv);
+        // Truncation toward zero widens the box by at most a column or row (the barycentric
+        // test decides) and costs less than floor and ceil.
+        let i0 = (xs.min(x1).min(x2) as i64).max(0);
+        let i1 = (xs.max(x1).max(x2) as i64).min(g.nu as i64 - 1);
+        let j0 = (ys.min(y1).min(y2) as i64).max(0);
+        let j1 = (ys.max(y1).max(y2) as i64).min(g.nv as i64 - 1);
+        if i0 > i1 || j0 > j1 {
+            return;
+        }
+        let entry = Entry { chunk: chunk_of[first], anchor, raw: 0, h: 0.0, hx: hx as f32, hy: hy as f32 };
+        const SLACK: f64 = -1e-9;
+        for j in j0..=j1 {
+            let dv = (j as f64 - ys) * g.size;
+            for i in i0..=i1 {
+                let du = (i as f64 - xs) * g.size;
+                let l1 = (du * dv2 - du2 * dv) * inv_area;
+                let l2 = (du1 * dv - du * dv1) * inv_area;
+                if l1 >= SLACK && l2 >= SLACK && 1.0 - l1 - l2 >= SLACK {
+                    raw.push(RawEntry {
+                        pixel: (g.offset + j as usize * g.nu as usize + i as usize) as u32,
+                        corner: first as u32,
+                        model: id,
+                        entry: Entry { raw: raw.len() as u32, h: (h0 + l1 * dh1 + l2 * dh2) as f32, ..entry },
+                    });
+                }
+            }
+        }
+    });
+    let (entry_start, order) = counting_sort(raw.iter().map(|r| r.pixel), pixel_count);
+    let entries: Vec<Entry> = order.iter().map(|&r| raw[r as usize].entry).collect();
+    // The scan head of the corner each entry hangs off (the common-mode field's rows).
+    let entry_vehicle: Vec<[f64; 2]> = match vehicle {
+        Some(v) => order.iter().map(|&r| v[raw[r as usize].corner as usize]).collect(),
+        None => Vec::new(),
+    };
+    drop(order);
+
+    // 4. The core points sorted by pixel (stably, so in chunk and point order within a pixel),
+    //    gathered into pixel order once: the per-pixel loop reads them in sequence.
+    let pixel_of = |item: &Item| grids[t.model_of[item.point as usize] as usize].pixel(item.u, item.v) as u32;
+    let (item_start, order) = counting_sort(core.iter().map(pixel_of), pixel_count);
+    let items: Vec<Item> = order.iter().map(|&i| core[i as usize]).collect();
+    drop((order, core, uvh));
+
+    // 5. Per pixel: each point's other passes (all entries but its own pass's run), its latent
+    //    height, and the pulls its residual sends to those entries' triangles.
+    let mut latent = vec![f64::NAN; n];
+    let mut covering = vec![0u32; n];
+    let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
+    // Per entry in triangle order, the pull it receives.
+    let mut raw_pull = vec![[0.0f64; 2]; if pulls.is_some() { raw.len() } else { 0 }];
+    let mut prefix: Vec<Sums> = Vec::new();
+    // Per entry: the pulls of the points whose own pass it belongs to, as a difference array.
+    let mut own_pull: Vec<[f64; 2]> = Vec::new();
+    for (id, g) in grids.iter().enumerate() {
+        if g.nu == 0 {
+            continue;
+        }
+        let w = models[id].w;
+        for j in 0..g.nv as usize {
+            for i in 0..g.nu as usize {
+                let pixel = g.offset + j * g.nu as usize + i;
+                let (is, ie) = (item_start[pixel] as usize, item_start[pixel + 1] as usize);
+                let (es, ee) = (entry_start[pixel] as usize, entry_start[pixel + 1] as usize);
+                if is == ie || es == ee {
+                    continue;
+                }
+                let pixel_entries = &entries[es..ee];
+                prefix.clear();
+                prefix.push(Sums::default());
+                for (k, e) in pixel_entries.iter().enumerate() {
+                    let v = entry_vehicle.get(es + k).copied().unwrap_or_default();
+                    let next = prefix[k].plus(e, v);
+                    prefix.push(next);
+                }
+                let all = prefix[pixel_entries.len()];
+                let centre = [g.u0 + (i as f64 + 0.5) * g.size, g.v0 + (j as f64 + 0.5) * g.size];
+                if pulls.is_some() {
+                    own_pull.clear();
+                    own_pull.resize(pixel_entries.len() + 1, [0.0; 2]);
+                }
+                let mut total_pull = [0.0f64; 2];
+                // The own-pass run [lo, hi) of the current point: entries are sorted by chunk
+                // and anchor, so are the points, and both bounds only move forward.
+                let (mut lo, mut hi) = (0usize, 0usize);
+                let key = |e: &Entry| (e.chunk, e.anchor);
+                for item in &items[is..ie] {
+                    let Item { chunk, anchor, u, v, h, .. } = *item;
+                    let a = item.point as usize;
+                    let below = (chunk, anchor.saturating_sub(SAME_PASS_ANCHORS - 1));
+                    while lo < pixel_entries.len() && key(&pixel_entries[lo]) < below {
+                        lo += 1;
+                    }
+                    hi = hi.max(lo);
+                    let above = (chunk, anchor.saturating_add(SAME_PASS_ANCHORS - 1));
+                    while hi < pixel_entries.len() && key(&pixel_entries[hi]) <= above {
+                        hi += 1;
+                    }
+                    let other = all.minus(&prefix[hi].minus(&prefix[lo]));
+                    if other.count == 0.0 {
+                        continue;
+                    }
+                    let c = other.count;
+                    let (gx, gy) = (other.hx / c, other.hy / c);
+                    // The other passes' heights carried from the centre to the point along
+                    // their mean slope.
+                    let step = gx * (u - centre[0]) + gy * (v - centre[1]);
+                    let sum = other.h + c * step;
+                    let sum2 = other.h2 + 2.0 * step * other.h + c * step * step;
+                    let mean = (h + sum) / (c + 1.0);
+                    let var = ((h * h + sum2) / (c + 1.0) - mean * mean).max(0.0);
+                    stats.pixels_shared += 1;
+                    stats.pixel_std_sum_m += var.sqrt();
+                    let usable = gx * gx + gy * gy <= MAX_SLOPE * MAX_SLOPE;
+                    if S::RECORDS {
+                        sink.add(&LatentSample {
+                            position: lifted(&t.position[a], w, mean - h),
+                            normal: w,
+                            residual_m: h - mean,
+                            std_m: var.sqrt(),
+                            passes: c as u32 + 1,
+                            used: usable,
+                        });
+                    }
+                    if !usable {
+                        continue;
+                    }
+                    latent[a] = mean;
+                    covering[a] = c as u32;
+                    if let Some(o) = others.get_mut(a) {
+                        *o = [other.vehicle[0] / c, other.vehicle[1] / c, c / (c + 1.0)];
+                    }
+                    if let Some(ItemPull { threshold, weight }) = pulls {
+                        let e = h - mean;
+                        if e.abs() <= threshold {
+                            let alpha = weight / (c + 1.0);
+                            let pull = [alpha, alpha * e];
+                            for k in 0..2 {
+                                total_pull[k] += pull[k];
+                                own_pull[lo][k] += pull[k];
+                                own_pull[hi][k] -= pull[k];
+                            }
+                        }
+                    }
+                }
+                if pulls.is_some() && total_pull[0] > 0.0 {
+                    // Entry k receives the pulls of every point it was another pass to.
+                    let mut own = [0.0f64; 2];
+                    for (k, e) in pixel_entries.iter().enumerate() {
+                        own[0] += own_pull[k][0];
+                        own[1] += own_pull[k][1];
+                        raw_pull[e.raw as usize] = [total_pull[0] - own[0], total_pull[1] - own[1]];
+                    }
+                }
+            }
+        }
+    }
+    stats.pixels = items.len() as u64;
+    // 6. The pulls by corner, in triangle order (corners rise): a corner's own model in one
+    //    sum per point, triangles on another model as separate entries, already sorted.
+    let corner_pulls = pulls.map(|_| {
+        let mut sums = vec![[0.0f64; 2]; n];
+        let mut other_models = Vec::new();
+        for (&RawEntry { corner, model, .. }, &pull) in raw.iter().zip(&raw_pull) {
+            if pull[0] <= 0.0 {
+                continue;
+            }
+            let corner = corner as usize;
+            if t.model_of[corner] == model {
+                sums[corner][0] += pull[0];
+                sums[corner][1] += pull[1];
+            } else {
+                other_models.push((corner, model, pull));
+            }
+        }
+        CornerPulls { sums, other_models, next_other: 0 }
+    });
+    (Latent { height: latent, others, covering, pull: Vec::new() }, corner_pulls)
+}
