@@ -75,7 +75,8 @@ pub struct FieldEquations {
 pub struct FieldAccumulator {
     spacing: f64,
     nodes: Vec<FieldNode>,
-    h: Vec<[f64; 9]>,
+    /// Upper triangles `[xx, xy, xz, yy, yz, zz]` of the 3×3 blocks, row-major over node pairs.
+    h: Vec<[f64; 6]>,
     rhs: Vec<[f64; 3]>,
     observations: u64,
     row: Vec<(usize, f64)>,
@@ -107,7 +108,7 @@ impl FieldAccumulator {
         }
         let old = self.nodes.len();
         let new = old + 1;
-        let mut h = vec![[0.0; 9]; new * new];
+        let mut h = vec![[0.0; 6]; new * new];
         for a in 0..old {
             h[a * new..a * new + old].copy_from_slice(&self.h[a * old..(a + 1) * old]);
         }
@@ -144,23 +145,19 @@ impl FieldAccumulator {
         }
         let n = self.nodes.len();
         let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
-        for &(a, ra) in &row {
+        for (i, &(a, ra)) in row.iter().enumerate() {
             let s = weight * ra * e;
             for c in 0..3 {
                 self.rhs[a][c] -= s * w[c];
             }
-            for &(b, rb) in &row {
-                if b < a {
-                    continue;
+            // Each unordered pair once, without a branch on the order of its nodes (the product
+            // in node order, as the sums have always been formed).
+            for &(b, rb) in &row[i..] {
+                let s = if a <= b { weight * ra * rb } else { weight * rb * ra };
+                let m = &mut self.h[a.min(b) * n + a.max(b)];
+                for c in 0..6 {
+                    m[c] += s * ww[c];
                 }
-                let s = weight * ra * rb;
-                let m = &mut self.h[a * n + b];
-                m[0] += s * ww[0];
-                m[1] += s * ww[1];
-                m[2] += s * ww[2];
-                m[4] += s * ww[3];
-                m[5] += s * ww[4];
-                m[8] += s * ww[5];
             }
         }
         self.row = row;
@@ -178,14 +175,12 @@ impl FieldAccumulator {
         let mut pairs = Vec::new();
         for a in 0..n {
             for b in a..n {
-                let mut m = self.h[a * n + b];
-                if m.iter().all(|&v| v == 0.0) {
+                let u = self.h[a * n + b];
+                if u.iter().all(|&v| v == 0.0) {
                     continue;
                 }
-                // The accumulator filled the upper triangle of each 3×3 (ww is symmetric).
-                m[3] = m[1];
-                m[6] = m[2];
-                m[7] = m[5];
+                // The accumulator kept the upper triangle of each 3×3 (ww is symmetric).
+                let m = [u[0], u[1], u[2], u[1], u[3], u[4], u[2], u[4], u[5]];
                 let (ra, rb) = (rank[a], rank[b]);
                 pairs.push(if ra <= rb { (ra, rb, m) } else { (rb, ra, m) });
             }
@@ -576,7 +571,7 @@ mod tests {
                         let s = weight * ra * rb;
                         let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
                         let m = &mut acc.h[a * n + b];
-                        for (slot, v) in [0, 1, 2, 4, 5, 8].into_iter().zip(ww) {
+                        for (slot, v) in ww.into_iter().enumerate() {
                             m[slot] += s * v;
                         }
                     }

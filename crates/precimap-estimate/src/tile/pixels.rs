@@ -67,6 +67,8 @@ struct RawEntry {
     corner: u32,
     model: u32,
     entry: Entry,
+    /// The corner's scan head (the common-mode field's rows; zero without them).
+    vehicle: [f64; 2],
 }
 
 /// A core point in pixel order: its index, pass (chunk and anchor) and plane coordinates.
@@ -119,9 +121,22 @@ impl Sums {
     }
 }
 
-/// Stable counting sort of `keys` (each `< buckets`): per bucket its first position (one more
-/// entry closes the last), and per position the index it came from.
-fn counting_sort(keys: impl Iterator<Item = u32> + Clone, buckets: usize) -> (Vec<u32>, Vec<u32>) {
+/// `x.ceil() as i64` without the libm call (see [`floor_i64`]).
+#[inline]
+fn ceil_i64(x: f64) -> i64 {
+    let i = x as i64;
+    i + ((i as f64) < x) as i64
+}
+
+/// Stable counting sort by key (each `< buckets`): per bucket its first position (one more entry
+/// closes the last), and `put(position, index)` for every element in order. The elements are
+/// read in sequence and written where they go (scattered writes cost less than gathered reads,
+/// which stall on every cache miss).
+fn counting_sort(
+    keys: impl Iterator<Item = u32> + Clone,
+    buckets: usize,
+    mut put: impl FnMut(usize, usize),
+) -> Vec<u32> {
     let mut start = vec![0u32; buckets + 1];
     for k in keys.clone() {
         start[k as usize + 1] += 1;
@@ -130,12 +145,11 @@ fn counting_sort(keys: impl Iterator<Item = u32> + Clone, buckets: usize) -> (Ve
         start[b + 1] += start[b];
     }
     let mut fill = start.clone();
-    let mut order = vec![0u32; start[buckets] as usize];
     for (i, k) in keys.enumerate() {
-        order[fill[k as usize] as usize] = i as u32;
+        put(fill[k as usize] as usize, i);
         fill[k as usize] += 1;
     }
-    (start, order)
+    start
 }
 
 /// Latent heights of the tile's core points from the other passes' triangles sampled at pixel
@@ -278,16 +292,17 @@ pub(super) fn pixel_latent<S: LatentSink>(
         let (xs, ys) = ((u0 - g.u0) * inv - 0.5, (v0 - g.v0) * inv - 0.5);
         let (x1, x2) = (xs + du1 * inv, xs + du2 * inv);
         let (y1, y2) = (ys + dv1 * inv, ys + dv2 * inv);
-        // Truncation toward zero widens the box by at most a column or row (the barycentric
-        // test decides) and costs less than floor and ceil.
-        let i0 = (xs.min(x1).min(x2) as i64).max(0);
-        let i1 = (xs.max(x1).max(x2) as i64).min(g.nu as i64 - 1);
-        let j0 = (ys.min(y1).min(y2) as i64).max(0);
-        let j1 = (ys.max(y1).max(y2) as i64).min(g.nv as i64 - 1);
+        // The exact box: a triangle spans about one pixel, and each row or column more would
+        // double the candidates.
+        let i0 = ceil_i64(xs.min(x1).min(x2)).max(0);
+        let i1 = floor_i64(xs.max(x1).max(x2)).min(g.nu as i64 - 1);
+        let j0 = ceil_i64(ys.min(y1).min(y2)).max(0);
+        let j1 = floor_i64(ys.max(y1).max(y2)).min(g.nv as i64 - 1);
         if i0 > i1 || j0 > j1 {
             return;
         }
         let entry = Entry { chunk: chunk_of[first], anchor, raw: 0, h: 0.0, hx: hx as f32, hy: hy as f32 };
+        let from = vehicle.map_or([0.0; 2], |v| v[first]);
         const SLACK: f64 = -1e-9;
         for j in j0..=j1 {
             let dv = (j as f64 - ys) * g.size;
@@ -301,26 +316,28 @@ pub(super) fn pixel_latent<S: LatentSink>(
                         corner: first as u32,
                         model: id,
                         entry: Entry { raw: raw.len() as u32, h: (h0 + l1 * dh1 + l2 * dh2) as f32, ..entry },
+                        vehicle: from,
                     });
                 }
             }
         }
     });
-    let (entry_start, order) = counting_sort(raw.iter().map(|r| r.pixel), pixel_count);
-    let entries: Vec<Entry> = order.iter().map(|&r| raw[r as usize].entry).collect();
+    let mut entries = vec![Entry::default(); raw.len()];
     // The scan head of the corner each entry hangs off (the common-mode field's rows).
-    let entry_vehicle: Vec<[f64; 2]> = match vehicle {
-        Some(v) => order.iter().map(|&r| v[raw[r as usize].corner as usize]).collect(),
-        None => Vec::new(),
-    };
-    drop(order);
+    let mut entry_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { raw.len() } else { 0 }];
+    let entry_start = counting_sort(raw.iter().map(|r| r.pixel), pixel_count, |at, r| {
+        entries[at] = raw[r].entry;
+        if let Some(v) = entry_vehicle.get_mut(at) {
+            *v = raw[r].vehicle;
+        }
+    });
 
     // 4. The core points sorted by pixel (stably, so in chunk and point order within a pixel),
     //    gathered into pixel order once: the per-pixel loop reads them in sequence.
     let pixel_of = |item: &Item| grids[t.model_of[item.point as usize] as usize].pixel(item.u, item.v) as u32;
-    let (item_start, order) = counting_sort(core.iter().map(pixel_of), pixel_count);
-    let items: Vec<Item> = order.iter().map(|&i| core[i as usize]).collect();
-    drop((order, core, uvh));
+    let mut items = vec![Item::default(); core.len()];
+    let item_start = counting_sort(core.iter().map(pixel_of), pixel_count, |at, i| items[at] = core[i]);
+    drop((core, uvh));
 
     // 5. Per pixel: each point's other passes (all entries but its own pass's run), its latent
     //    height, and the pulls its residual sends to those entries' triangles.
