@@ -371,18 +371,19 @@ fn estimate_tile_into<S: LatentSink>(
             }
             let slots = &mut last.1;
             let mut best = NONE;
-            let mut best_cos = cos_group;
+            // The best cosine so far as `along² / norm²` (`cos_group` to begin with): the tests
+            // `cos > best` and of the plane distance, squared and multiplied out, need no root
+            // and no division (they run per point).
+            let (mut best_along2, mut best_norm2) = (cos_group * cos_group, 1.0);
             for &id in &slots.ids[..slots.len as usize] {
                 let m = &patches[id as usize];
-                // `cos > best_cos` and the plane distance, squared and multiplied out: a root
-                // and a division only for the patch the point joins (the test runs per point).
                 let norm2 = dot(m.sum_normal, m.sum_normal);
                 let along = dot(n, m.sum_normal);
                 if along > 0.0
-                    && along * along > best_cos * best_cos * norm2
+                    && along * along * best_norm2 > best_along2 * norm2
                     && (!normal_columns || m.within_plane(&p, norm2))
                 {
-                    best_cos = along / norm2.sqrt();
+                    (best_along2, best_norm2) = (along * along, norm2);
                     best = id;
                 }
             }
