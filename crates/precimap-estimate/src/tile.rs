@@ -8,9 +8,10 @@
 //!    strip's surface (the triangles of its scan image) is rasterised into the LSM pixels, so a
 //!    pixel knows every strip's surface height there even when the points are sparser than the
 //!    pixels (DESIGN §2 "Density matters").
-//!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and evaluate the
-//!    strips' triangles exactly at the points instead ([`point_latent`]): the limit of an
-//!    infinitely fine raster, at a cost that does not grow with the pixel count.
+//!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and sample the
+//!    other passes' triangles for each point instead, at a cost that does not grow with the
+//!    pixel count: at pixel centres that follow the point spacing ([`pixels`], the default,
+//!    O(points)) or exactly at the points ([`point_latent`], O(points × passes)).
 //! 3. Each point in the tile's core becomes an observation: its height above the LSM plane minus
 //!    the latent height at its position. Only pixels seen by at least two distinct
 //!    strip passes carry inter-strip information; the others are skipped. A point's own strip is
@@ -464,7 +465,7 @@ fn estimate_tile_into<S: LatentSink>(
     let mut covers = Vec::new();
     let mut pixel_pulls = None;
     let Latent { height: latent, others, covering, pull } = match &index {
-        _ if by_pixel => {
+        None if by_pixel => {
             let vehicle = solves_field.then_some(vehicle.as_slice());
             let pulls = params.consistent_gradient.then_some(ItemPull { threshold, weight });
             let (latent, pulls) = pixels::pixel_latent(
@@ -735,10 +736,9 @@ struct Triangles<'a> {
 impl Triangles<'_> {
     /// Calls `visit(model, corners, indices, strip, anchor, first)` (the corners' positions and
     /// point indices; `first`: index of the corner the triangle hangs off) for every triangle and
-    /// every surface model one
-    /// of its corners belongs to, provided the triangle is continuous surface (short edges) lying
-    /// on that model (facet and model normals agree, and the corners' models are not at odds)
-    /// and, with `within_segment`, within one segment.
+    /// every surface model one of its corners belongs to, provided the triangle is continuous
+    /// surface (short edges) lying on that model (facet and model normals agree, and the
+    /// corners' models are not at odds) and, with `within_segment`, within one segment.
     fn for_each(&self, mut visit: impl FnMut(u32, [[f64; 3]; 3], [usize; 3], u32, u32, usize)) {
         let mut base = 0usize;
         for chunk in self.chunks {

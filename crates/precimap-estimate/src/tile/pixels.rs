@@ -36,7 +36,7 @@ struct PixelGrid {
 }
 
 impl PixelGrid {
-    /// The pixel holding `(u, v)` (clamped to the raster, whose margin keeps member points inside).
+    /// The pixel holding `(u, v)` (clamped to the raster, which holds every member point).
     #[inline]
     fn pixel(&self, u: f64, v: f64) -> usize {
         let inv = self.inv;
@@ -331,6 +331,12 @@ pub(super) fn pixel_latent<S: LatentSink>(
             *v = raw[r].vehicle;
         }
     });
+    // Where each entry's pull goes, in triangle order; the rest of the raw entries is done with.
+    let corner_model: Vec<(u32, u32)> = match pulls {
+        Some(_) => raw.iter().map(|r| (r.corner, r.model)).collect(),
+        None => Vec::new(),
+    };
+    drop(raw);
 
     // 4. The core points sorted by pixel (stably, so in chunk and point order within a pixel),
     //    gathered into pixel order once: the per-pixel loop reads them in sequence.
@@ -345,7 +351,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
     let mut covering = vec![0u32; n];
     let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
     // Per entry in triangle order, the pull it receives.
-    let mut raw_pull = vec![[0.0f64; 2]; if pulls.is_some() { raw.len() } else { 0 }];
+    let mut raw_pull = vec![[0.0f64; 2]; corner_model.len()];
     let mut prefix: Vec<Sums> = Vec::new();
     // Per entry: the pulls of the points whose own pass it belongs to, as a difference array.
     let mut own_pull: Vec<[f64; 2]> = Vec::new();
@@ -458,7 +464,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
     let corner_pulls = pulls.map(|_| {
         let mut sums = vec![[0.0f64; 2]; n];
         let mut other_models = Vec::new();
-        for (&RawEntry { corner, model, .. }, &pull) in raw.iter().zip(&raw_pull) {
+        for (&(corner, model), &pull) in corner_model.iter().zip(&raw_pull) {
             if pull[0] <= 0.0 {
                 continue;
             }
