@@ -1082,25 +1082,14 @@ impl CoreIndex {
             if g.nu == 0 {
                 return;
             }
+            let corners = p.map(|q| {
+                let (u, v, h) = m.project(&q);
+                [u, v, h]
+            });
+            let Some(plane) = PlaneTriangle::new(corners) else { return };
+            let tri = CoveringTriangle { model: id, first, vehicle: vehicle.map_or([0.0; 2], |v| v[first]), plane };
             // Corners in bucket units.
-            let [(x0, y0, h0), (x1, y1, h1), (x2, y2, h2)] = p.map(|q| m.project(&q));
-            let (dx1, dy1, dh1) = (x1 - x0, y1 - y0, h1 - h0);
-            let (dx2, dy2, dh2) = (x2 - x0, y2 - y0, h2 - h0);
-            let area = dx1 * dy2 - dx2 * dy1;
-            if area.abs() < 1e-12 {
-                return;
-            }
-            let inv_area = 1.0 / area;
-            let tri = CoveringTriangle {
-                model: id,
-                first,
-                vehicle: vehicle.map_or([0.0; 2], |v| v[first]),
-                h0,
-                dh1,
-                dh2,
-                hx: (dh1 * dy2 - dh2 * dy1) * inv_area,
-                hy: (dh2 * dx1 - dh1 * dx2) * inv_area,
-            };
+            let [[x0, y0, _], [x1, y1, _], [x2, y2, _]] = corners;
             let bx = [(x0 - g.u0) * g.inv, (x1 - g.u0) * g.inv, (x2 - g.u0) * g.inv];
             let by = [(y0 - g.v0) * g.inv, (y1 - g.v0) * g.inv, (y2 - g.v0) * g.inv];
             let j0 = floor_i64(by[0].min(by[1]).min(by[2])).max(0);
@@ -1115,9 +1104,7 @@ impl CoreIndex {
                 let row = g.offset + (j as usize) * g.nu as usize;
                 let (s, e) = (self.start[row + i0 as usize] as usize, self.start[row + i1 as usize + 1] as usize);
                 for q in s..e {
-                    let (x, y) = (self.item_uv[q][0] - x0, self.item_uv[q][1] - y0);
-                    let l1 = (x * dy2 - dx2 * y) * inv_area;
-                    let l2 = (dx1 * y - x * dy1) * inv_area;
+                    let (l1, l2) = plane.barycentric(self.item_uv[q][0] - x0, self.item_uv[q][1] - y0);
                     let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
                     let (s_q, a_q) = self.item_owner[q];
                     let own_pass = (s_q == strip) & (a_q.abs_diff(anchor) < SAME_PASS_ANCHORS);
@@ -1128,18 +1115,57 @@ impl CoreIndex {
     }
 }
 
+/// A triangle in a surface model's plane: its first corner `(u, v, h)`, the other two relative
+/// to it, and its slope `(∂h/∂u, ∂h/∂v)`; what both sampled routes evaluate at points or pixel
+/// centres.
+#[derive(Clone, Copy, Debug)]
+struct PlaneTriangle {
+    origin: [f64; 3],
+    d1: [f64; 3],
+    d2: [f64; 3],
+    inv_area: f64,
+    hx: f64,
+    hy: f64,
+}
+
+impl PlaneTriangle {
+    /// `None` for a triangle without area in the plane (seen edge-on).
+    #[inline]
+    fn new([c0, c1, c2]: [[f64; 3]; 3]) -> Option<Self> {
+        let d1 = [c1[0] - c0[0], c1[1] - c0[1], c1[2] - c0[2]];
+        let d2 = [c2[0] - c0[0], c2[1] - c0[1], c2[2] - c0[2]];
+        let area = d1[0] * d2[1] - d2[0] * d1[1];
+        if area.abs() < 1e-12 {
+            return None;
+        }
+        let inv_area = 1.0 / area;
+        let hx = (d1[2] * d2[1] - d2[2] * d1[1]) * inv_area;
+        let hy = (d2[2] * d1[0] - d1[2] * d2[0]) * inv_area;
+        Some(Self { origin: c0, d1, d2, inv_area, hx, hy })
+    }
+
+    /// Barycentric coordinates `(l1, l2)` of the corners 1 and 2 at `(du, dv)` from corner 0.
+    #[inline]
+    fn barycentric(&self, du: f64, dv: f64) -> (f64, f64) {
+        let (d1, d2) = (&self.d1, &self.d2);
+        ((du * d2[1] - d2[0] * dv) * self.inv_area, (d1[0] * dv - du * d1[1]) * self.inv_area)
+    }
+
+    /// Height at the barycentric coordinates `(l1, l2)`.
+    #[inline]
+    fn height(&self, l1: f64, l2: f64) -> f64 {
+        self.origin[2] + l1 * self.d1[2] + l2 * self.d2[2]
+    }
+}
+
 /// A triangle of [`CoreIndex::for_each_cover`] in its model's plane: the model, the corner it
-/// hangs off and that corner's scan head (zero without vehicle positions), and its height
-/// `h0 + l1·dh1 + l2·dh2` with slope `(hx, hy)`.
+/// hangs off and that corner's scan head (zero without vehicle positions), and its height and
+/// slope.
 struct CoveringTriangle {
     model: u32,
     first: usize,
     vehicle: [f64; 2],
-    h0: f64,
-    dh1: f64,
-    dh2: f64,
-    hx: f64,
-    hy: f64,
+    plane: PlaneTriangle,
 }
 
 /// Latent heights evaluated exactly at the points of the tile's core — the limit of an
@@ -1179,7 +1205,7 @@ fn point_latent<S: LatentSink>(
     };
     if !gated && covers.is_none() {
         index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
-            acc[q].add_masked(take, tri.h0 + l1 * tri.dh1 + l2 * tri.dh2, tri.hx, tri.hy, tri.vehicle);
+            acc[q].add_masked(take, tri.plane.height(l1, l2), tri.plane.hx, tri.plane.hy, tri.vehicle);
         });
     } else {
         // Every (point, triangle) pair taken, with its height and slope; appended without a
@@ -1191,8 +1217,8 @@ fn point_latent<S: LatentSink>(
         let mut slopes: Vec<[f32; 2]> = Vec::new();
         let mut len = 0;
         index.for_each_cover(t, vehicle, |tri, q, take, l1, l2| {
-            let h = tri.h0 + l1 * tri.dh1 + l2 * tri.dh2;
-            acc[q].add_masked(take, h, tri.hx, tri.hy, tri.vehicle);
+            let h = tri.plane.height(l1, l2);
+            acc[q].add_masked(take, h, tri.plane.hx, tri.plane.hy, tri.vehicle);
             if len == covers.len() {
                 let grown = len + len / 2 + 1024;
                 covers.resize(grown, [0; 3]);
@@ -1204,7 +1230,7 @@ fn point_latent<S: LatentSink>(
             covers[len] = [q as u32, tri.first as u32, tri.model];
             if gated {
                 heights[len] = h;
-                slopes[len] = [tri.hx as f32, tri.hy as f32];
+                slopes[len] = [tri.plane.hx as f32, tri.plane.hy as f32];
             }
             len += take as usize;
         });

@@ -14,7 +14,9 @@
 //! fewer than [`SAME_PASS_ANCHORS`] anchors apart) and prefix sums give the other passes' sums
 //! in O(1): the work per pixel is linear in its entries and points.
 
-use super::{floor_i64, lifted, CornerPulls, ItemPull, Latent, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS};
+use super::{
+    floor_i64, lifted, CornerPulls, ItemPull, Latent, PlaneTriangle, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS,
+};
 use crate::chunk::NO_NEIGHBOUR;
 use crate::latent::{LatentSample, LatentSink};
 use crate::stats::TileStats;
@@ -276,22 +278,13 @@ pub(super) fn pixel_latent<S: LatentSink>(
                 [u, v, h]
             }
         };
-        let ([u0, v0, h0], [u1, v1, h1], [u2, v2, h2]) = (corner(0), corner(1), corner(2));
-        let (du1, dv1, dh1) = (u1 - u0, v1 - v0, h1 - h0);
-        let (du2, dv2, dh2) = (u2 - u0, v2 - v0, h2 - h0);
-        let area = du1 * dv2 - du2 * dv1;
-        if area.abs() < 1e-12 {
-            return;
-        }
-        let inv_area = 1.0 / area;
-        let hx = (dh1 * dv2 - dh2 * dv1) * inv_area;
-        let hy = (dh2 * du1 - dh1 * du2) * inv_area;
+        let Some(plane) = PlaneTriangle::new([corner(0), corner(1), corner(2)]) else { return };
         // The centres under the triangle's bounding box (a triangle covers about one), each
         // tested by its barycentric coordinates.
-        let inv = g.inv;
+        let (inv, [u0, v0, _], d1, d2) = (g.inv, plane.origin, plane.d1, plane.d2);
         let (xs, ys) = ((u0 - g.u0) * inv - 0.5, (v0 - g.v0) * inv - 0.5);
-        let (x1, x2) = (xs + du1 * inv, xs + du2 * inv);
-        let (y1, y2) = (ys + dv1 * inv, ys + dv2 * inv);
+        let (x1, x2) = (xs + d1[0] * inv, xs + d2[0] * inv);
+        let (y1, y2) = (ys + d1[1] * inv, ys + d2[1] * inv);
         // The exact box: a triangle spans about one pixel, and each row or column more would
         // double the candidates.
         let i0 = ceil_i64(xs.min(x1).min(x2)).max(0);
@@ -301,21 +294,19 @@ pub(super) fn pixel_latent<S: LatentSink>(
         if i0 > i1 || j0 > j1 {
             return;
         }
-        let entry = Entry { chunk: chunk_of[first], anchor, raw: 0, h: 0.0, hx: hx as f32, hy: hy as f32 };
+        let entry = Entry { chunk: chunk_of[first], anchor, raw: 0, h: 0.0, hx: plane.hx as f32, hy: plane.hy as f32 };
         let from = vehicle.map_or([0.0; 2], |v| v[first]);
         const SLACK: f64 = -1e-9;
         for j in j0..=j1 {
             let dv = (j as f64 - ys) * g.size;
             for i in i0..=i1 {
-                let du = (i as f64 - xs) * g.size;
-                let l1 = (du * dv2 - du2 * dv) * inv_area;
-                let l2 = (du1 * dv - du * dv1) * inv_area;
+                let (l1, l2) = plane.barycentric((i as f64 - xs) * g.size, dv);
                 if l1 >= SLACK && l2 >= SLACK && 1.0 - l1 - l2 >= SLACK {
                     raw.push(RawEntry {
                         pixel: (g.offset + j as usize * g.nu as usize + i as usize) as u32,
                         corner: first as u32,
                         model: id,
-                        entry: Entry { raw: raw.len() as u32, h: (h0 + l1 * dh1 + l2 * dh2) as f32, ..entry },
+                        entry: Entry { raw: raw.len() as u32, h: plane.height(l1, l2) as f32, ..entry },
                         vehicle: from,
                     });
                 }
