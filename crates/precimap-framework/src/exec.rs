@@ -453,13 +453,17 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             with_sigma,
             current,
             previous,
+            iteration_start,
             blocks,
         } => {
+            let has_previous = previous.is_some();
             let mut refs = vec![current];
             refs.extend(previous);
+            refs.extend(iteration_start);
             let mut read = read_corrections_many(ctx, &refs).await?.into_iter();
             let current = read.next().expect("the current corrections");
-            let previous = read.next();
+            let previous = if has_previous { read.next() } else { None };
+            let iteration_start = read.next();
             let mut all = Vec::new();
             for (key, bytes) in blocks.iter().zip(ctx.get_many(&blocks).await?) {
                 all.extend(
@@ -468,7 +472,19 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             }
             let id = trajectory.id.clone();
             let solution = blocking(move || {
-                precimap_estimate::solve_trajectory(all.iter(), &current, previous.as_ref(), &params, step.rotation, with_sigma)
+                precimap_estimate::solve_trajectory(
+                    all.iter(),
+                    &current,
+                    previous.as_ref(),
+                    &params,
+                    step.rotation,
+                    with_sigma,
+                )
+                // The change between iterations, the field's share included.
+                .map(|solution| match &iteration_start {
+                    Some(start) => solution.measured_from(start),
+                    None => solution,
+                })
             })
             .await?
             .map_err(|e| {

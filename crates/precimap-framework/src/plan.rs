@@ -153,6 +153,11 @@ pub enum TaskInput {
         /// The corrections before `current`, when momentum carries the last step on.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         previous: Option<CorrectionsRef>,
+        /// The corrections the iteration started from, when they differ from `current` (steps
+        /// that solve the common-mode field): the change is measured from them
+        /// (`TrajectorySolution::measured_from`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        iteration_start: Option<CorrectionsRef>,
         /// Blocks object keys in tile order (the in-process driver's summation order).
         blocks: Vec<String>,
     },
@@ -637,7 +642,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     if !step.solves_field(&state.params) {
         let current = state.corrections.clone();
         let previous = momentum.then(|| state.previous_corrections.clone());
-        return Ok(solve_stage(state, blocks, current, previous));
+        return Ok(solve_stage(state, blocks, current, previous, None));
     }
     state.pending_blocks = blocks;
     let refs = |keys: &[Option<String>]| -> Vec<CorrectionsRef> {
@@ -699,16 +704,19 @@ fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, St
     }
     let blocks = std::mem::take(&mut state.pending_blocks);
     state.started_from = start.clone();
-    Ok(solve_stage(state, blocks, start, any_previous.then_some(previous)))
+    let iteration_start = state.corrections.clone();
+    Ok(solve_stage(state, blocks, start, any_previous.then_some(previous), Some(iteration_start)))
 }
 
 /// The reduce stage: one `solve_trajectory` per trajectory from `current` (with `previous` when
-/// momentum carries the last step on).
+/// momentum carries the last step on), its change measured from `iteration_start` where the
+/// field moved `current` away from it.
 fn solve_stage(
     state: &mut PlanState,
     mut blocks: Vec<Vec<String>>,
     current: Vec<Option<String>>,
     previous: Option<Vec<Option<String>>>,
+    iteration_start: Option<Vec<Option<String>>>,
 ) -> Next {
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let with_sigma = is_last_step(state);
@@ -730,6 +738,7 @@ fn solve_stage(
                 with_sigma,
                 current: reference(&current, traj.index),
                 previous: previous.as_ref().map(|p| reference(p, traj.index)),
+                iteration_start: iteration_start.as_ref().map(|s| reference(s, traj.index)),
                 blocks: std::mem::take(&mut blocks[traj.index as usize]),
             }
             .task(traj.id.clone())

@@ -68,6 +68,8 @@ pub struct IterationReport {
     pub residual_std_m: f64,
     /// Mean over shared pixels of the standard deviation of the strips' heights.
     pub pixel_std_mean_m: f64,
+    /// The largest anchor change since the previous iteration (the common-mode field's share
+    /// included), as the displacement of a point at 10 m; the convergence test reads it.
     pub max_correction_change_m: f64,
     /// Median and 99th percentile of the anchors' changes (upper edges of 26 % wide bins): a
     /// campaign still drifting everywhere shows in the median, a few wandering anchors only in

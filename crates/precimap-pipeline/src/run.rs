@@ -194,7 +194,10 @@ pub fn iterate(
         .enumerate()
         .map(|(t, blocks)| {
             let before = previous.as_ref().map(|p| &p[t]);
-            solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, place.last)
+            let solution =
+                solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, place.last)?;
+            // The change between iterations, the field's share included.
+            Ok::<_, PipelineError>(if field.is_some() { solution.measured_from(&corrections[t]) } else { solution })
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok(Iterated { solutions, stats, field, started_from, latent_std })
