@@ -27,7 +27,8 @@ pub struct IterationStep {
     /// iteration); steps without it settle. The default schedule's last six steps (thresholds
     /// under 2 cm) settle: with the consistent gradient, the largest anchor change of the last
     /// iteration falls 2.2–2.6 → 0.4–0.8 mm (median 0.40 → 0.13 mm) on small seeds 1, 2 and
-    /// medium, the spreads within −6 … +5 % (ARCHITECTURE.md, "Settling in the last six steps").
+    /// medium, the spreads within −6 … +5 % (ARCHITECTURE.md, "Settling in the last six steps";
+    /// changes then measured from the solves' start, see "The change between iterations").
     #[serde(default = "default_true")]
     pub momentum: bool,
 }
