@@ -128,6 +128,7 @@ fn steps_without_momentum_settle() {
 /// from 0.44 to 0.09 mm in 9 of them).
 #[test]
 fn the_reported_change_is_the_change_between_iterations() {
+    use precimap_estimate::solve::CHANGE_RANGE_M;
     use precimap_pipeline::run::{iterate, prepare_all, Iterated, Place};
     let dir = tempfile::tempdir().unwrap();
     let campaign = precimap_pipeline::Campaign::load(&simulate_tiny(dir.path(), 3).join("manifest.json")).unwrap();
@@ -149,16 +150,16 @@ fn the_reported_change_is_the_change_between_iterations() {
     assert!(captured.field.is_none());
     let start: Vec<_> = captured.solutions.iter().map(|s| s.corrections.clone()).collect();
     for (s, z) in captured.solutions.iter().zip(&zeros) {
-        assert_eq!(s.max_change_m, s.corrections.max_change_m(z, 10.0));
+        assert_eq!(s.max_change_m, s.corrections.max_change_m(z, CHANGE_RANGE_M));
     }
     let Iterated { solutions, field, started_from, .. } =
         iterate(&campaign, &work, &prepared, &start, None, fine, place).unwrap();
     assert!(field.is_some(), "the fine step solved the common-mode field");
     let mut field_moved = false;
     for ((s, from), solve_start) in solutions.iter().zip(&start).zip(&started_from) {
-        assert_eq!(s.max_change_m, s.corrections.max_change_m(from, 10.0));
-        assert_eq!(s.change_histogram, s.corrections.change_histogram(from, 10.0));
-        field_moved |= s.max_change_m != s.corrections.max_change_m(solve_start, 10.0);
+        assert_eq!(s.max_change_m, s.corrections.max_change_m(from, CHANGE_RANGE_M));
+        assert_eq!(s.change_histogram, s.corrections.change_histogram(from, CHANGE_RANGE_M));
+        field_moved |= s.max_change_m != s.corrections.max_change_m(solve_start, CHANGE_RANGE_M);
     }
     assert!(field_moved, "the field moved the solves' start, so the two measures differ");
 }
