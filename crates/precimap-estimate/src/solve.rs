@@ -12,8 +12,8 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrajectorySolution {
     pub corrections: TrajectoryCorrections,
-    /// Largest change against the corrections the solve started from, as the displacement of a
-    /// point at 10 m; [`Self::measured_from`] measures it from where the iteration started.
+    /// Largest change since the iteration started (see [`solve_trajectory`]'s `change_from`),
+    /// as the displacement of a point at 10 m.
     pub max_change_m: f64,
     /// Every anchor's change, measured the same way.
     #[serde(default)]
@@ -23,21 +23,6 @@ pub struct TrajectorySolution {
     pub observations: u64,
     /// Posterior standard deviations per anchor (position m, rotation rad), when requested.
     pub sigma: Option<Vec<[f64; 6]>>,
-}
-
-impl TrajectorySolution {
-    /// The change measured from `start`, the corrections the iteration started from. In steps
-    /// that solve the common-mode field the solve starts from `start` plus the field, and the
-    /// field and the solve can move the same shared shift back and forth by a constant amount
-    /// while the corrections themselves settle: measured from the solve's own start, the
-    /// change never falls below that amount (small seed 1: 0.42 mm in every one of 30 extra
-    /// iterations while the trajectories moved 2 mm in all). The convergence test and the
-    /// report want the change between iterations.
-    pub fn measured_from(mut self, start: &TrajectoryCorrections) -> Self {
-        self.max_change_m = self.corrections.max_change_m(start, CHANGE_RANGE_M);
-        self.change_histogram = self.corrections.change_histogram(start, CHANGE_RANGE_M);
-        self
-    }
 }
 
 /// Nominal range at which a rotation change is expressed as a displacement.
@@ -256,10 +241,19 @@ fn weights(params: &Parameters) -> (Vec6, Vec6) {
 /// One Gauss–Newton step for one trajectory. `blocks` are the summed tile blocks (any order,
 /// duplicates of an anchor are added); `current` fixes the anchor range. With `previous` (the
 /// corrections before `current`) the step adds `params.momentum × (current − previous)`.
+///
+/// The reported change is measured from `change_from` (default `current`): the corrections the
+/// iteration started from. In steps that solve the common-mode field the solve starts from them
+/// plus the field, and the field and the solve can move the same shared shift back and forth by
+/// a constant amount while the corrections themselves settle: measured from the solve's own
+/// start, the change never falls below that amount (small seed 1: 0.42 mm in every one of 30
+/// extra iterations while the trajectories moved 2 mm in all). The convergence test and the
+/// report want the change between iterations.
 pub fn solve_trajectory<'a>(
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,
+    change_from: Option<&TrajectoryCorrections>,
     params: &Parameters,
     estimate_rotation: bool,
     with_sigma: bool,
@@ -343,8 +337,9 @@ pub fn solve_trajectory<'a>(
         })
         .collect();
     let corrections = TrajectoryCorrections { first_anchor: first, values };
-    let max_change_m = corrections.max_change_m(current, CHANGE_RANGE_M);
-    let change_histogram = corrections.change_histogram(current, CHANGE_RANGE_M);
+    let change_from = change_from.unwrap_or(current);
+    let max_change_m = corrections.max_change_m(change_from, CHANGE_RANGE_M);
+    let change_histogram = corrections.change_histogram(change_from, CHANGE_RANGE_M);
     Ok(TrajectorySolution {
         corrections,
         max_change_m,
@@ -427,15 +422,17 @@ mod tests {
         let current =
             TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
         let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
-        let plain = solve_trajectory(std::iter::empty(), &current, None, &params, true, false).unwrap();
-        let carried = solve_trajectory(std::iter::empty(), &current, Some(&previous), &params, true, false).unwrap();
+        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, true, false).unwrap();
+        let carried =
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, true, false).unwrap();
         for k in 0..n {
             for a in 0..6 {
                 let expected = plain.corrections.values[k][a] + 0.5 * (current.values[k][a] - previous.values[k][a]);
                 assert!((carried.corrections.values[k][a] - expected).abs() < 1e-15, "anchor {k}, unknown {a}");
             }
         }
-        let frozen = solve_trajectory(std::iter::empty(), &current, Some(&previous), &params, false, false).unwrap();
+        let frozen =
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, false, false).unwrap();
         for k in 0..n {
             assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
             assert!((frozen.corrections.values[k][0] - plain.corrections.values[k][0] - 0.005).abs() < 1e-9);
@@ -452,7 +449,8 @@ mod tests {
         let mut kinked = straight;
         kinked[4][0] += 0.05;
         let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
-        let sol_kinked = solve_trajectory(std::iter::empty(), &current_kinked, None, &params, true, false).unwrap();
+        let sol_kinked =
+            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, true, false).unwrap();
         let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
         assert!(second(&current_kinked.values, 4).abs() > 0.09);
         assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");

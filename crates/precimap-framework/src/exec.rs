@@ -472,19 +472,16 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             }
             let id = trajectory.id.clone();
             let solution = blocking(move || {
+                // The change between iterations, the field's share included.
                 precimap_estimate::solve_trajectory(
                     all.iter(),
                     &current,
                     previous.as_ref(),
+                    iteration_start.as_ref(),
                     &params,
                     step.rotation,
                     with_sigma,
                 )
-                // The change between iterations, the field's share included.
-                .map(|solution| match &iteration_start {
-                    Some(start) => solution.measured_from(start),
-                    None => solution,
-                })
             })
             .await?
             .map_err(|e| {

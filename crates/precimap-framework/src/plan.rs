@@ -155,7 +155,7 @@ pub enum TaskInput {
         previous: Option<CorrectionsRef>,
         /// The corrections the iteration started from, when they differ from `current` (steps
         /// that solve the common-mode field): the change is measured from them
-        /// (`TrajectorySolution::measured_from`).
+        /// (`solve_trajectory`'s `change_from`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         iteration_start: Option<CorrectionsRef>,
         /// Blocks object keys in tile order (the in-process driver's summation order).

@@ -194,10 +194,18 @@ pub fn iterate(
         .enumerate()
         .map(|(t, blocks)| {
             let before = previous.as_ref().map(|p| &p[t]);
-            let solution =
-                solve_trajectory_task(campaign, t, blocks.iter().copied(), &started_from[t], before, step, place.last)?;
             // The change between iterations, the field's share included.
-            Ok::<_, PipelineError>(if field.is_some() { solution.measured_from(&corrections[t]) } else { solution })
+            let start = &corrections[t];
+            solve_trajectory_task(
+                campaign,
+                t,
+                blocks.iter().copied(),
+                &started_from[t],
+                before,
+                start,
+                step,
+                place.last,
+            )
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok(Iterated { solutions, stats, field, started_from, latent_std })

@@ -191,18 +191,30 @@ pub fn anchor_positions(
     trajectory.data.horizontal_positions_along(anchor_spacing_m, first, count)
 }
 
-/// `solve_trajectory` over the blocks every tile emitted for one trajectory.
+/// `solve_trajectory` over the blocks every tile emitted for one trajectory; the change is
+/// measured from `iteration_start`.
+#[allow(clippy::too_many_arguments)]
 pub fn solve_trajectory_task<'a>(
     campaign: &Campaign,
     trajectory: usize,
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,
+    iteration_start: &TrajectoryCorrections,
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory(blocks, current, previous, &campaign.params, step.rotation, with_sigma)
-        .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
+    let params = &campaign.params;
+    precimap_estimate::solve_trajectory(
+        blocks,
+        current,
+        previous,
+        Some(iteration_start),
+        params,
+        step.rotation,
+        with_sigma,
+    )
+    .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
 }
 
 /// `export_strip`: every input point, same order, all attributes, coordinates corrected.
