@@ -44,11 +44,18 @@ fn assert_same_results(a: &Path, b: &Path) {
     let rb: serde_json::Value = serde_json::from_slice(&std::fs::read(b.join("report.json")).unwrap()).unwrap();
     assert_eq!(ra["iterations"].as_array().unwrap().len(), rb["iterations"].as_array().unwrap().len());
     for (x, y) in ra["iterations"].as_array().unwrap().iter().zip(rb["iterations"].as_array().unwrap()) {
-        for field in
-            ["points_used", "points_modelled", "residual_std_m", "max_correction_change_m", "common_mode_field_max_m"]
-        {
+        for field in [
+            "points_used",
+            "points_modelled",
+            "residual_std_m",
+            "max_correction_change_m",
+            "max_correction_change_at",
+            "common_mode_field_max_m",
+        ] {
             assert_eq!(x[field], y[field], "{field}");
         }
+        // Both drivers say where the largest change is.
+        assert!(x["max_correction_change_at"]["trajectory"].is_string(), "{x}");
     }
     // The fine steps solved the common-mode field (its own stage in the framework).
     assert!(ra["iterations"].as_array().unwrap().iter().any(|i| i["common_mode_field_max_m"].as_f64().unwrap() > 0.0));

@@ -56,7 +56,7 @@ impl Display {
 
     pub fn iteration(&self, it: &IterationReport, total: usize) {
         self.permanent(&format!(
-            "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  change median {:>6.2} max {:>7.2} mm  ({:.1} s)",
+            "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  change median {:>6.2} max {:>7.2} mm{}  ({:.1} s)",
             it.iteration,
             it.grid_m * 100.0,
             it.threshold_m * 1000.0,
@@ -64,6 +64,9 @@ impl Display {
             it.residual_std_m * 1000.0,
             it.median_correction_change_m * 1000.0,
             it.max_correction_change_m * 1000.0,
+            it.max_correction_change_at
+                .as_ref()
+                .map_or(String::new(), |at| format!(" at {} {:.0} m", at.trajectory, at.along_m)),
             it.seconds
         ))
     }

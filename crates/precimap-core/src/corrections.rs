@@ -51,6 +51,12 @@ impl TrajectoryCorrections {
     /// Largest change between two correction sets of the same trajectory, as the displacement of
     /// a point at `range_m` from the scan head: `|Δδt| + range·|Δδθ|`.
     pub fn max_change_m(&self, other: &Self, range_m: f64) -> f64 {
+        self.max_change(other, range_m).0
+    }
+
+    /// [`Self::max_change_m`] and the anchor where it occurs (the first such anchor; the first
+    /// anchor of either set when nothing changed).
+    pub fn max_change(&self, other: &Self, range_m: f64) -> (f64, u32) {
         let first = self.first_anchor.min(other.first_anchor);
         let last = self.last_anchor().max(other.last_anchor());
         (first..=last)
@@ -58,9 +64,9 @@ impl TrajectoryCorrections {
                 let (a, b) = (self.anchor(i), other.anchor(i));
                 let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
                 let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
-                dt + range_m * dr
+                (dt + range_m * dr, i)
             })
-            .fold(0.0, f64::max)
+            .fold((0.0, first), |best, c| if c.0 > best.0 { c } else { best })
     }
 }
 
@@ -148,6 +154,13 @@ mod tests {
         assert_eq!(c.at(3, 0.5)[0], 0.0);
         let z = TrajectoryCorrections::zeros(10, 11);
         assert!((c.max_change_m(&z, 10.0) - (5f64.sqrt() + 1.0)).abs() < 1e-12);
+        let (largest, at) = c.max_change(&z, 10.0);
+        assert_eq!(largest, c.max_change_m(&z, 10.0));
+        assert!(at >= c.first_anchor && at <= c.last_anchor());
+        let moved = c.anchor(at);
+        let dt = (moved[0].powi(2) + moved[1].powi(2) + moved[2].powi(2)).sqrt();
+        let dr = (moved[3].powi(2) + moved[4].powi(2) + moved[5].powi(2)).sqrt();
+        assert_eq!(dt + 10.0 * dr, largest);
     }
 
     #[test]

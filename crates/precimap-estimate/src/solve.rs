@@ -15,6 +15,9 @@ pub struct TrajectorySolution {
     /// Largest change since the iteration started (see [`solve_trajectory`]'s `change_from`),
     /// as the displacement of a point at 10 m.
     pub max_change_m: f64,
+    /// The anchor of that largest change.
+    #[serde(default)]
+    pub max_change_anchor: u32,
     /// Every anchor's change, measured the same way.
     #[serde(default)]
     pub change_histogram: ChangeHistogram,
@@ -338,11 +341,12 @@ pub fn solve_trajectory<'a>(
         .collect();
     let corrections = TrajectoryCorrections { first_anchor: first, values };
     let change_from = change_from.unwrap_or(current);
-    let max_change_m = corrections.max_change_m(change_from, CHANGE_RANGE_M);
+    let (max_change_m, max_change_anchor) = corrections.max_change(change_from, CHANGE_RANGE_M);
     let change_histogram = corrections.change_histogram(change_from, CHANGE_RANGE_M);
     Ok(TrajectorySolution {
         corrections,
         max_change_m,
+        max_change_anchor,
         change_histogram,
         anchors_observed: observed.iter().filter(|&&o| o).count() as u32,
         observations,

@@ -494,6 +494,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let result = SolveResult {
                 trajectory: trajectory.index,
                 max_change_m: solution.max_change_m,
+                max_change_anchor: solution.max_change_anchor,
                 change_histogram: solution.change_histogram.clone(),
                 report: precimap_pipeline::trajectory_report(&trajectory.id, &solution),
                 seconds: started.elapsed().as_secs_f64(),

@@ -237,6 +237,9 @@ pub struct FieldResult {
 pub struct SolveResult {
     pub trajectory: u32,
     pub max_change_m: f64,
+    /// The anchor of the largest change.
+    #[serde(default)]
+    pub max_change_anchor: u32,
     #[serde(default)]
     pub change_histogram: precimap_core::ChangeHistogram,
     pub report: TrajectoryReport,
@@ -755,6 +758,9 @@ fn after_solve(
     let mut max_change = 0.0f64;
     let mut changes = precimap_core::ChangeHistogram::default();
     let mut reports = vec![None; state.trajectories.len()];
+    // Per trajectory, its largest change and where (in trajectory order, as the in-process
+    // driver picks the place among equal changes).
+    let mut largest = vec![None; state.trajectories.len()];
     // Momentum measures the next step from where this one started (after the field, if any).
     state.previous_corrections =
         if state.started_from.is_empty() { state.corrections.clone() } else { std::mem::take(&mut state.started_from) };
@@ -767,6 +773,7 @@ fn after_solve(
             return Err(format!("{}: result names unknown trajectory {t}", task.key));
         }
         max_change = max_change.max(r.max_change_m);
+        largest[t] = Some((r.max_change_m, r.max_change_anchor));
         changes.merge(&r.change_histogram);
         seconds += r.seconds;
         let key = task
@@ -788,6 +795,14 @@ fn after_solve(
         _ => seconds,
     };
     let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
+    report.max_correction_change_at = precimap_pipeline::report::ChangeLocation::of_largest(
+        state
+            .trajectories
+            .iter()
+            .zip(&largest)
+            .filter_map(|(t, c)| c.map(|(change, anchor)| (t.id.as_str(), change, anchor))),
+        state.params.anchor_spacing_m,
+    );
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();

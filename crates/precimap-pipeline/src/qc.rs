@@ -141,9 +141,11 @@ pub fn convergence_svg(iterations: &[IterationReport]) -> String {
     let n = iterations.len();
     let last = iterations.last();
     svg.title(&format!(
-        "Convergence over {n} iterations: residual σ {} mm, largest anchor change {} mm in the last",
+        "Convergence over {n} iterations: residual σ {} mm, largest anchor change {} mm in the last{}",
         last.map_or("–".into(), |i| number(i.residual_std_m * 1e3)),
         last.map_or("–".into(), |i| number(i.max_correction_change_m * 1e3)),
+        last.and_then(|i| i.max_correction_change_at.as_ref())
+            .map_or(String::new(), |at| format!(" ({} at {:.0} m)", at.trajectory, at.along_m)),
     ));
     let x = (0.5, n.max(1) as f64 + 0.5);
     let series = |f: fn(&IterationReport) -> f64| -> Vec<(f64, f64)> {
@@ -629,11 +631,18 @@ mod tests {
                 max_correction_change_m: 0.1 / 10f64.powi(i as i32),
                 median_correction_change_m: if i == 1 { 0.0 } else { 0.01 / 10f64.powi(i as i32) },
                 p99_correction_change_m: 0.0,
+                max_correction_change_at: (i == 4).then(|| crate::report::ChangeLocation {
+                    trajectory: "v<1>".into(),
+                    anchor: 1235,
+                    along_m: 617.5,
+                }),
                 seconds: 1.0,
             })
             .collect();
         let svg = convergence_svg(&iterations);
         assert_well_formed(&svg);
+        // The title names where the last iteration's largest change is (the id escaped).
+        assert!(svg.contains("in the last (v&lt;1&gt; at 618 m)"), "{}", &svg[..400]);
         let lines = polylines(&svg);
         assert_eq!(lines.len(), 4);
         assert!(lines.iter().all(|l| l.len() == 4));

@@ -78,7 +78,40 @@ pub struct IterationReport {
     pub median_correction_change_m: f64,
     #[serde(default)]
     pub p99_correction_change_m: f64,
+    /// Where the largest change is: the place that keeps the campaign from converging.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_correction_change_at: Option<ChangeLocation>,
     pub seconds: f64,
+}
+
+/// An anchor of a trajectory: its index and its distance along the trajectory (the anchor
+/// spacing times the index), where the QC correction plots show it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeLocation {
+    pub trajectory: String,
+    pub anchor: u32,
+    pub along_m: f64,
+}
+
+impl ChangeLocation {
+    /// The largest of several trajectories' changes `(trajectory id, change, anchor)`: the first
+    /// one in trajectory order on ties, `None` for no trajectories.
+    pub fn of_largest<'a>(
+        changes: impl IntoIterator<Item = (&'a str, f64, u32)>,
+        anchor_spacing_m: f64,
+    ) -> Option<Self> {
+        let mut best: Option<(&str, f64, u32)> = None;
+        for c in changes {
+            if best.is_none_or(|b| c.1 > b.1) {
+                best = Some(c);
+            }
+        }
+        best.map(|(trajectory, _, anchor)| Self {
+            trajectory: trajectory.to_string(),
+            anchor,
+            along_m: anchor as f64 * anchor_spacing_m,
+        })
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -107,4 +140,20 @@ pub struct Timings {
     /// shared it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub task_s: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ChangeLocation;
+
+    #[test]
+    fn the_largest_change_is_located_in_trajectory_order() {
+        let changes = [("v01", 0.2e-3, 10), ("v02", 0.5e-3, 1235), ("v03", 0.5e-3, 7)];
+        let at = ChangeLocation::of_largest(changes, 0.5).unwrap();
+        assert_eq!(at, ChangeLocation { trajectory: "v02".into(), anchor: 1235, along_m: 617.5 });
+        assert_eq!(ChangeLocation::of_largest([], 0.5), None);
+        // Nothing changed anywhere: the first trajectory's anchor, not a missing place.
+        let still = ChangeLocation::of_largest([("v01", 0.0, 4), ("v02", 0.0, 9)], 0.5).unwrap();
+        assert_eq!((still.trajectory.as_str(), still.anchor), ("v01", 4));
+    }
 }

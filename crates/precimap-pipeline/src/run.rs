@@ -271,6 +271,14 @@ pub fn run_campaign(
         robust_sigma = histogram.robust_sigma_m();
         let seconds = iteration_started.elapsed().as_secs_f64();
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
+        report.max_correction_change_at = crate::report::ChangeLocation::of_largest(
+            campaign
+                .trajectories
+                .iter()
+                .zip(&solutions)
+                .map(|(t, s)| (t.id.as_str(), s.max_change_m, s.max_change_anchor)),
+            campaign.params.anchor_spacing_m,
+        );
         report.common_mode_field_max_m =
             field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));
@@ -462,6 +470,7 @@ pub fn iteration_report(
         max_correction_change_m: max_change_m,
         median_correction_change_m: changes.quantile_m(0.5),
         p99_correction_change_m: changes.quantile_m(0.99),
+        max_correction_change_at: None,
         seconds,
     }
 }
