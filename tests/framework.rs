@@ -685,6 +685,9 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         // The campaign: one table row per iteration, the convergence chart, every QC plot loaded.
         let table = element(dom, "iterations", "</table>");
         assert_eq!(table.matches("<tr>").count(), 1 + iterations, "{table}");
+        // Each iteration's largest change says where it is (a tooltip: "v01 at 123 m").
+        assert_eq!(table.matches("<td title=\"").count(), iterations, "{table}");
+        assert!(table.contains(" m\">"), "{table}");
         let chart = element(dom, "sigma-chart", "</div>");
         assert!(chart.contains("<polyline") && chart.contains("class=\"sigma\""), "{chart}");
         let qc = element(dom, "qc", "</section>");

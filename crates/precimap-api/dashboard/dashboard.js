@@ -195,7 +195,12 @@ function renderStatus(s) {
       el("td", {}, count(it.points_used)),
       el("td", {}, used),
       el("td", {}, mm(it.residual_std_m, 2)),
-      el("td", {}, mm(it.max_correction_change_m, 2)),
+      // Where the largest change is (a tooltip: the place that keeps the campaign from converging).
+      el(
+        "td",
+        { title: it.max_correction_change_at ? `${it.max_correction_change_at.trajectory} at ${Math.round(it.max_correction_change_at.along_m)} m` : null },
+        mm(it.max_correction_change_m, 2),
+      ),
       el("td", {}, mm(it.median_correction_change_m, 3)),
       el("td", {}, it.common_mode_field_max_m > 0 ? mm(it.common_mode_field_max_m, 2) : "–"),
       el("td", {}, typeof it.seconds === "number" ? it.seconds.toFixed(1) : "–"),
