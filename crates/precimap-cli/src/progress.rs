@@ -66,7 +66,7 @@ impl Display {
             it.max_correction_change_m * 1000.0,
             it.max_correction_change_at
                 .as_ref()
-                .map_or(String::new(), |at| format!(" at {} {:.0} m", at.trajectory, at.along_m)),
+                .map_or(String::new(), |at| format!(" ({at})")),
             it.seconds
         ))
     }

@@ -51,23 +51,45 @@ impl TrajectoryCorrections {
     /// Largest change between two correction sets of the same trajectory, as the displacement of
     /// a point at `range_m` from the scan head: `|Δδt| + range·|Δδθ|`.
     pub fn max_change_m(&self, other: &Self, range_m: f64) -> f64 {
-        self.max_change(other, range_m).0
+        self.changes(other, range_m).max_m
     }
 
-    /// [`Self::max_change_m`] and the anchor where it occurs (the first such anchor; the first
-    /// anchor of either set when nothing changed).
+    /// [`Self::max_change_m`] and the anchor where it occurs (see [`Changes::max_anchor`]).
     pub fn max_change(&self, other: &Self, range_m: f64) -> (f64, u32) {
+        let c = self.changes(other, range_m);
+        (c.max_m, c.max_anchor)
+    }
+
+    /// Every anchor's change against `other` (as [`Self::max_change_m`]), over the anchors of
+    /// both sets, summarised in one pass: the largest, where it is, and the histogram.
+    pub fn changes(&self, other: &Self, range_m: f64) -> Changes {
         let first = self.first_anchor.min(other.first_anchor);
         let last = self.last_anchor().max(other.last_anchor());
-        (first..=last)
-            .map(|i| {
-                let (a, b) = (self.anchor(i), other.anchor(i));
-                let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
-                let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
-                (dt + range_m * dr, i)
-            })
-            .fold((0.0, first), |best, c| if c.0 > best.0 { c } else { best })
+        let mut out = Changes { max_m: 0.0, max_anchor: first, histogram: ChangeHistogram::default() };
+        for i in first..=last {
+            let (a, b) = (self.anchor(i), other.anchor(i));
+            let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+            let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
+            let change = dt + range_m * dr;
+            // A NaN change never becomes the largest (as `f64::max` ignores it); the histogram
+            // counts it as the largest bin.
+            if change > out.max_m {
+                (out.max_m, out.max_anchor) = (change, i);
+            }
+            out.histogram.add(change);
+        }
+        out
     }
+}
+
+/// The per-anchor changes between two correction sets ([`TrajectoryCorrections::changes`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Changes {
+    pub max_m: f64,
+    /// The first anchor with the largest change; the first anchor of either set when nothing
+    /// changed.
+    pub max_anchor: u32,
+    pub histogram: ChangeHistogram,
 }
 
 /// Distribution of the per-anchor change between two iterations (the displacement of a point at
@@ -121,16 +143,7 @@ impl ChangeHistogram {
 impl TrajectoryCorrections {
     /// Per-anchor changes against `other` (see [`Self::max_change_m`]) as a histogram.
     pub fn change_histogram(&self, other: &Self, range_m: f64) -> ChangeHistogram {
-        let first = self.first_anchor.min(other.first_anchor);
-        let last = self.last_anchor().max(other.last_anchor());
-        let mut h = ChangeHistogram::default();
-        for i in first..=last {
-            let (a, b) = (self.anchor(i), other.anchor(i));
-            let dt = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
-            let dr = ((a[3] - b[3]).powi(2) + (a[4] - b[4]).powi(2) + (a[5] - b[5]).powi(2)).sqrt();
-            h.add(dt + range_m * dr);
-        }
-        h
+        self.changes(other, range_m).histogram
     }
 }
 

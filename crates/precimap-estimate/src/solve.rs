@@ -341,13 +341,12 @@ pub fn solve_trajectory<'a>(
         .collect();
     let corrections = TrajectoryCorrections { first_anchor: first, values };
     let change_from = change_from.unwrap_or(current);
-    let (max_change_m, max_change_anchor) = corrections.max_change(change_from, CHANGE_RANGE_M);
-    let change_histogram = corrections.change_histogram(change_from, CHANGE_RANGE_M);
+    let changes = corrections.changes(change_from, CHANGE_RANGE_M);
     Ok(TrajectorySolution {
         corrections,
-        max_change_m,
-        max_change_anchor,
-        change_histogram,
+        max_change_m: changes.max_m,
+        max_change_anchor: changes.max_anchor,
+        change_histogram: changes.histogram,
         anchors_observed: observed.iter().filter(|&&o| o).count() as u32,
         observations,
         sigma,

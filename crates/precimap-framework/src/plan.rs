@@ -755,7 +755,6 @@ fn after_solve(
     tasks: &[FinishedTask],
     span: Option<StageSpan>,
 ) -> Result<(IterationRecord, Next), String> {
-    let mut max_change = 0.0f64;
     let mut changes = precimap_core::ChangeHistogram::default();
     let mut reports = vec![None; state.trajectories.len()];
     // Per trajectory, its largest change and where (in trajectory order, as the in-process
@@ -772,7 +771,6 @@ fn after_solve(
         if t >= reports.len() {
             return Err(format!("{}: result names unknown trajectory {t}", task.key));
         }
-        max_change = max_change.max(r.max_change_m);
         largest[t] = Some((r.max_change_m, r.max_change_anchor));
         changes.merge(&r.change_histogram);
         seconds += r.seconds;
@@ -794,8 +792,7 @@ fn after_solve(
         (Some(enqueued_at_ms), Some(span)) => StageSpan { enqueued_at_ms, ..span }.seconds(),
         _ => seconds,
     };
-    let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
-    report.max_correction_change_at = precimap_pipeline::report::ChangeLocation::of_largest(
+    let (max_change, max_change_at) = precimap_pipeline::report::ChangeLocation::largest(
         state
             .trajectories
             .iter()
@@ -803,6 +800,8 @@ fn after_solve(
             .filter_map(|(t, c)| c.map(|(change, anchor)| (t.id.as_str(), change, anchor))),
         state.params.anchor_spacing_m,
     );
+    let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
+    report.max_correction_change_at = max_change_at;
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();

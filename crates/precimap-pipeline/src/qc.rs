@@ -144,8 +144,7 @@ pub fn convergence_svg(iterations: &[IterationReport]) -> String {
         "Convergence over {n} iterations: residual σ {} mm, largest anchor change {} mm in the last{}",
         last.map_or("–".into(), |i| number(i.residual_std_m * 1e3)),
         last.map_or("–".into(), |i| number(i.max_correction_change_m * 1e3)),
-        last.and_then(|i| i.max_correction_change_at.as_ref())
-            .map_or(String::new(), |at| format!(" ({} at {:.0} m)", at.trajectory, at.along_m)),
+        last.and_then(|i| i.max_correction_change_at.as_ref()).map_or(String::new(), |at| format!(" ({at})")),
     ));
     let x = (0.5, n.max(1) as f64 + 0.5);
     let series = |f: fn(&IterationReport) -> f64| -> Vec<(f64, f64)> {

@@ -94,23 +94,34 @@ pub struct ChangeLocation {
 }
 
 impl ChangeLocation {
-    /// The largest of several trajectories' changes `(trajectory id, change, anchor)`: the first
-    /// one in trajectory order on ties, `None` for no trajectories.
-    pub fn of_largest<'a>(
+    /// The largest of several trajectories' changes `(trajectory id, change, anchor)` and where
+    /// it is: the first one in trajectory order on ties; `(0, None)` for no trajectories. Both
+    /// drivers take an iteration's `max_correction_change_m` and its place from here.
+    pub fn largest<'a>(
         changes: impl IntoIterator<Item = (&'a str, f64, u32)>,
         anchor_spacing_m: f64,
-    ) -> Option<Self> {
+    ) -> (f64, Option<Self>) {
         let mut best: Option<(&str, f64, u32)> = None;
         for c in changes {
-            if best.is_none_or(|b| c.1 > b.1) {
+            // A NaN change is never the largest while a number is there (as `f64::max`).
+            if best.is_none_or(|b| c.1 > b.1 || b.1.is_nan()) {
                 best = Some(c);
             }
         }
-        best.map(|(trajectory, _, anchor)| Self {
+        let largest = best.map_or(0.0, |b| b.1.max(0.0));
+        let at = best.map(|(trajectory, _, anchor)| Self {
             trajectory: trajectory.to_string(),
             anchor,
             along_m: anchor as f64 * anchor_spacing_m,
-        })
+        });
+        (largest, at)
+    }
+}
+
+/// `v03 at 448 m`: the trajectory and the distance along it.
+impl std::fmt::Display for ChangeLocation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} at {:.0} m", self.trajectory, self.along_m)
     }
 }
 
@@ -149,11 +160,15 @@ mod tests {
     #[test]
     fn the_largest_change_is_located_in_trajectory_order() {
         let changes = [("v01", 0.2e-3, 10), ("v02", 0.5e-3, 1235), ("v03", 0.5e-3, 7)];
-        let at = ChangeLocation::of_largest(changes, 0.5).unwrap();
+        let (largest, at) = ChangeLocation::largest(changes, 0.5);
+        let at = at.unwrap();
+        assert_eq!(largest, 0.5e-3);
         assert_eq!(at, ChangeLocation { trajectory: "v02".into(), anchor: 1235, along_m: 617.5 });
-        assert_eq!(ChangeLocation::of_largest([], 0.5), None);
+        assert_eq!(at.to_string(), "v02 at 618 m");
+        assert_eq!(ChangeLocation::largest([], 0.5), (0.0, None));
         // Nothing changed anywhere: the first trajectory's anchor, not a missing place.
-        let still = ChangeLocation::of_largest([("v01", 0.0, 4), ("v02", 0.0, 9)], 0.5).unwrap();
+        let (_, still) = ChangeLocation::largest([("v01", 0.0, 4), ("v02", 0.0, 9)], 0.5);
+        let still = still.unwrap();
         assert_eq!((still.trajectory.as_str(), still.anchor), ("v01", 4));
     }
 }

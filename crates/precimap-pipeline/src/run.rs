@@ -260,7 +260,10 @@ pub fn run_campaign(
         if last {
             last_latent_std = latent_std;
         }
-        let max_change = sol.iter().map(|s| s.max_change_m).fold(0.0, f64::max);
+        let (max_change, max_change_at) = crate::report::ChangeLocation::largest(
+            campaign.trajectories.iter().zip(&sol).map(|(t, s)| (t.id.as_str(), s.max_change_m, s.max_change_anchor)),
+            campaign.params.anchor_spacing_m,
+        );
         let mut changes = precimap_core::ChangeHistogram::default();
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
         let next = sol.iter().map(|s| s.corrections.clone()).collect();
@@ -271,14 +274,7 @@ pub fn run_campaign(
         robust_sigma = histogram.robust_sigma_m();
         let seconds = iteration_started.elapsed().as_secs_f64();
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
-        report.max_correction_change_at = crate::report::ChangeLocation::of_largest(
-            campaign
-                .trajectories
-                .iter()
-                .zip(&solutions)
-                .map(|(t, s)| (t.id.as_str(), s.max_change_m, s.max_change_anchor)),
-            campaign.params.anchor_spacing_m,
-        );
+        report.max_correction_change_at = max_change_at;
         report.common_mode_field_max_m =
             field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));

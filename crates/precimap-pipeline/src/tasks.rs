@@ -204,13 +204,12 @@ pub fn solve_trajectory_task<'a>(
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    let params = &campaign.params;
     precimap_estimate::solve_trajectory(
         blocks,
         current,
         previous,
         Some(iteration_start),
-        params,
+        &campaign.params,
         step.rotation,
         with_sigma,
     )
