@@ -269,6 +269,35 @@ fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
     assert_ne!(with_option, without, "the option changed nothing");
 }
 
+/// `anderson_depth` (off by default) gives the framework's `accelerate` stage the in-process
+/// result, and it does change the result.
+#[test]
+fn anderson_acceleration_gives_the_in_process_result_through_the_framework() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 3);
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
+    manifest["parameters"] = serde_json::json!({ "anderson_depth": 5 });
+    let option = campaign.join("manifest-anderson.json");
+    std::fs::write(&option, serde_json::to_vec_pretty(&manifest).unwrap()).unwrap();
+
+    let reference = dir.path().join("in-process");
+    in_process(&option, &reference);
+    let embedded = dir.path().join("embedded");
+    let options = EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let record = rt.block_on(run_embedded(&option, &options, |_| {})).unwrap();
+    assert_eq!(record.state, CampaignState::Succeeded);
+    assert_same_results(&reference, &embedded);
+
+    let default = dir.path().join("default");
+    in_process(&campaign.join("manifest.json"), &default);
+    let name = std::fs::read_dir(default.join("trajectories")).unwrap().next().unwrap().unwrap().file_name();
+    let with_option = std::fs::read(reference.join("trajectories").join(&name)).unwrap();
+    let without = std::fs::read(default.join("trajectories").join(&name)).unwrap();
+    assert_ne!(with_option, without, "the option changed nothing");
+}
+
 #[test]
 fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
     let dir = tempfile::tempdir().unwrap();

@@ -7,6 +7,7 @@
 //! - [`solve::solve_trajectory`]: the reduce task — one exact block-tridiagonal Gauss–Newton
 //!   step per trajectory with prior and smoothness.
 
+pub mod anderson;
 pub mod blocks;
 pub mod chunk;
 pub mod field;

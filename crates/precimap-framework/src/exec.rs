@@ -10,9 +10,9 @@ use crate::codec::{
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
-    CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult, StripInput, TaskInput,
-    TrajectoryInput, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS,
-    PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
+    AccelerateResult, CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult,
+    StripInput, TaskInput, TrajectoryInput, ACCELERATED_PREFIX, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD,
+    OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
@@ -503,6 +503,41 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 result: to_json(&result)?,
                 outputs: vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }],
             })
+        }
+        TaskInput::Accelerate { prefix, iteration, history } => {
+            let trajectories: Vec<u32> =
+                history.last().map(|e| e.results.iter().map(|c| c.trajectory).collect()).unwrap_or_default();
+            let mut entries = Vec::with_capacity(history.len());
+            for e in &history {
+                entries.push((
+                    read_corrections_many(ctx, &e.starts).await?,
+                    read_corrections_many(ctx, &e.results).await?,
+                ));
+            }
+            let count = trajectories.len();
+            let accelerated = blocking(move || {
+                let histories: Vec<precimap_estimate::anderson::TrajectoryHistory> = (0..count)
+                    .map(|t| precimap_estimate::anderson::TrajectoryHistory {
+                        starts: entries.iter().map(|(s, _)| &s[t]).collect(),
+                        results: entries.iter().map(|(_, r)| &r[t]).collect(),
+                    })
+                    .collect();
+                precimap_estimate::anderson::accelerate(&histories)
+            })
+            .await?
+            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
+            let objects = trajectories
+                .iter()
+                .zip(&accelerated.corrections)
+                .map(|(t, c)| {
+                    let key = format!("{prefix}/it/{iteration}/{ACCELERATED_PREFIX}{t}.{tag}.bin");
+                    (format!("{ACCELERATED_PREFIX}{t}"), key, encode_corrections(c, None))
+                })
+                .collect();
+            let outputs = ctx.put_many(objects).await?;
+            let result =
+                AccelerateResult { coefficients: accelerated.coefficients, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
             let corrections = read_corrections(ctx, &corrections).await?;

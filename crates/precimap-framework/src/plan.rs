@@ -11,6 +11,7 @@
 //! schedule step), so an executor never reads more than its own task row and its own objects.
 
 use precimap_core::{IterationStep, Parameters, TileKey};
+use precimap_estimate::anderson::{AndersonEntry, AndersonHistory};
 use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{
@@ -26,6 +27,8 @@ pub const STAGE_PREPARE: &str = "prepare";
 pub const STAGE_ESTIMATE: &str = "estimate";
 pub const STAGE_FIELD: &str = "field";
 pub const STAGE_SOLVE: &str = "solve";
+/// Anderson acceleration between two settling iterations (`Parameters::anderson_depth`).
+pub const STAGE_ACCELERATE: &str = "accelerate";
 pub const STAGE_EXPORT: &str = "export";
 pub const STAGE_REPORT: &str = "report";
 
@@ -33,6 +36,7 @@ pub const KIND_SEGMENT_STRIP: &str = "segment_strip";
 pub const KIND_ESTIMATE_TILE: &str = "estimate_tile";
 pub const KIND_SOLVE_FIELD: &str = "solve_field";
 pub const KIND_SOLVE_TRAJECTORY: &str = "solve_trajectory";
+pub const KIND_ACCELERATE: &str = "accelerate_corrections";
 pub const KIND_EXPORT_STRIP: &str = "export_strip";
 pub const KIND_EXPORT_TRAJECTORY: &str = "export_trajectory";
 pub const KIND_WRITE_REPORT: &str = "write_report";
@@ -45,6 +49,8 @@ pub const OUTPUT_FIELD: &str = "field";
 /// `solve_field` outputs: each trajectory's corrections with the field added (`start/{t}`), and
 /// the corrections momentum measures from, shifted alike (`previous/{t}`).
 pub const START_PREFIX: &str = "start/";
+/// `accelerate_corrections` outputs: the next iteration's start per trajectory.
+pub const ACCELERATED_PREFIX: &str = "accelerated/";
 pub const PREVIOUS_PREFIX: &str = "previous/";
 /// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
 /// task (from the trajectory files) and read by the later ones instead of those files.
@@ -161,6 +167,14 @@ pub enum TaskInput {
         /// Blocks object keys in tile order (the in-process driver's summation order).
         blocks: Vec<String>,
     },
+    /// The next iteration's start for every trajectory from the settling iterations' history
+    /// (`precimap_estimate::anderson::accelerate`). One task: the coefficients are campaign-wide.
+    Accelerate {
+        prefix: String,
+        iteration: u32,
+        /// Oldest first; every entry names every trajectory in order.
+        history: Vec<AndersonEntry<CorrectionsRef>>,
+    },
     ExportStrip {
         prefix: String,
         strip: StripInput,
@@ -195,6 +209,7 @@ impl TaskInput {
             Self::EstimateTile { .. } => KIND_ESTIMATE_TILE,
             Self::SolveField { .. } => KIND_SOLVE_FIELD,
             Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
+            Self::Accelerate { .. } => KIND_ACCELERATE,
             Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
             Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
             Self::WriteReport { .. } => KIND_WRITE_REPORT,
@@ -247,6 +262,13 @@ pub struct SolveResult {
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AccelerateResult {
+    /// Anderson's coefficients, oldest difference first.
+    pub coefficients: Vec<f64>,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ExportResult {
     pub points: u64,
     pub seconds: f64,
@@ -287,6 +309,9 @@ pub struct PlanState {
     pub started_from: Vec<Option<String>>,
     #[serde(default)]
     pub pending_field_max_m: f64,
+    /// The settling iterations' corrections objects Anderson acceleration combines.
+    #[serde(default)]
+    pub anderson: AndersonHistory<Option<String>>,
     /// The anchor positions object (see [`OUTPUT_POSITIONS`]), once a field task wrote it.
     #[serde(default)]
     pub anchor_positions: Option<String>,
@@ -371,6 +396,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_blocks: Vec::new(),
         started_from: Vec::new(),
         pending_field_max_m: 0.0,
+        anderson: AndersonHistory::default(),
         anchor_positions: None,
         pending_stats: None,
         latent_std: LatentStdKeys::default(),
@@ -458,6 +484,7 @@ impl StagePlanner for CampaignPlanner {
                 iteration = Some(record);
                 next
             }
+            STAGE_ACCELERATE => after_accelerate(&mut state, &finished.tasks, finished)?,
             STAGE_EXPORT => {
                 let task_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
                 state.task_s += task_s;
@@ -760,6 +787,9 @@ fn after_solve(
     // Per trajectory, its largest change and where (in trajectory order, as the in-process
     // driver picks the place among equal changes).
     let mut largest = vec![None; state.trajectories.len()];
+    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
+    let momentum_carried = state.previous_step.is_some_and(|p| step.momentum_continues(&p, &state.params));
+    let starts = state.corrections.clone();
     // Momentum measures the next step from where this one started (after the field, if any).
     state.previous_corrections =
         if state.started_from.is_empty() { state.corrections.clone() } else { std::mem::take(&mut state.started_from) };
@@ -783,8 +813,9 @@ fn after_solve(
         reports[t] = Some(r.report);
     }
     state.trajectory_reports = reports.into_iter().flatten().collect();
+    let results = state.corrections.clone();
+    let accelerate = state.anderson.record(&state.params, &step, momentum_carried, starts, results);
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
-    let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     state.task_s += seconds;
     // Wall time from the map stage's enqueueing to the last solve, as the in-process driver
     // reports it (task seconds where the store gave no span).
@@ -819,7 +850,11 @@ fn after_solve(
     ) {
         AfterIteration::Step(s) => {
             state.step_index = s;
-            estimate_stage(state)
+            if accelerate {
+                accelerate_stage(state)
+            } else {
+                estimate_stage(state)
+            }
         }
         AfterIteration::Done { converged } => {
             state.converged = converged;
@@ -827,6 +862,54 @@ fn after_solve(
         }
     };
     Ok((record, next))
+}
+
+/// One `accelerate_corrections` task over the recorded history (the in-process driver's
+/// `accelerate_corrections`).
+fn accelerate_stage(state: &PlanState) -> Next {
+    let refs = |keys: &[Option<String>]| -> Vec<CorrectionsRef> {
+        state
+            .trajectories
+            .iter()
+            .map(|t| CorrectionsRef {
+                trajectory: t.index,
+                anchors: state.anchor_ranges[t.index as usize],
+                key: keys.get(t.index as usize).cloned().flatten(),
+            })
+            .collect()
+    };
+    let history = state
+        .anderson
+        .entries
+        .iter()
+        .map(|e| AndersonEntry { starts: refs(&e.starts), results: refs(&e.results) })
+        .collect();
+    let task = TaskInput::Accelerate { prefix: state.prefix.clone(), iteration: state.iteration, history }
+        .task("accelerate".into());
+    Next::Stage(StageSpec { stage: STAGE_ACCELERATE.to_string(), iteration: state.iteration as i32, tasks: vec![task] })
+}
+
+fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
+    let task = tasks.first().ok_or("the accelerate stage finished without its task")?;
+    let r: AccelerateResult = parse(task)?;
+    let n = state.trajectories.len();
+    let mut accelerated = vec![None; n];
+    for out in &task.outputs {
+        let t: usize = out
+            .name
+            .strip_prefix(ACCELERATED_PREFIX)
+            .and_then(|t| t.parse().ok())
+            .filter(|&t: &usize| t < n)
+            .ok_or_else(|| format!("{}: unexpected output {:?}", task.key, out.name))?;
+        accelerated[t] = Some(out.object_key.clone());
+    }
+    if accelerated.iter().any(Option::is_none) {
+        return Err(format!("{}: not every trajectory's accelerated corrections were recorded", task.key));
+    }
+    state.corrections = accelerated;
+    state.task_s += r.seconds;
+    state.estimate_s += wall_seconds(finished, r.seconds);
+    Ok(estimate_stage(state))
 }
 
 fn export_stage(state: &PlanState) -> Next {

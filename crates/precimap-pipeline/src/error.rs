@@ -21,6 +21,9 @@ pub enum PipelineError {
     Solve { trajectory: String, source: precimap_solve::SolveError },
     #[error("common-mode field: {0}; check parameters.common_mode_field_m and the sigma values")]
     Field(precimap_estimate::field::FieldError),
+    /// Cannot happen for histories the driver recorded itself; reported, not a panic.
+    #[error("Anderson acceleration: {0}")]
+    Anderson(precimap_estimate::anderson::AndersonError),
 }
 
 impl PipelineError {

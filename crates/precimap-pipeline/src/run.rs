@@ -11,6 +11,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
+use precimap_estimate::anderson::{AndersonHistory, TrajectoryHistory};
 use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -211,6 +212,23 @@ pub fn iterate(
     Ok(Iterated { solutions, stats, field, started_from, latent_std })
 }
 
+/// The next iteration's start from the Anderson history (`Parameters::anderson_depth`),
+/// every trajectory in order, as the framework's `accelerate` task computes it.
+pub fn accelerate_corrections(
+    campaign: &Campaign,
+    history: &AndersonHistory<TrajectoryCorrections>,
+) -> Result<Vec<TrajectoryCorrections>, PipelineError> {
+    let histories: Vec<TrajectoryHistory> = (0..campaign.trajectories.len())
+        .map(|t| {
+            let (starts, results) = history.trajectory(t);
+            TrajectoryHistory { starts, results }
+        })
+        .collect();
+    let accelerated = precimap_estimate::anderson::accelerate(&histories).map_err(PipelineError::Anderson)?;
+    tracing::debug!(coefficients = ?accelerated.coefficients, "Anderson acceleration");
+    Ok(accelerated.corrections)
+}
+
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
 pub fn run_campaign(
     manifest: &Path,
@@ -243,6 +261,7 @@ pub fn run_campaign(
     let mut last_latent_std = Vec::new();
     // The corrections before the last iteration and that iteration's step (for momentum).
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
+    let mut anderson = AndersonHistory::default();
     loop {
         let iteration_started = Instant::now();
         let step = &effective_step(&campaign.params, step_index, robust_sigma);
@@ -266,8 +285,9 @@ pub fn run_campaign(
         );
         let mut changes = precimap_core::ChangeHistogram::default();
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
-        let next = sol.iter().map(|s| s.corrections.clone()).collect();
-        corrections = next;
+        let next: Vec<TrajectoryCorrections> = sol.iter().map(|s| s.corrections.clone()).collect();
+        let starts = std::mem::replace(&mut corrections, next);
+        let mix = anderson.record(&campaign.params, step, before.is_some(), starts, corrections.clone());
         previous = Some((started_from, *step));
         solutions = sol;
         histogram = stats.histogram.clone();
@@ -280,7 +300,12 @@ pub fn run_campaign(
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
-            AfterIteration::Step(next) => step_index = next,
+            AfterIteration::Step(next) => {
+                if mix {
+                    corrections = accelerate_corrections(&campaign, &anderson)?;
+                }
+                step_index = next;
+            }
             AfterIteration::Done { converged: c } => {
                 converged = c;
                 break;

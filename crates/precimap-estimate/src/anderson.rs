@@ -1,0 +1,332 @@
+//! Anderson acceleration of the settling iterations (`Parameters::anderson_depth`).
+//!
+//! A settling iteration is a pure map `G` from the corrections `x` it starts from to the ones it
+//! ends with. Its fixed point is slow to reach: a common-mode shift the map moves along with is
+//! relaxed by a few per cent per pass. Anderson (type II) keeps the last `m + 1` pairs
+//! `(xⱼ, G(xⱼ))`, finds the combination of their steps `fⱼ = G(xⱼ) − xⱼ` that cancels best,
+//! `γ = argmin ‖fₖ − ΔF γ‖`, and starts the next iteration from `G(xₖ) − ΔG γ` (ΔF, ΔG: the
+//! differences of consecutive entries). On a linear map it is GMRES in disguise; the fixed point
+//! is unchanged. One set of coefficients serves the whole campaign (the slow modes are shared by
+//! every pass at a place), so the least-squares problem sums over every trajectory.
+//!
+//! Both drivers keep an [`AndersonHistory`] (of corrections in-process, of object keys in the
+//! framework) and call [`accelerate`] with the same trajectories in the same order, so their
+//! results stay byte-identical.
+
+use precimap_core::{IterationStep, Parameters, TrajectoryCorrections};
+use serde::{Deserialize, Serialize};
+
+/// Rotations enter the least-squares problem as the displacement they cause at this range,
+/// like the change the convergence test reads.
+pub const ROTATION_LEVER_M: f64 = 10.0;
+
+/// Relative ridge on the coefficients' normal equations: consecutive steps of a nearly
+/// converged iteration are nearly parallel.
+const RIDGE: f64 = 1e-8;
+
+/// One accelerated iteration: every trajectory's corrections at its start and at its end, in
+/// trajectory order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AndersonEntry<T> {
+    pub starts: Vec<T>,
+    pub results: Vec<T>,
+}
+
+/// The accelerated iterations since the history last had to be cleared, oldest first.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AndersonHistory<T> {
+    pub entries: Vec<AndersonEntry<T>>,
+    /// The settings of the newest entry's step.
+    pub step: Option<IterationStep>,
+}
+
+impl<T> Default for AndersonHistory<T> {
+    fn default() -> Self {
+        Self { entries: Vec::new(), step: None }
+    }
+}
+
+impl<T> AndersonHistory<T> {
+    /// Records a finished iteration and returns whether the next one should start from
+    /// [`accelerate`] over the history instead of from `results`. Iterations that do not
+    /// accelerate ([`IterationStep::accelerates`]) clear the history, and so does a change of
+    /// unknowns or cells ([`IterationStep::continues_history`]).
+    pub fn record(
+        &mut self,
+        params: &Parameters,
+        step: &IterationStep,
+        momentum_carried: bool,
+        starts: Vec<T>,
+        results: Vec<T>,
+    ) -> bool {
+        if !step.accelerates(momentum_carried, params) {
+            self.entries.clear();
+            self.step = None;
+            return false;
+        }
+        if !self.step.is_some_and(|s| step.continues_history(&s, params)) {
+            self.entries.clear();
+        }
+        self.step = Some(*step);
+        self.entries.push(AndersonEntry { starts, results });
+        let keep = params.anderson_depth + 1;
+        if self.entries.len() > keep {
+            self.entries.drain(..self.entries.len() - keep);
+        }
+        self.entries.len() >= 2
+    }
+
+    /// Trajectory `t`'s history, oldest first: `(starts, results)`.
+    pub fn trajectory(&self, t: usize) -> (Vec<&T>, Vec<&T>) {
+        self.entries.iter().map(|e| (&e.starts[t], &e.results[t])).unzip()
+    }
+}
+
+/// One trajectory's history, oldest first (as many starts as results, at least two).
+#[derive(Debug)]
+pub struct TrajectoryHistory<'a> {
+    pub starts: Vec<&'a TrajectoryCorrections>,
+    pub results: Vec<&'a TrajectoryCorrections>,
+}
+
+/// The next iteration's start for every trajectory, and the coefficients `γ` (oldest
+/// difference first) that made it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Acceleration {
+    pub coefficients: Vec<f64>,
+    pub corrections: Vec<TrajectoryCorrections>,
+}
+
+/// Why a history cannot be combined.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AndersonError {
+    #[error("trajectory {trajectory}: {detail}")]
+    Shape { trajectory: usize, detail: String },
+}
+
+/// Combines every trajectory's history (see the module documentation). A history of one
+/// entry, or steps whose differences are all zero, give `G(xₖ)` unchanged.
+pub fn accelerate(histories: &[TrajectoryHistory<'_>]) -> Result<Acceleration, AndersonError> {
+    let entries = histories.first().map_or(0, |h| h.results.len());
+    for (t, h) in histories.iter().enumerate() {
+        let shape = |detail: String| AndersonError::Shape { trajectory: t, detail };
+        if h.starts.len() != entries || h.results.len() != entries {
+            return Err(shape(format!(
+                "{} starts and {} results where every trajectory has {entries}",
+                h.starts.len(),
+                h.results.len()
+            )));
+        }
+        let newest = h.results.last().map(|c| (c.first_anchor, c.values.len()));
+        for c in h.starts.iter().chain(&h.results) {
+            if Some((c.first_anchor, c.values.len())) != newest {
+                return Err(shape("the history's corrections cover different anchors".into()));
+            }
+        }
+    }
+    let k = entries.saturating_sub(1);
+    let mut gram = nalgebra::DMatrix::<f64>::zeros(k, k);
+    let mut rhs = nalgebra::DVector::<f64>::zeros(k);
+    // Summed trajectory by trajectory, anchor by anchor: the drivers get the same bits.
+    for h in histories {
+        let steps: Vec<Vec<f64>> = h.starts.iter().zip(&h.results).map(|(x, g)| weighted_step(x, g)).collect();
+        let diffs: Vec<Vec<f64>> =
+            steps.windows(2).map(|w| w[1].iter().zip(&w[0]).map(|(a, b)| a - b).collect()).collect();
+        let newest = &steps[k];
+        for i in 0..k {
+            for j in 0..=i {
+                gram[(i, j)] += dot(&diffs[i], &diffs[j]);
+            }
+            rhs[i] += dot(&diffs[i], newest);
+        }
+    }
+    for i in 0..k {
+        for j in 0..i {
+            gram[(j, i)] = gram[(i, j)];
+        }
+    }
+    let scale = (0..k).map(|i| gram[(i, i)]).fold(0.0, f64::max);
+    let coefficients: Vec<f64> = if scale > 0.0 && scale.is_finite() {
+        for i in 0..k {
+            gram[(i, i)] += RIDGE * scale;
+        }
+        gram.cholesky().map_or_else(|| vec![0.0; k], |c| c.solve(&rhs).iter().copied().collect())
+    } else {
+        vec![0.0; k]
+    };
+    let corrections = histories
+        .iter()
+        .map(|h| {
+            let newest = h.results[k];
+            let values = (0..newest.values.len())
+                .map(|a| {
+                    std::array::from_fn(|c| {
+                        let mut v = newest.values[a][c];
+                        for (j, gamma) in coefficients.iter().enumerate() {
+                            v -= gamma * (h.results[j + 1].values[a][c] - h.results[j].values[a][c]);
+                        }
+                        v
+                    })
+                })
+                .collect();
+            TrajectoryCorrections { first_anchor: newest.first_anchor, values }
+        })
+        .collect();
+    Ok(Acceleration { coefficients, corrections })
+}
+
+/// `G(x) − x` with rotations as displacements at [`ROTATION_LEVER_M`].
+fn weighted_step(start: &TrajectoryCorrections, result: &TrajectoryCorrections) -> Vec<f64> {
+    start
+        .values
+        .iter()
+        .zip(&result.values)
+        .flat_map(|(x, g)| (0..6).map(move |c| (g[c] - x[c]) * if c >= 3 { ROTATION_LEVER_M } else { 1.0 }))
+        .collect()
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn corrections(first: u32, values: &[[f64; 6]]) -> TrajectoryCorrections {
+        TrajectoryCorrections { first_anchor: first, values: values.to_vec() }
+    }
+
+    /// A linear contraction over two trajectories of two anchors each: `G(x) = A x + b`.
+    fn linear_map(x: &[TrajectoryCorrections]) -> Vec<TrajectoryCorrections> {
+        let flat: Vec<f64> = x.iter().flat_map(|t| t.values.iter().flatten().copied()).collect();
+        let n = flat.len();
+        let out: Vec<f64> = (0..n)
+            .map(|i| {
+                // A slow shared mode (0.9 on the mean), a fast local one, and a coupling.
+                let mean = flat.iter().sum::<f64>() / n as f64;
+                0.9 * mean + 0.3 * (flat[i] - mean) + 0.05 * flat[(i + 7) % n] + 0.01 * (i as f64 + 1.0)
+            })
+            .collect();
+        let mut i = 0;
+        x.iter()
+            .map(|t| {
+                let values = t
+                    .values
+                    .iter()
+                    .map(|_| {
+                        let v = std::array::from_fn(|c| out[i + c]);
+                        i += 6;
+                        v
+                    })
+                    .collect();
+                TrajectoryCorrections { first_anchor: t.first_anchor, values }
+            })
+            .collect()
+    }
+
+    fn largest_step(x: &[TrajectoryCorrections]) -> f64 {
+        let g = linear_map(x);
+        x.iter()
+            .zip(&g)
+            .flat_map(|(a, b)| a.values.iter().zip(&b.values).flat_map(|(p, q)| (0..6).map(|c| (q[c] - p[c]).abs())))
+            .fold(0.0, f64::max)
+    }
+
+    fn run(depth: usize, iterations: usize) -> f64 {
+        let mut x = vec![corrections(3, &[[0.0; 6]; 2]), corrections(10, &[[0.0; 6]; 2])];
+        let mut history: Vec<(Vec<TrajectoryCorrections>, Vec<TrajectoryCorrections>)> = Vec::new();
+        for _ in 0..iterations {
+            let g = linear_map(&x);
+            history.push((x.clone(), g.clone()));
+            if history.len() > depth + 1 {
+                history.remove(0);
+            }
+            x = if depth > 0 && history.len() >= 2 {
+                let per: Vec<TrajectoryHistory> = (0..2)
+                    .map(|t| TrajectoryHistory {
+                        starts: history.iter().map(|(s, _)| &s[t]).collect(),
+                        results: history.iter().map(|(_, r)| &r[t]).collect(),
+                    })
+                    .collect();
+                accelerate(&per).unwrap().corrections
+            } else {
+                g
+            };
+        }
+        largest_step(&x)
+    }
+
+    /// On a linear map Anderson reaches the fixed point far sooner than plain iteration.
+    #[test]
+    fn anderson_converges_a_linear_map_much_faster_than_plain_iteration() {
+        let plain = run(0, 12);
+        let accelerated = run(5, 12);
+        assert!(plain > 1e-3, "plain iteration is slow on the shared mode: {plain}");
+        assert!(accelerated < plain * 1e-3, "Anderson {accelerated} against plain {plain}");
+    }
+
+    /// With two entries the combination is the one-coefficient secant step, computed by hand.
+    #[test]
+    fn two_entries_give_the_secant_step() {
+        let x0 = corrections(0, &[[0.0; 6]]);
+        let g0 = corrections(0, &[[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]]);
+        let x1 = g0.clone();
+        let g1 = corrections(0, &[[1.5, 0.0, 0.0, 0.0, 0.0, 0.0]]);
+        // f0 = 1, f1 = 0.5: γ = f1·Δf / Δf² = 0.5 · (−0.5) / 0.25 = −1; x = g1 − γ (g1 − g0) = 2.
+        let out = accelerate(&[TrajectoryHistory { starts: vec![&x0, &x1], results: vec![&g0, &g1] }]).unwrap();
+        assert!((out.coefficients[0] + 1.0).abs() < 1e-6, "{:?}", out.coefficients);
+        assert!((out.corrections[0].values[0][0] - 2.0).abs() < 1e-6, "{:?}", out.corrections);
+    }
+
+    #[test]
+    fn no_change_between_entries_leaves_the_newest_result() {
+        let x = corrections(0, &[[0.1; 6]]);
+        let g = corrections(0, &[[0.2; 6]]);
+        let out = accelerate(&[TrajectoryHistory { starts: vec![&x, &x], results: vec![&g, &g] }]).unwrap();
+        assert_eq!(out.coefficients, vec![0.0]);
+        assert_eq!(out.corrections[0], g);
+    }
+
+    #[test]
+    fn mismatched_histories_are_errors_not_panics() {
+        let a = corrections(0, &[[0.0; 6]]);
+        let b = corrections(1, &[[0.0; 6]]);
+        let err = accelerate(&[TrajectoryHistory { starts: vec![&a, &b], results: vec![&a, &a] }]).unwrap_err();
+        assert!(err.to_string().contains("different anchors"), "{err}");
+        let err = accelerate(&[
+            TrajectoryHistory { starts: vec![&a, &a], results: vec![&a, &a] },
+            TrajectoryHistory { starts: vec![&a], results: vec![&a] },
+        ])
+        .unwrap_err();
+        assert!(err.to_string().starts_with("trajectory 1"), "{err}");
+    }
+
+    #[test]
+    fn history_keeps_depth_plus_one_settling_entries_and_clears_elsewhere() {
+        let params = Parameters { anderson_depth: 2, ..Default::default() };
+        let settle = params.schedule[17];
+        let momentum_step = params.schedule[10];
+        let mut h = AndersonHistory::<u32>::default();
+        assert!(!h.record(&params, &settle, false, vec![1], vec![2]), "one entry is not enough");
+        assert!(h.record(&params, &settle, false, vec![2], vec![3]));
+        assert!(h.record(&params, &settle, false, vec![3], vec![4]));
+        assert!(h.record(&params, &settle, false, vec![4], vec![5]));
+        assert_eq!(h.entries.len(), 3);
+        assert_eq!(h.trajectory(0), (vec![&2, &3, &4], vec![&3, &4, &5]));
+        // A step momentum carries into clears it.
+        assert!(!h.record(&params, &momentum_step, true, vec![5], vec![6]));
+        assert!(h.entries.is_empty());
+        // So does a change of unknowns.
+        assert!(!h.record(&params, &settle, false, vec![6], vec![7]));
+        let translation_only = IterationStep { rotation: false, ..settle };
+        assert!(!h.record(&params, &translation_only, false, vec![7], vec![8]));
+        assert_eq!(h.entries.len(), 1);
+        // Off by default.
+        let off = Parameters::default();
+        let mut h = AndersonHistory::<u32>::default();
+        assert!(!h.record(&off, &settle, false, vec![1], vec![2]));
+        assert!(!h.record(&off, &settle, false, vec![2], vec![3]));
+        assert!(h.entries.is_empty());
+    }
+}
