@@ -108,6 +108,9 @@ pub enum AndersonError {
 /// entry, or steps whose differences are all zero, give `G(xₖ)` unchanged.
 pub fn accelerate(histories: &[TrajectoryHistory<'_>]) -> Result<Acceleration, AndersonError> {
     let entries = histories.first().map_or(0, |h| h.results.len());
+    if entries == 0 && !histories.is_empty() {
+        return Err(AndersonError::Shape { trajectory: 0, detail: "the history is empty".into() });
+    }
     for (t, h) in histories.iter().enumerate() {
         let shape = |detail: String| AndersonError::Shape { trajectory: t, detail };
         if h.starts.len() != entries || h.results.len() != entries {
@@ -300,6 +303,9 @@ mod tests {
         ])
         .unwrap_err();
         assert!(err.to_string().starts_with("trajectory 1"), "{err}");
+        let err = accelerate(&[TrajectoryHistory { starts: vec![], results: vec![] }]).unwrap_err();
+        assert!(err.to_string().contains("empty"), "{err}");
+        assert!(accelerate(&[]).unwrap().corrections.is_empty());
     }
 
     #[test]
