@@ -51,6 +51,7 @@ fn assert_same_results(a: &Path, b: &Path) {
             "max_correction_change_m",
             "max_correction_change_at",
             "common_mode_field_max_m",
+            "anderson_coefficients",
         ] {
             assert_eq!(x[field], y[field], "{field}");
         }
@@ -289,6 +290,21 @@ fn anderson_acceleration_gives_the_in_process_result_through_the_framework() {
     let record = rt.block_on(run_embedded(&option, &options, |_| {})).unwrap();
     assert_eq!(record.state, CampaignState::Succeeded);
     assert_same_results(&reference, &embedded);
+    // The report names the combinations: only settling iterations after the first one start
+    // from one, each with at most anderson_depth coefficients.
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(reference.join("report.json")).unwrap()).unwrap();
+    let accelerated: Vec<usize> = report["iterations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|i| Some((i["iteration"].as_u64()? as usize, i["anderson_coefficients"].as_array()?.len())))
+        .inspect(|&(_, k)| assert!((1..=5).contains(&k), "{k} coefficients"))
+        .map(|(i, _)| i)
+        .collect();
+    assert!(!accelerated.is_empty(), "no iteration started from a combination");
+    // The default schedule settles from iteration 13: the first combination starts 15.
+    assert!(accelerated.iter().all(|&i| i >= 15), "only after two settling iterations: {accelerated:?}");
 
     let default = dir.path().join("default");
     in_process(&campaign.join("manifest.json"), &default);

@@ -312,6 +312,9 @@ pub struct PlanState {
     /// The settling iterations' corrections objects Anderson acceleration combines.
     #[serde(default)]
     pub anderson: AndersonHistory<Option<String>>,
+    /// The coefficients that made the next iteration's start (reported with that iteration).
+    #[serde(default)]
+    pub pending_anderson_coefficients: Vec<f64>,
     /// The anchor positions object (see [`OUTPUT_POSITIONS`]), once a field task wrote it.
     #[serde(default)]
     pub anchor_positions: Option<String>,
@@ -397,6 +400,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         started_from: Vec::new(),
         pending_field_max_m: 0.0,
         anderson: AndersonHistory::default(),
+        pending_anderson_coefficients: Vec::new(),
         anchor_positions: None,
         pending_stats: None,
         latent_std: LatentStdKeys::default(),
@@ -834,6 +838,7 @@ fn after_solve(
     let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
     report.max_correction_change_at = max_change_at;
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
+    report.anderson_coefficients = std::mem::take(&mut state.pending_anderson_coefficients);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();
     state.estimate_s += wall;
@@ -907,6 +912,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
         return Err(format!("{}: not every trajectory's accelerated corrections were recorded", task.key));
     }
     state.corrections = accelerated;
+    state.pending_anderson_coefficients = r.coefficients;
     state.task_s += r.seconds;
     state.estimate_s += wall_seconds(finished, r.seconds);
     Ok(estimate_stage(state))

@@ -635,6 +635,7 @@ mod tests {
                     anchor: 1235,
                     along_m: 617.5,
                 }),
+                anderson_coefficients: Vec::new(),
                 seconds: 1.0,
             })
             .collect();

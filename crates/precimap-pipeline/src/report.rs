@@ -81,6 +81,11 @@ pub struct IterationReport {
     /// Where the largest change is: the place that keeps the campaign from converging.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_correction_change_at: Option<ChangeLocation>,
+    /// Anderson acceleration's coefficients (oldest difference first) when this iteration started
+    /// from their combination of the settling iterations before it (`parameters.anderson_depth`);
+    /// absent when it started from the last iteration's result.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub anderson_coefficients: Vec<f64>,
     pub seconds: f64,
 }
 

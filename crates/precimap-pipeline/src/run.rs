@@ -11,7 +11,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::anderson::{AndersonHistory, TrajectoryHistory};
+use precimap_estimate::anderson::{Acceleration, AndersonHistory, TrajectoryHistory};
 use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -217,16 +217,14 @@ pub fn iterate(
 pub fn accelerate_corrections(
     campaign: &Campaign,
     history: &AndersonHistory<TrajectoryCorrections>,
-) -> Result<Vec<TrajectoryCorrections>, PipelineError> {
+) -> Result<Acceleration, PipelineError> {
     let histories: Vec<TrajectoryHistory> = (0..campaign.trajectories.len())
         .map(|t| {
             let (starts, results) = history.trajectory(t);
             TrajectoryHistory { starts, results }
         })
         .collect();
-    let accelerated = precimap_estimate::anderson::accelerate(&histories).map_err(PipelineError::Anderson)?;
-    tracing::debug!(coefficients = ?accelerated.coefficients, "Anderson acceleration");
-    Ok(accelerated.corrections)
+    precimap_estimate::anderson::accelerate(&histories).map_err(PipelineError::Anderson)
 }
 
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
@@ -262,6 +260,8 @@ pub fn run_campaign(
     // The corrections before the last iteration and that iteration's step (for momentum).
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     let mut anderson = AndersonHistory::default();
+    // The coefficients that made the next iteration's start (its report names them).
+    let mut anderson_coefficients = Vec::new();
     loop {
         let iteration_started = Instant::now();
         let step = &effective_step(&campaign.params, step_index, robust_sigma);
@@ -295,6 +295,7 @@ pub fn run_campaign(
         let seconds = iteration_started.elapsed().as_secs_f64();
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         report.max_correction_change_at = max_change_at;
+        report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
         report.common_mode_field_max_m =
             field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));
@@ -302,7 +303,9 @@ pub fn run_campaign(
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
             AfterIteration::Step(next) => {
                 if mix {
-                    corrections = accelerate_corrections(&campaign, &anderson)?;
+                    let accelerated = accelerate_corrections(&campaign, &anderson)?;
+                    corrections = accelerated.corrections;
+                    anderson_coefficients = accelerated.coefficients;
                 }
                 step_index = next;
             }
@@ -492,6 +495,7 @@ pub fn iteration_report(
         median_correction_change_m: changes.quantile_m(0.5),
         p99_correction_change_m: changes.quantile_m(0.99),
         max_correction_change_at: None,
+        anderson_coefficients: Vec::new(),
         seconds,
     }
 }
