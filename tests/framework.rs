@@ -241,33 +241,44 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
     assert_same_results(&reference, &via_http);
 }
 
-/// `field_free_momentum` (an option, off by default) takes the same path in the framework's
-/// field task as in the in-process driver, and it does change the result.
-#[test]
-fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
-    let dir = tempfile::tempdir().unwrap();
-    let campaign = simulate_tiny(dir.path(), 3);
+/// Runs the tiny campaign with `parameters` in-process and through the embedded framework:
+/// both give the same results, and they differ from the default run's (the option does
+/// something). Returns the in-process output folder.
+fn option_gives_the_in_process_result_through_the_framework(dir: &Path, parameters: serde_json::Value) -> PathBuf {
+    let campaign = simulate_tiny(dir, 3);
     let mut manifest: serde_json::Value =
         serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
-    manifest["parameters"] = serde_json::json!({ "field_free_momentum": true });
-    let option = campaign.join("manifest-field-free-momentum.json");
+    manifest["parameters"] = parameters;
+    let option = campaign.join("manifest-option.json");
     std::fs::write(&option, serde_json::to_vec_pretty(&manifest).unwrap()).unwrap();
 
-    let reference = dir.path().join("in-process");
+    let reference = dir.join("in-process");
     in_process(&option, &reference);
-    let embedded = dir.path().join("embedded");
+    let embedded = dir.join("embedded");
     let options = EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
     let rt = tokio::runtime::Runtime::new().unwrap();
     let record = rt.block_on(run_embedded(&option, &options, |_| {})).unwrap();
     assert_eq!(record.state, CampaignState::Succeeded);
     assert_same_results(&reference, &embedded);
 
-    let default = dir.path().join("default");
+    let default = dir.join("default");
     in_process(&campaign.join("manifest.json"), &default);
     let name = std::fs::read_dir(default.join("trajectories")).unwrap().next().unwrap().unwrap().file_name();
     let with_option = std::fs::read(reference.join("trajectories").join(&name)).unwrap();
     let without = std::fs::read(default.join("trajectories").join(&name)).unwrap();
     assert_ne!(with_option, without, "the option changed nothing");
+    reference
+}
+
+/// `field_free_momentum` (an option, off by default) takes the same path in the framework's
+/// field task as in the in-process driver, and it does change the result.
+#[test]
+fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
+    let dir = tempfile::tempdir().unwrap();
+    option_gives_the_in_process_result_through_the_framework(
+        dir.path(),
+        serde_json::json!({ "field_free_momentum": true }),
+    );
 }
 
 /// `anderson_depth` (off by default) gives the framework's `accelerate` stage the in-process
@@ -275,21 +286,10 @@ fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
 #[test]
 fn anderson_acceleration_gives_the_in_process_result_through_the_framework() {
     let dir = tempfile::tempdir().unwrap();
-    let campaign = simulate_tiny(dir.path(), 3);
-    let mut manifest: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(campaign.join("manifest.json")).unwrap()).unwrap();
-    manifest["parameters"] = serde_json::json!({ "anderson_depth": 5 });
-    let option = campaign.join("manifest-anderson.json");
-    std::fs::write(&option, serde_json::to_vec_pretty(&manifest).unwrap()).unwrap();
-
-    let reference = dir.path().join("in-process");
-    in_process(&option, &reference);
-    let embedded = dir.path().join("embedded");
-    let options = EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let record = rt.block_on(run_embedded(&option, &options, |_| {})).unwrap();
-    assert_eq!(record.state, CampaignState::Succeeded);
-    assert_same_results(&reference, &embedded);
+    let reference = option_gives_the_in_process_result_through_the_framework(
+        dir.path(),
+        serde_json::json!({ "anderson_depth": 5 }),
+    );
     // The report names the combinations: only settling iterations after the first one start
     // from one, each with at most anderson_depth coefficients.
     let report: serde_json::Value =
@@ -305,13 +305,6 @@ fn anderson_acceleration_gives_the_in_process_result_through_the_framework() {
     assert!(!accelerated.is_empty(), "no iteration started from a combination");
     // The default schedule settles from iteration 13: the first combination starts 15.
     assert!(accelerated.iter().all(|&i| i >= 15), "only after two settling iterations: {accelerated:?}");
-
-    let default = dir.path().join("default");
-    in_process(&campaign.join("manifest.json"), &default);
-    let name = std::fs::read_dir(default.join("trajectories")).unwrap().next().unwrap().unwrap().file_name();
-    let with_option = std::fs::read(reference.join("trajectories").join(&name)).unwrap();
-    let without = std::fs::read(default.join("trajectories").join(&name)).unwrap();
-    assert_ne!(with_option, without, "the option changed nothing");
 }
 
 #[test]

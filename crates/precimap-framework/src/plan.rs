@@ -591,6 +591,20 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
     }
 }
 
+/// Every trajectory's corrections as tasks read them, from one key (or none: zeros) per
+/// trajectory.
+fn corrections_refs(state: &PlanState, keys: &[Option<String>]) -> Vec<CorrectionsRef> {
+    state
+        .trajectories
+        .iter()
+        .map(|t| CorrectionsRef {
+            trajectory: t.index,
+            anchors: state.anchor_ranges[t.index as usize],
+            key: keys.get(t.index as usize).cloned().flatten(),
+        })
+        .collect()
+}
+
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
@@ -679,25 +693,14 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
         return Ok(solve_stage(state, blocks, current, previous, None));
     }
     state.pending_blocks = blocks;
-    let refs = |keys: &[Option<String>]| -> Vec<CorrectionsRef> {
-        state
-            .trajectories
-            .iter()
-            .map(|t| CorrectionsRef {
-                trajectory: t.index,
-                anchors: state.anchor_ranges[t.index as usize],
-                key: keys.get(t.index as usize).cloned().flatten(),
-            })
-            .collect()
-    };
     let task = TaskInput::SolveField {
         prefix: state.prefix.clone(),
         iteration: state.iteration,
         params: state.params.clone(),
         trajectories: state.trajectories.clone(),
         positions: state.anchor_positions.clone(),
-        current: refs(&state.corrections),
-        previous: momentum.then(|| refs(&state.previous_corrections)),
+        current: corrections_refs(state, &state.corrections),
+        previous: momentum.then(|| corrections_refs(state, &state.previous_corrections)),
         equations,
     }
     .task("field".into());
@@ -872,22 +875,14 @@ fn after_solve(
 /// One `accelerate_corrections` task over the recorded history (the in-process driver's
 /// `accelerate_corrections`).
 fn accelerate_stage(state: &PlanState) -> Next {
-    let refs = |keys: &[Option<String>]| -> Vec<CorrectionsRef> {
-        state
-            .trajectories
-            .iter()
-            .map(|t| CorrectionsRef {
-                trajectory: t.index,
-                anchors: state.anchor_ranges[t.index as usize],
-                key: keys.get(t.index as usize).cloned().flatten(),
-            })
-            .collect()
-    };
     let history = state
         .anderson
         .entries
         .iter()
-        .map(|e| AndersonEntry { starts: refs(&e.starts), results: refs(&e.results) })
+        .map(|e| AndersonEntry {
+            starts: corrections_refs(state, &e.starts),
+            results: corrections_refs(state, &e.results),
+        })
         .collect();
     let task = TaskInput::Accelerate { prefix: state.prefix.clone(), iteration: state.iteration, history }
         .task("accelerate".into());
