@@ -56,7 +56,7 @@ impl Display {
 
     pub fn iteration(&self, it: &IterationReport, total: usize) {
         self.permanent(&format!(
-            "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  change median {:>6.2} max {:>7.2} mm{}  ({:.1} s)",
+            "iteration {:>2}/{total}  grid {:>4.1} cm  threshold {:>5.1} mm  used {:>10}  residual σ {:>6.2} mm  change median {:>6.2} max {:>7.2} mm{}{}  ({:.1} s)",
             it.iteration,
             it.grid_m * 100.0,
             it.threshold_m * 1000.0,
@@ -67,6 +67,11 @@ impl Display {
             it.max_correction_change_at
                 .as_ref()
                 .map_or(String::new(), |at| format!(" ({at})")),
+            // Started from Anderson's combination of the last k + 1 settling iterations.
+            match it.anderson_coefficients.len() {
+                0 => String::new(),
+                k => format!("  accelerated over {} iterations", k + 1),
+            },
             it.seconds
         ))
     }

@@ -530,6 +530,10 @@ impl Checker {
                     }
                 }
             }
+            // Counts (`anderson_depth`): the defaults' JSON holds them as unsigned integers.
+            Value::Number(t) if t.is_u64() && !v.is_u64() => {
+                self.push(path, format!("expected a whole number (0 or more), found {}", describe(v)))
+            }
             Value::Number(_) if !v.is_number() => self.wrong_type(path, v, "a number"),
             Value::String(_) if !v.is_string() => self.wrong_type(path, v, "a string"),
             Value::Bool(_) if !v.is_boolean() => self.wrong_type(path, v, "a boolean"),
@@ -699,6 +703,7 @@ mod tests {
             v["trajectories"][1]["uri"] = Value::from(5);
             v["strips"][0].as_object_mut().unwrap().remove("uri");
             v["parameters"]["tile_size_m"] = Value::from("15");
+            v["parameters"]["anderson_depth"] = Value::from(2.5);
             v["parameters"]["schedule"][0].as_object_mut().unwrap().remove("threshold_m");
         });
         let p = problems(&text);
@@ -713,7 +718,10 @@ mod tests {
         assert!(has(&p, "$.strips[0].trajectory", "trajectory \"p01\" is not listed"), "{p:#?}");
         assert!(has(&p, "$.parameters.tile_size_m", "expected a number, found a string"), "{p:#?}");
         assert!(has(&p, "$.parameters.schedule[0].threshold_m", "missing required field"), "{p:#?}");
-        assert_eq!(p.len(), 10, "{p:#?}");
+        assert!(has(&p, "$.parameters.anderson_depth", "expected a whole number (0 or more), found 2.5"), "{p:#?}");
+        assert_eq!(p.len(), 11, "{p:#?}");
+        let negative = problems(&with(|v| v["parameters"]["anderson_depth"] = Value::from(-1)));
+        assert!(has(&negative, "$.parameters.anderson_depth", "found -1"), "{negative:#?}");
         assert!(has(&problems("[]"), "$", "expected an object, found an array"));
         let long = "a".repeat(65);
         assert!(has(&problems(&with(|v| v["strips"][0]["id"] = Value::from(long))), "$.strips[0].id", "1–64"));
