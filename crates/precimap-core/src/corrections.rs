@@ -54,12 +54,6 @@ impl TrajectoryCorrections {
         self.changes(other, range_m).max_m
     }
 
-    /// [`Self::max_change_m`] and the anchor where it occurs (see [`Changes::max_anchor`]).
-    pub fn max_change(&self, other: &Self, range_m: f64) -> (f64, u32) {
-        let c = self.changes(other, range_m);
-        (c.max_m, c.max_anchor)
-    }
-
     /// Every anchor's change against `other` (as [`Self::max_change_m`]), over the anchors of
     /// both sets, summarised in one pass: the largest, where it is, and the histogram.
     pub fn changes(&self, other: &Self, range_m: f64) -> Changes {
@@ -167,7 +161,8 @@ mod tests {
         assert_eq!(c.at(3, 0.5)[0], 0.0);
         let z = TrajectoryCorrections::zeros(10, 11);
         assert!((c.max_change_m(&z, 10.0) - (5f64.sqrt() + 1.0)).abs() < 1e-12);
-        let (largest, at) = c.max_change(&z, 10.0);
+        let changes = c.changes(&z, 10.0);
+        let (largest, at) = (changes.max_m, changes.max_anchor);
         assert_eq!(largest, c.max_change_m(&z, 10.0));
         assert!(at >= c.first_anchor && at <= c.last_anchor());
         let moved = c.anchor(at);

@@ -70,9 +70,14 @@ impl IterationStep {
     /// history: the same unknowns and cells. Grid and threshold may differ (clearing the history
     /// at the 2 cm → 1 cm change left small seed 1 at 0.18 mm in iteration 18 instead of 0.13).
     pub fn continues_history(&self, previous: &IterationStep, params: &Parameters) -> bool {
-        self.rotation == previous.rotation
-            && self.column_cells == previous.column_cells
-            && self.cell_size(params) == previous.cell_size(params)
+        self.same_unknowns_and_cells(previous, params)
+    }
+
+    /// Both steps estimate the same unknowns (rotation or not) on the same cells.
+    fn same_unknowns_and_cells(&self, other: &IterationStep, params: &Parameters) -> bool {
+        self.rotation == other.rotation
+            && self.column_cells == other.column_cells
+            && self.cell_size(params) == other.cell_size(params)
     }
 
     /// Whether momentum carries `previous`'s correction step into this one: both steps evaluate
@@ -87,9 +92,7 @@ impl IterationStep {
             && self.momentum
             && sampled(self)
             && sampled(previous)
-            && self.rotation == previous.rotation
-            && self.column_cells == previous.column_cells
-            && self.cell_size(params) == previous.cell_size(params)
+            && self.same_unknowns_and_cells(previous, params)
     }
 }
 

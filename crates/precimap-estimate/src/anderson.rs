@@ -13,12 +13,9 @@
 //! framework) and call [`accelerate`] with the same trajectories in the same order, so their
 //! results stay byte-identical.
 
+use crate::solve::CHANGE_RANGE_M;
 use precimap_core::{IterationStep, Parameters, TrajectoryCorrections};
 use serde::{Deserialize, Serialize};
-
-/// Rotations enter the least-squares problem as the displacement they cause at this range,
-/// like the change the convergence test reads.
-pub const ROTATION_LEVER_M: f64 = 10.0;
 
 /// Relative ridge on the coefficients' normal equations: consecutive steps of a nearly
 /// converged iteration are nearly parallel.
@@ -79,6 +76,30 @@ impl<T> AndersonHistory<T> {
     /// Trajectory `t`'s history, oldest first: `(starts, results)`.
     pub fn trajectory(&self, t: usize) -> (Vec<&T>, Vec<&T>) {
         self.entries.iter().map(|e| (&e.starts[t], &e.results[t])).unzip()
+    }
+}
+
+impl AndersonHistory<TrajectoryCorrections> {
+    /// [`accelerate`] over every trajectory of the recorded corrections: the in-process
+    /// driver's history, or the framework task's as read from its objects.
+    pub fn accelerate(&self) -> Result<Acceleration, AndersonError> {
+        let trajectories = self.entries.first().map_or(0, |e| e.results.len());
+        for e in &self.entries {
+            let named = e.starts.len().min(e.results.len());
+            if e.starts.len() != trajectories || e.results.len() != trajectories {
+                return Err(AndersonError::Shape {
+                    trajectory: named,
+                    detail: format!("an entry names {named} trajectories where the first names {trajectories}"),
+                });
+            }
+        }
+        let histories: Vec<TrajectoryHistory> = (0..trajectories)
+            .map(|t| {
+                let (starts, results) = self.trajectory(t);
+                TrajectoryHistory { starts, results }
+            })
+            .collect();
+        accelerate(&histories)
     }
 }
 
@@ -178,13 +199,14 @@ pub fn accelerate(histories: &[TrajectoryHistory<'_>]) -> Result<Acceleration, A
     Ok(Acceleration { coefficients, corrections })
 }
 
-/// `G(x) − x` with rotations as displacements at [`ROTATION_LEVER_M`].
+/// `G(x) − x` with rotations as displacements at [`CHANGE_RANGE_M`], as the convergence test
+/// reads a change.
 fn weighted_step(start: &TrajectoryCorrections, result: &TrajectoryCorrections) -> Vec<f64> {
     start
         .values
         .iter()
         .zip(&result.values)
-        .flat_map(|(x, g)| (0..6).map(move |c| (g[c] - x[c]) * if c >= 3 { ROTATION_LEVER_M } else { 1.0 }))
+        .flat_map(|(x, g)| (0..6).map(move |c| (g[c] - x[c]) * if c >= 3 { CHANGE_RANGE_M } else { 1.0 }))
         .collect()
 }
 
@@ -303,6 +325,16 @@ mod tests {
         ])
         .unwrap_err();
         assert!(err.to_string().starts_with("trajectory 1"), "{err}");
+        // Recorded entries that name different numbers of trajectories.
+        let uneven = AndersonHistory {
+            entries: vec![
+                AndersonEntry { starts: vec![a.clone(), a.clone()], results: vec![a.clone(), a.clone()] },
+                AndersonEntry { starts: vec![a.clone()], results: vec![a.clone()] },
+            ],
+            step: None,
+        };
+        let err = uneven.accelerate().unwrap_err();
+        assert!(err.to_string().contains("names 1 trajectories where the first names 2"), "{err}");
         let err = accelerate(&[TrajectoryHistory { starts: vec![], results: vec![] }]).unwrap_err();
         assert!(err.to_string().contains("empty"), "{err}");
         assert!(accelerate(&[]).unwrap().corrections.is_empty());

@@ -18,6 +18,7 @@ use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::trajectory::Trajectory;
 use precimap_core::Vec3;
+use precimap_estimate::anderson::{AndersonEntry, AndersonHistory};
 use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
@@ -507,25 +508,16 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::Accelerate { prefix, iteration, history } => {
             let trajectories: Vec<u32> =
                 history.last().map(|e| e.results.iter().map(|c| c.trajectory).collect()).unwrap_or_default();
-            let mut entries = Vec::with_capacity(history.len());
+            let mut read = AndersonHistory::default();
             for e in &history {
-                entries.push((
-                    read_corrections_many(ctx, &e.starts).await?,
-                    read_corrections_many(ctx, &e.results).await?,
-                ));
+                read.entries.push(AndersonEntry {
+                    starts: read_corrections_many(ctx, &e.starts).await?,
+                    results: read_corrections_many(ctx, &e.results).await?,
+                });
             }
-            let count = trajectories.len();
-            let accelerated = blocking(move || {
-                let histories: Vec<precimap_estimate::anderson::TrajectoryHistory> = (0..count)
-                    .map(|t| precimap_estimate::anderson::TrajectoryHistory {
-                        starts: entries.iter().map(|(s, _)| &s[t]).collect(),
-                        results: entries.iter().map(|(_, r)| &r[t]).collect(),
-                    })
-                    .collect();
-                precimap_estimate::anderson::accelerate(&histories)
-            })
-            .await?
-            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
+            let accelerated = blocking(move || read.accelerate())
+                .await?
+                .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
             let objects = trajectories
                 .iter()
                 .zip(&accelerated.corrections)

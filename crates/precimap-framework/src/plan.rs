@@ -872,8 +872,8 @@ fn after_solve(
     Ok((record, next))
 }
 
-/// One `accelerate_corrections` task over the recorded history (the in-process driver's
-/// `accelerate_corrections`).
+/// One `accelerate_corrections` task over the recorded history (`AndersonHistory::accelerate`,
+/// as the in-process driver calls it).
 fn accelerate_stage(state: &PlanState) -> Next {
     let history = state
         .anderson

@@ -11,7 +11,7 @@ use crate::tasks::{
 };
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
-use precimap_estimate::anderson::{Acceleration, AndersonHistory, TrajectoryHistory};
+use precimap_estimate::anderson::AndersonHistory;
 use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -212,21 +212,6 @@ pub fn iterate(
     Ok(Iterated { solutions, stats, field, started_from, latent_std })
 }
 
-/// The next iteration's start from the Anderson history (`Parameters::anderson_depth`),
-/// every trajectory in order, as the framework's `accelerate` task computes it.
-pub fn accelerate_corrections(
-    campaign: &Campaign,
-    history: &AndersonHistory<TrajectoryCorrections>,
-) -> Result<Acceleration, PipelineError> {
-    let histories: Vec<TrajectoryHistory> = (0..campaign.trajectories.len())
-        .map(|t| {
-            let (starts, results) = history.trajectory(t);
-            TrajectoryHistory { starts, results }
-        })
-        .collect();
-    precimap_estimate::anderson::accelerate(&histories).map_err(PipelineError::Anderson)
-}
-
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
 pub fn run_campaign(
     manifest: &Path,
@@ -303,7 +288,8 @@ pub fn run_campaign(
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
             AfterIteration::Step(next) => {
                 if mix {
-                    let accelerated = accelerate_corrections(&campaign, &anderson)?;
+                    // As the framework's `accelerate` task computes it.
+                    let accelerated = anderson.accelerate().map_err(PipelineError::Anderson)?;
                     corrections = accelerated.corrections;
                     anderson_coefficients = accelerated.coefficients;
                 }
