@@ -686,12 +686,20 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
 
         let mut good_manifest = upload_local_inputs(&objects, &good.join("manifest.json")).await.unwrap();
         good_manifest.name = MARKUP_NAME.into();
+        // With Anderson acceleration, so that the iterations that started from a combination show.
+        good_manifest.parameters.anderson_depth = 5;
         let bad_manifest = upload_local_inputs(&objects, &bad.join("manifest.json")).await.unwrap();
         let cancelled_id = framework.submit(&bad_manifest).await.unwrap();
         assert!(jobs.cancel_campaign(cancelled_id).await.unwrap());
         let ((bad_id, _), (good_id, _)) =
             submit_failing_and_succeeding(&framework, &dir.path().join("scratch"), &bad_manifest, &good_manifest).await;
-        let iterations = jobs.iterations(good_id).await.unwrap().len();
+        let recorded = jobs.iterations(good_id).await.unwrap();
+        let iterations = recorded.len();
+        let accelerated = recorded
+            .iter()
+            .filter(|i| i.stats["anderson_coefficients"].as_array().is_some_and(|c| !c.is_empty()))
+            .count();
+        assert!(accelerated >= 2, "{accelerated} iterations started from Anderson's combination");
         let results = framework.results(good_id).await.unwrap();
         let in_folder = |folder: &str| results.iter().filter(|(n, _)| n.starts_with(&format!("{folder}/"))).count();
         let (qc_plots, latent_tiles) = (in_folder("qc"), in_folder("latent"));
@@ -726,6 +734,13 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         // Each iteration's largest change says where it is (a tooltip: "v01 at 123 m").
         assert_eq!(table.matches("<td title=\"").count(), iterations, "{table}");
         assert!(table.contains(" m\">"), "{table}");
+        // Those that started from Anderson's combination are marked, the coefficients a tooltip.
+        assert_eq!(
+            table.matches("<abbr class=\"accelerated\" title=\"started from Anderson").count(),
+            accelerated,
+            "{table}"
+        );
+        assert!(table.contains("iterations (γ = "), "{table}");
         let chart = element(dom, "sigma-chart", "</div>");
         assert!(chart.contains("<polyline") && chart.contains("class=\"sigma\""), "{chart}");
         let qc = element(dom, "qc", "</section>");

@@ -7,7 +7,7 @@ const LIST_PERIOD_MS = 3000;
 const DETAIL_PERIOD_MS = 2000;
 const EVENTS_KEPT = 300;
 const SVG_NS = "http://www.w3.org/2000/svg";
-const ITERATING = ["estimate", "field", "solve"]; // the stages of one iteration
+const ITERATING = ["estimate", "field", "solve", "accelerate", "combine"]; // the stages of one iteration
 
 const $ = (id) => document.getElementById(id);
 
@@ -189,7 +189,7 @@ function renderStatus(s) {
     return el(
       "tr",
       {},
-      el("td", {}, it.iteration ?? i + 1),
+      iterationNumber(it, i),
       el("td", {}, cm(it.grid_m)),
       el("td", {}, mm(it.threshold_m, it.threshold_m >= 0.1 ? 0 : 1)),
       el("td", {}, count(it.points_used)),
@@ -208,6 +208,17 @@ function renderStatus(s) {
   });
   $("iterations").tBodies[0].replaceChildren(...rows);
   renderSigmaChart(s.iterations);
+}
+
+// An iteration that started from Anderson's combination of the settling iterations before it
+// (parameters.anderson_depth) is marked, with the combination's coefficients as a tooltip.
+function iterationNumber(it, i) {
+  const number = it.iteration ?? i + 1;
+  const coefficients = Array.isArray(it.anderson_coefficients) ? it.anderson_coefficients : [];
+  if (coefficients.length === 0) return el("td", {}, number);
+  const gammas = coefficients.map((g) => Number(g).toPrecision(3)).join(", ");
+  const title = `started from Anderson's combination of the last ${coefficients.length + 1} iterations (γ = ${gammas})`;
+  return el("td", {}, `${number} `, el("abbr", { class: "accelerated", title }, "A"));
 }
 
 // Residual σ and the outlier threshold per iteration on a log axis: the picture of convergence.

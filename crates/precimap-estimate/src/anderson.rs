@@ -118,6 +118,48 @@ pub struct Acceleration {
     pub corrections: Vec<TrajectoryCorrections>,
 }
 
+/// A share of the coefficients' least-squares problem: `ΔFᵀΔF` (row-major, `k × k`) and
+/// `ΔFᵀfₖ` over some trajectories' anchors. One trajectory's share is small (`k ≤ 10`), so a
+/// campaign's coefficients need every trajectory's share but never every trajectory's history
+/// at once: the framework computes the shares in one task per trajectory and sums them in the
+/// planner.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AndersonMoments {
+    pub gram: Vec<f64>,
+    pub rhs: Vec<f64>,
+}
+
+impl AndersonMoments {
+    /// The empty sum over `k` differences.
+    pub fn zeros(k: usize) -> Self {
+        Self { gram: vec![0.0; k * k], rhs: vec![0.0; k] }
+    }
+
+    /// The number of differences `k`.
+    pub fn differences(&self) -> usize {
+        self.rhs.len()
+    }
+
+    /// Adds another share (element by element: summing the trajectories' shares in trajectory
+    /// order gives the same bits wherever it is done).
+    pub fn add(&mut self, other: &Self) -> Result<(), AndersonError> {
+        let k = self.differences();
+        if other.rhs.len() != k || other.gram.len() != k * k || self.gram.len() != k * k {
+            return Err(AndersonError::Shape {
+                trajectory: 0,
+                detail: format!("a share over {} differences added to one over {k}", other.rhs.len()),
+            });
+        }
+        for (a, b) in self.gram.iter_mut().zip(&other.gram) {
+            *a += b;
+        }
+        for (a, b) in self.rhs.iter_mut().zip(&other.rhs) {
+            *a += b;
+        }
+        Ok(())
+    }
+}
+
 /// Why a history cannot be combined.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum AndersonError {
@@ -125,78 +167,114 @@ pub enum AndersonError {
     Shape { trajectory: usize, detail: String },
 }
 
-/// Combines every trajectory's history (see the module documentation). A history of one
-/// entry, or steps whose differences are all zero, give `G(xₖ)` unchanged.
+/// Combines every trajectory's history (see the module documentation): [`trajectory_moments`]
+/// summed in trajectory order, [`coefficients`], then [`combine`] per trajectory, the three
+/// steps the framework runs as tasks and in its planner. A history of one entry, or steps whose
+/// differences are all zero, give `G(xₖ)` unchanged.
 pub fn accelerate(histories: &[TrajectoryHistory<'_>]) -> Result<Acceleration, AndersonError> {
     let entries = histories.first().map_or(0, |h| h.results.len());
-    if entries == 0 && !histories.is_empty() {
-        return Err(AndersonError::Shape { trajectory: 0, detail: "the history is empty".into() });
-    }
+    let mut total = AndersonMoments::zeros(entries.saturating_sub(1));
     for (t, h) in histories.iter().enumerate() {
-        let shape = |detail: String| AndersonError::Shape { trajectory: t, detail };
-        if h.starts.len() != entries || h.results.len() != entries {
-            return Err(shape(format!(
-                "{} starts and {} results where every trajectory has {entries}",
-                h.starts.len(),
-                h.results.len()
-            )));
+        if h.results.len() != entries || h.starts.len() != entries {
+            return Err(AndersonError::Shape {
+                trajectory: t,
+                detail: format!(
+                    "{} starts and {} results where every trajectory has {entries}",
+                    h.starts.len(),
+                    h.results.len()
+                ),
+            });
         }
-        let newest = h.results.last().map(|c| (c.first_anchor, c.values.len()));
-        for c in h.starts.iter().chain(&h.results) {
-            if Some((c.first_anchor, c.values.len())) != newest {
-                return Err(shape("the history's corrections cover different anchors".into()));
-            }
+        total.add(&trajectory_moments(t, h)?)?;
+    }
+    let coefficients = coefficients(&total);
+    let corrections =
+        histories.iter().enumerate().map(|(t, h)| combine(t, &h.results, &coefficients)).collect::<Result<_, _>>()?;
+    Ok(Acceleration { coefficients, corrections })
+}
+
+/// Trajectory `trajectory`'s share of the coefficients' problem (the index only names it in
+/// errors). The history must hold at least one entry, as many starts as results, all over the
+/// same anchors, and finite steps.
+pub fn trajectory_moments(trajectory: usize, h: &TrajectoryHistory<'_>) -> Result<AndersonMoments, AndersonError> {
+    let shape = |detail: String| AndersonError::Shape { trajectory, detail };
+    let entries = h.results.len();
+    if entries == 0 {
+        return Err(shape("the history is empty".into()));
+    }
+    if h.starts.len() != entries {
+        return Err(shape(format!("{} starts and {entries} results", h.starts.len())));
+    }
+    let newest = h.results.last().map(|c| (c.first_anchor, c.values.len()));
+    for c in h.starts.iter().chain(&h.results) {
+        if Some((c.first_anchor, c.values.len())) != newest {
+            return Err(shape("the history's corrections cover different anchors".into()));
         }
     }
-    let k = entries.saturating_sub(1);
-    let mut gram = nalgebra::DMatrix::<f64>::zeros(k, k);
-    let mut rhs = nalgebra::DVector::<f64>::zeros(k);
-    // Summed trajectory by trajectory, anchor by anchor: the drivers get the same bits.
-    for h in histories {
-        let steps: Vec<Vec<f64>> = h.starts.iter().zip(&h.results).map(|(x, g)| weighted_step(x, g)).collect();
-        let diffs: Vec<Vec<f64>> =
-            steps.windows(2).map(|w| w[1].iter().zip(&w[0]).map(|(a, b)| a - b).collect()).collect();
-        let newest = &steps[k];
-        for i in 0..k {
-            for j in 0..=i {
-                gram[(i, j)] += dot(&diffs[i], &diffs[j]);
-            }
-            rhs[i] += dot(&diffs[i], newest);
+    let k = entries - 1;
+    let steps: Vec<Vec<f64>> = h.starts.iter().zip(&h.results).map(|(x, g)| weighted_step(x, g)).collect();
+    if steps.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(shape("the history holds corrections that are not finite numbers".into()));
+    }
+    let diffs: Vec<Vec<f64>> = steps.windows(2).map(|w| w[1].iter().zip(&w[0]).map(|(a, b)| a - b).collect()).collect();
+    let mut moments = AndersonMoments::zeros(k);
+    for i in 0..k {
+        for j in 0..=i {
+            let d = dot(&diffs[i], &diffs[j]);
+            moments.gram[i * k + j] = d;
+            moments.gram[j * k + i] = d;
         }
+        moments.rhs[i] = dot(&diffs[i], &steps[k]);
+    }
+    Ok(moments)
+}
+
+/// The coefficients `γ` from the summed shares: the `k × k` normal equations with a relative
+/// ridge, by Cholesky; all zero where the steps did not change (or the system is singular).
+pub fn coefficients(total: &AndersonMoments) -> Vec<f64> {
+    let k = total.differences();
+    if total.gram.len() != k * k {
+        return vec![0.0; k];
+    }
+    let mut gram = nalgebra::DMatrix::<f64>::from_row_slice(k, k, &total.gram);
+    let rhs = nalgebra::DVector::<f64>::from_column_slice(&total.rhs);
+    let scale = (0..k).map(|i| gram[(i, i)]).fold(0.0, f64::max);
+    if !(scale > 0.0 && scale.is_finite()) {
+        return vec![0.0; k];
     }
     for i in 0..k {
-        for j in 0..i {
-            gram[(j, i)] = gram[(i, j)];
-        }
+        gram[(i, i)] += RIDGE * scale;
     }
-    let scale = (0..k).map(|i| gram[(i, i)]).fold(0.0, f64::max);
-    let coefficients: Vec<f64> = if scale > 0.0 && scale.is_finite() {
-        for i in 0..k {
-            gram[(i, i)] += RIDGE * scale;
-        }
-        gram.cholesky().map_or_else(|| vec![0.0; k], |c| c.solve(&rhs).iter().copied().collect())
-    } else {
-        vec![0.0; k]
+    gram.cholesky().map_or_else(|| vec![0.0; k], |c| c.solve(&rhs).iter().copied().collect())
+}
+
+/// One trajectory's next start `G(xₖ) − ΔG γ` from its results, oldest first (one more than
+/// there are coefficients, all over the same anchors).
+pub fn combine(
+    trajectory: usize,
+    results: &[&TrajectoryCorrections],
+    coefficients: &[f64],
+) -> Result<TrajectoryCorrections, AndersonError> {
+    let shape = |detail: String| AndersonError::Shape { trajectory, detail };
+    let k = coefficients.len();
+    let Some(newest) = results.last().filter(|_| results.len() == k + 1) else {
+        return Err(shape(format!("{} results for {k} coefficients (expected {})", results.len(), k + 1)));
     };
-    let corrections = histories
-        .iter()
-        .map(|h| {
-            let newest = h.results[k];
-            let values = (0..newest.values.len())
-                .map(|a| {
-                    std::array::from_fn(|c| {
-                        let mut v = newest.values[a][c];
-                        for (j, gamma) in coefficients.iter().enumerate() {
-                            v -= gamma * (h.results[j + 1].values[a][c] - h.results[j].values[a][c]);
-                        }
-                        v
-                    })
-                })
-                .collect();
-            TrajectoryCorrections { first_anchor: newest.first_anchor, values }
+    if results.iter().any(|c| (c.first_anchor, c.values.len()) != (newest.first_anchor, newest.values.len())) {
+        return Err(shape("the history's corrections cover different anchors".into()));
+    }
+    let values = (0..newest.values.len())
+        .map(|a| {
+            std::array::from_fn(|c| {
+                let mut v = newest.values[a][c];
+                for (j, gamma) in coefficients.iter().enumerate() {
+                    v -= gamma * (results[j + 1].values[a][c] - results[j].values[a][c]);
+                }
+                v
+            })
         })
         .collect();
-    Ok(Acceleration { coefficients, corrections })
+    Ok(TrajectoryCorrections { first_anchor: newest.first_anchor, values })
 }
 
 /// `G(x) − x` with rotations as displacements at [`CHANGE_RANGE_M`], as the convergence test
@@ -338,6 +416,60 @@ mod tests {
         let err = accelerate(&[TrajectoryHistory { starts: vec![], results: vec![] }]).unwrap_err();
         assert!(err.to_string().contains("empty"), "{err}");
         assert!(accelerate(&[]).unwrap().corrections.is_empty());
+    }
+
+    /// The shares add up to the campaign's problem: two trajectories give the coefficients of
+    /// one trajectory holding both's anchors, and each trajectory's combination is its part of
+    /// that one's.
+    #[test]
+    fn per_trajectory_shares_add_up_to_the_campaign_problem() {
+        let step = |t: usize, e: usize, a: usize, c: usize| ((t * 7 + e * 3 + a * 5 + c) as f64 * 0.37).sin() * 1e-3;
+        let make = |t: usize, e: usize, first: u32| {
+            corrections(first, &(0..3).map(|a| std::array::from_fn(|c| step(t, e, a, c))).collect::<Vec<_>>())
+        };
+        // Three entries per trajectory; results are the next entry's starts, as in a run.
+        let starts: Vec<Vec<TrajectoryCorrections>> = (0..2).map(|t| (0..3).map(|e| make(t, e, 4)).collect()).collect();
+        let results: Vec<Vec<TrajectoryCorrections>> =
+            (0..2).map(|t| (1..4).map(|e| make(t, e, 4)).collect()).collect();
+        let per: Vec<TrajectoryHistory> = (0..2)
+            .map(|t| TrajectoryHistory { starts: starts[t].iter().collect(), results: results[t].iter().collect() })
+            .collect();
+        let both = accelerate(&per).unwrap();
+        let joined = |set: &Vec<Vec<TrajectoryCorrections>>, e: usize| TrajectoryCorrections {
+            first_anchor: 4,
+            values: set[0][e].values.iter().chain(&set[1][e].values).copied().collect(),
+        };
+        let (js, jr): (Vec<_>, Vec<_>) = (0..3).map(|e| (joined(&starts, e), joined(&results, e))).unzip();
+        let one =
+            accelerate(&[TrajectoryHistory { starts: js.iter().collect(), results: jr.iter().collect() }]).unwrap();
+        assert_eq!(both.coefficients.len(), 2);
+        for (a, b) in both.coefficients.iter().zip(&one.coefficients) {
+            assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{:?} against {:?}", both.coefficients, one.coefficients);
+        }
+        let split: Vec<[f64; 6]> = both.corrections.iter().flat_map(|c| c.values.iter().copied()).collect();
+        for (a, b) in split.iter().flatten().zip(one.corrections[0].values.iter().flatten()) {
+            assert!((a - b).abs() < 1e-12, "{a} against {b}");
+        }
+        // The shares' sum is what `accelerate` solved.
+        let mut total = AndersonMoments::zeros(2);
+        for (t, h) in per.iter().enumerate() {
+            total.add(&trajectory_moments(t, h).unwrap()).unwrap();
+        }
+        assert_eq!(coefficients(&total), both.coefficients);
+    }
+
+    #[test]
+    fn shares_and_combinations_of_the_wrong_shape_are_errors() {
+        let a = corrections(0, &[[0.0; 6]]);
+        let mut two = AndersonMoments::zeros(2);
+        let err = two.add(&AndersonMoments::zeros(3)).unwrap_err();
+        assert!(err.to_string().contains("3 differences added to one over 2"), "{err}");
+        let err = combine(4, &[&a, &a], &[0.5, 0.5]).unwrap_err();
+        assert!(err.to_string().starts_with("trajectory 4: 2 results for 2 coefficients"), "{err}");
+        let nan = corrections(0, &[[f64::NAN; 6]]);
+        let err =
+            trajectory_moments(1, &TrajectoryHistory { starts: vec![&a, &a], results: vec![&a, &nan] }).unwrap_err();
+        assert!(err.to_string().contains("not finite"), "{err}");
     }
 
     #[test]

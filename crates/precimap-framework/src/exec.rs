@@ -10,15 +10,15 @@ use crate::codec::{
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
-    AccelerateResult, CorrectionsRef, EstimateResult, ExportResult, FieldResult, SegmentResult, SolveResult,
-    StripInput, TaskInput, TrajectoryInput, ACCELERATED_PREFIX, BLOCKS_PREFIX, OUTPUT_CORRECTIONS, OUTPUT_FIELD,
-    OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
+    CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldResult, MomentsResult, SegmentResult,
+    SolveResult, StripInput, TaskInput, TrajectoryInput, BLOCKS_PREFIX, OUTPUT_ACCELERATED, OUTPUT_CORRECTIONS,
+    OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::trajectory::Trajectory;
 use precimap_core::Vec3;
-use precimap_estimate::anderson::{AndersonEntry, AndersonHistory};
+use precimap_estimate::anderson::{self, TrajectoryHistory};
 use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
@@ -505,31 +505,33 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 outputs: vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }],
             })
         }
-        TaskInput::Accelerate { prefix, iteration, history } => {
-            let trajectories: Vec<u32> =
-                history.last().map(|e| e.results.iter().map(|c| c.trajectory).collect()).unwrap_or_default();
-            let mut read = AndersonHistory::default();
-            for e in &history {
-                read.entries.push(AndersonEntry {
-                    starts: read_corrections_many(ctx, &e.starts).await?,
-                    results: read_corrections_many(ctx, &e.results).await?,
-                });
-            }
-            let accelerated = blocking(move || read.accelerate())
-                .await?
-                .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
-            let objects = trajectories
-                .iter()
-                .zip(&accelerated.corrections)
-                .map(|(t, c)| {
-                    let key = format!("{prefix}/it/{iteration}/{ACCELERATED_PREFIX}{t}.{tag}.bin");
-                    (format!("{ACCELERATED_PREFIX}{t}"), key, encode_corrections(c, None))
-                })
-                .collect();
-            let outputs = ctx.put_many(objects).await?;
-            let result =
-                AccelerateResult { coefficients: accelerated.coefficients, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+        TaskInput::AndersonMoments { trajectory, starts, results } => {
+            let starts = read_corrections_many(ctx, &starts).await?;
+            let results = read_corrections_many(ctx, &results).await?;
+            let moments = blocking(move || {
+                let history = TrajectoryHistory { starts: starts.iter().collect(), results: results.iter().collect() };
+                anderson::trajectory_moments(trajectory as usize, &history)
+            })
+            .await?
+            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
+            let result = MomentsResult { trajectory, moments, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome { result: to_json(&result)?, outputs: Vec::new() })
+        }
+        TaskInput::AndersonCombine { prefix, iteration, results, coefficients } => {
+            let trajectory = results.last().map_or(0, |c| c.trajectory);
+            let read = read_corrections_many(ctx, &results).await?;
+            let combined = blocking(move || {
+                anderson::combine(trajectory as usize, &read.iter().collect::<Vec<_>>(), &coefficients)
+            })
+            .await?
+            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
+            let key = format!("{prefix}/it/{iteration}/accelerated/{trajectory}.{tag}.bin");
+            ctx.put(&key, encode_corrections(&combined, None)).await?;
+            let result = CombineResult { trajectory, seconds: started.elapsed().as_secs_f64() };
+            Ok(TaskOutcome {
+                result: to_json(&result)?,
+                outputs: vec![OutputKey { name: OUTPUT_ACCELERATED.into(), object_key: key }],
+            })
         }
         TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
             let corrections = read_corrections(ctx, &corrections).await?;

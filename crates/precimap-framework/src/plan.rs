@@ -11,7 +11,7 @@
 //! schedule step), so an executor never reads more than its own task row and its own objects.
 
 use precimap_core::{IterationStep, Parameters, TileKey};
-use precimap_estimate::anderson::{AndersonEntry, AndersonHistory};
+use precimap_estimate::anderson::{self, AndersonHistory, AndersonMoments};
 use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{
@@ -27,8 +27,11 @@ pub const STAGE_PREPARE: &str = "prepare";
 pub const STAGE_ESTIMATE: &str = "estimate";
 pub const STAGE_FIELD: &str = "field";
 pub const STAGE_SOLVE: &str = "solve";
-/// Anderson acceleration between two settling iterations (`Parameters::anderson_depth`).
+/// Anderson acceleration between two settling iterations (`Parameters::anderson_depth`): each
+/// trajectory's share of the coefficients' problem, then (after the planner solved for the
+/// coefficients) each trajectory's combination.
 pub const STAGE_ACCELERATE: &str = "accelerate";
+pub const STAGE_COMBINE: &str = "combine";
 pub const STAGE_EXPORT: &str = "export";
 pub const STAGE_REPORT: &str = "report";
 
@@ -36,7 +39,8 @@ pub const KIND_SEGMENT_STRIP: &str = "segment_strip";
 pub const KIND_ESTIMATE_TILE: &str = "estimate_tile";
 pub const KIND_SOLVE_FIELD: &str = "solve_field";
 pub const KIND_SOLVE_TRAJECTORY: &str = "solve_trajectory";
-pub const KIND_ACCELERATE: &str = "accelerate_corrections";
+pub const KIND_ANDERSON_MOMENTS: &str = "anderson_moments";
+pub const KIND_ANDERSON_COMBINE: &str = "anderson_combine";
 pub const KIND_EXPORT_STRIP: &str = "export_strip";
 pub const KIND_EXPORT_TRAJECTORY: &str = "export_trajectory";
 pub const KIND_WRITE_REPORT: &str = "write_report";
@@ -49,8 +53,8 @@ pub const OUTPUT_FIELD: &str = "field";
 /// `solve_field` outputs: each trajectory's corrections with the field added (`start/{t}`), and
 /// the corrections momentum measures from, shifted alike (`previous/{t}`).
 pub const START_PREFIX: &str = "start/";
-/// `accelerate_corrections` outputs: the next iteration's start per trajectory.
-pub const ACCELERATED_PREFIX: &str = "accelerated/";
+/// `anderson_combine` output: the trajectory's start for the next iteration.
+pub const OUTPUT_ACCELERATED: &str = "accelerated";
 pub const PREVIOUS_PREFIX: &str = "previous/";
 /// The anchors' horizontal positions of every trajectory, written by the first `solve_field`
 /// task (from the trajectory files) and read by the later ones instead of those files.
@@ -167,13 +171,21 @@ pub enum TaskInput {
         /// Blocks object keys in tile order (the in-process driver's summation order).
         blocks: Vec<String>,
     },
-    /// The next iteration's start for every trajectory from the settling iterations' history
-    /// (`precimap_estimate::anderson::accelerate`). One task: the coefficients are campaign-wide.
-    Accelerate {
+    /// One trajectory's share of Anderson's coefficient problem from its settling iterations'
+    /// history (`precimap_estimate::anderson::trajectory_moments`), oldest first. The shares
+    /// are small; the planner sums them in trajectory order and solves for the coefficients.
+    AndersonMoments {
+        trajectory: u32,
+        starts: Vec<CorrectionsRef>,
+        results: Vec<CorrectionsRef>,
+    },
+    /// One trajectory's start for the next iteration from its results and the campaign's
+    /// coefficients (`precimap_estimate::anderson::combine`).
+    AndersonCombine {
         prefix: String,
         iteration: u32,
-        /// Oldest first; every entry names every trajectory in order.
-        history: Vec<AndersonEntry<CorrectionsRef>>,
+        results: Vec<CorrectionsRef>,
+        coefficients: Vec<f64>,
     },
     ExportStrip {
         prefix: String,
@@ -209,7 +221,8 @@ impl TaskInput {
             Self::EstimateTile { .. } => KIND_ESTIMATE_TILE,
             Self::SolveField { .. } => KIND_SOLVE_FIELD,
             Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
-            Self::Accelerate { .. } => KIND_ACCELERATE,
+            Self::AndersonMoments { .. } => KIND_ANDERSON_MOMENTS,
+            Self::AndersonCombine { .. } => KIND_ANDERSON_COMBINE,
             Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
             Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
             Self::WriteReport { .. } => KIND_WRITE_REPORT,
@@ -262,9 +275,15 @@ pub struct SolveResult {
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct AccelerateResult {
-    /// Anderson's coefficients, oldest difference first.
-    pub coefficients: Vec<f64>,
+pub struct MomentsResult {
+    pub trajectory: u32,
+    pub moments: AndersonMoments,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CombineResult {
+    pub trajectory: u32,
     pub seconds: f64,
 }
 
@@ -489,6 +508,7 @@ impl StagePlanner for CampaignPlanner {
                 next
             }
             STAGE_ACCELERATE => after_accelerate(&mut state, &finished.tasks, finished)?,
+            STAGE_COMBINE => after_combine(&mut state, &finished.tasks, finished)?,
             STAGE_EXPORT => {
                 let task_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
                 state.task_s += task_s;
@@ -872,44 +892,97 @@ fn after_solve(
     Ok((record, next))
 }
 
-/// One `accelerate_corrections` task over the recorded history (`AndersonHistory::accelerate`,
-/// as the in-process driver calls it).
+/// One `anderson_moments` task per trajectory over its recorded history (the in-process
+/// driver's `AndersonHistory::accelerate` computes the same shares).
 fn accelerate_stage(state: &PlanState) -> Next {
-    let history = state
-        .anderson
-        .entries
+    let starts: Vec<Vec<CorrectionsRef>> =
+        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.starts)).collect();
+    let results: Vec<Vec<CorrectionsRef>> =
+        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.results)).collect();
+    let tasks = state
+        .trajectories
         .iter()
-        .map(|e| AndersonEntry {
-            starts: corrections_refs(state, &e.starts),
-            results: corrections_refs(state, &e.results),
+        .map(|traj| {
+            let t = traj.index as usize;
+            TaskInput::AndersonMoments {
+                trajectory: traj.index,
+                starts: starts.iter().map(|e| e[t].clone()).collect(),
+                results: results.iter().map(|e| e[t].clone()).collect(),
+            }
+            .task(traj.id.clone())
         })
         .collect();
-    let task = TaskInput::Accelerate { prefix: state.prefix.clone(), iteration: state.iteration, history }
-        .task("accelerate".into());
-    Next::Stage(StageSpec { stage: STAGE_ACCELERATE.to_string(), iteration: state.iteration as i32, tasks: vec![task] })
+    Next::Stage(StageSpec { stage: STAGE_ACCELERATE.to_string(), iteration: state.iteration as i32, tasks })
 }
 
+/// Sums the trajectories' shares in trajectory order (as `precimap_estimate::anderson::accelerate`
+/// does), solves for the coefficients and enqueues one `anderson_combine` task per trajectory.
 fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
-    let task = tasks.first().ok_or("the accelerate stage finished without its task")?;
-    let r: AccelerateResult = parse(task)?;
+    let n = state.trajectories.len();
+    let mut shares = vec![None; n];
+    let mut seconds = 0.0;
+    for task in tasks {
+        let r: MomentsResult = parse(task)?;
+        let t = r.trajectory as usize;
+        if t >= n {
+            return Err(format!("{}: result names unknown trajectory {t}", task.key));
+        }
+        seconds += r.seconds;
+        shares[t] = Some(r.moments);
+    }
+    let k = state.anderson.entries.len().saturating_sub(1);
+    let mut total = AndersonMoments::zeros(k);
+    for (t, share) in shares.iter().enumerate() {
+        let share = share.as_ref().ok_or_else(|| format!("no Anderson share was recorded for trajectory {t}"))?;
+        total.add(share).map_err(|e| format!("trajectory {t}'s Anderson share: {e}"))?;
+    }
+    let coefficients = anderson::coefficients(&total);
+    state.task_s += seconds;
+    state.estimate_s += wall_seconds(finished, seconds);
+    let results: Vec<Vec<CorrectionsRef>> =
+        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.results)).collect();
+    let tasks = state
+        .trajectories
+        .iter()
+        .map(|traj| {
+            TaskInput::AndersonCombine {
+                prefix: state.prefix.clone(),
+                iteration: state.iteration,
+                results: results.iter().map(|e| e[traj.index as usize].clone()).collect(),
+                coefficients: coefficients.clone(),
+            }
+            .task(traj.id.clone())
+        })
+        .collect();
+    state.pending_anderson_coefficients = coefficients;
+    Ok(Next::Stage(StageSpec { stage: STAGE_COMBINE.to_string(), iteration: state.iteration as i32, tasks }))
+}
+
+/// The combinations become the next iteration's corrections.
+fn after_combine(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
     let n = state.trajectories.len();
     let mut accelerated = vec![None; n];
-    for out in &task.outputs {
-        let t: usize = out
-            .name
-            .strip_prefix(ACCELERATED_PREFIX)
-            .and_then(|t| t.parse().ok())
-            .filter(|&t: &usize| t < n)
-            .ok_or_else(|| format!("{}: unexpected output {:?}", task.key, out.name))?;
+    let mut seconds = 0.0;
+    for task in tasks {
+        let r: CombineResult = parse(task)?;
+        let t = r.trajectory as usize;
+        if t >= n {
+            return Err(format!("{}: result names unknown trajectory {t}", task.key));
+        }
+        seconds += r.seconds;
+        let out = task
+            .outputs
+            .iter()
+            .find(|o| o.name == OUTPUT_ACCELERATED)
+            .ok_or_else(|| format!("{}: no accelerated corrections recorded", task.key))?;
         accelerated[t] = Some(out.object_key.clone());
     }
-    if accelerated.iter().any(Option::is_none) {
-        return Err(format!("{}: not every trajectory's accelerated corrections were recorded", task.key));
+    if let Some(t) = accelerated.iter().position(Option::is_none) {
+        return Err(format!("trajectory {t}'s accelerated corrections were not recorded"));
     }
     state.corrections = accelerated;
-    state.pending_anderson_coefficients = r.coefficients;
-    state.task_s += r.seconds;
-    state.estimate_s += wall_seconds(finished, r.seconds);
+    state.task_s += seconds;
+    state.estimate_s += wall_seconds(finished, seconds);
     Ok(estimate_stage(state))
 }
 

@@ -288,7 +288,7 @@ pub fn run_campaign(
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
             AfterIteration::Step(next) => {
                 if mix {
-                    // As the framework's `accelerate` task computes it.
+                    // As the framework's `accelerate` and `combine` stages compute it.
                     let accelerated = anderson.accelerate().map_err(PipelineError::Anderson)?;
                     corrections = accelerated.corrections;
                     anderson_coefficients = accelerated.coefficients;
