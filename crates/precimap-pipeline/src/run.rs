@@ -272,7 +272,9 @@ pub fn run_campaign(
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
         let next: Vec<TrajectoryCorrections> = sol.iter().map(|s| s.corrections.clone()).collect();
         let starts = std::mem::replace(&mut corrections, next);
-        let mix = anderson.record(&campaign.params, step, before.is_some(), starts, corrections.clone());
+        // The history keeps copies only where acceleration is on.
+        let results = if campaign.params.anderson_depth > 0 { corrections.clone() } else { Vec::new() };
+        let mix = anderson.record(&campaign.params, step, before.is_some(), starts, results);
         previous = Some((started_from, *step));
         solutions = sol;
         histogram = stats.histogram.clone();
