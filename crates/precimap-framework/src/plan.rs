@@ -11,7 +11,7 @@
 //! schedule step), so an executor never reads more than its own task row and its own objects.
 
 use precimap_core::{IterationStep, Parameters, TileKey};
-use precimap_estimate::anderson::{self, AndersonHistory, AndersonMoments};
+use precimap_estimate::anderson::{self, AndersonEntry, AndersonHistory, AndersonMoments};
 use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{
@@ -614,15 +614,16 @@ fn corrections_ref(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 /// Every trajectory's corrections as tasks read them, from one key (or none: zeros) per
 /// trajectory.
 fn corrections_refs(state: &PlanState, keys: &[Option<String>]) -> Vec<CorrectionsRef> {
-    state
-        .trajectories
-        .iter()
-        .map(|t| CorrectionsRef {
-            trajectory: t.index,
-            anchors: state.anchor_ranges[t.index as usize],
-            key: keys.get(t.index as usize).cloned().flatten(),
-        })
-        .collect()
+    state.trajectories.iter().map(|t| correction_ref(state, t.index, keys)).collect()
+}
+
+/// Trajectory `t`'s entry of `keys` (see [`corrections_refs`]).
+fn correction_ref(state: &PlanState, t: u32, keys: &[Option<String>]) -> CorrectionsRef {
+    CorrectionsRef {
+        trajectory: t,
+        anchors: state.anchor_ranges[t as usize],
+        key: keys.get(t as usize).cloned().flatten(),
+    }
 }
 
 fn estimate_stage(state: &mut PlanState) -> Next {
@@ -895,19 +896,14 @@ fn after_solve(
 /// One `anderson_moments` task per trajectory over its recorded history (the in-process
 /// driver's `AndersonHistory::accelerate` computes the same shares).
 fn accelerate_stage(state: &PlanState) -> Next {
-    let starts: Vec<Vec<CorrectionsRef>> =
-        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.starts)).collect();
-    let results: Vec<Vec<CorrectionsRef>> =
-        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.results)).collect();
     let tasks = state
         .trajectories
         .iter()
         .map(|traj| {
-            let t = traj.index as usize;
             TaskInput::AndersonMoments {
                 trajectory: traj.index,
-                starts: starts.iter().map(|e| e[t].clone()).collect(),
-                results: results.iter().map(|e| e[t].clone()).collect(),
+                starts: history_refs(state, traj.index, |e| &e.starts),
+                results: history_refs(state, traj.index, |e| &e.results),
             }
             .task(traj.id.clone())
         })
@@ -915,32 +911,28 @@ fn accelerate_stage(state: &PlanState) -> Next {
     Next::Stage(StageSpec { stage: STAGE_ACCELERATE.to_string(), iteration: state.iteration as i32, tasks })
 }
 
+/// Trajectory `t`'s recorded corrections in the Anderson history, oldest first (`pick`: each
+/// entry's starts or results).
+fn history_refs(
+    state: &PlanState,
+    t: u32,
+    pick: impl Fn(&AndersonEntry<Option<String>>) -> &Vec<Option<String>>,
+) -> Vec<CorrectionsRef> {
+    state.anderson.entries.iter().map(|e| correction_ref(state, t, pick(e))).collect()
+}
+
 /// Sums the trajectories' shares in trajectory order (as `precimap_estimate::anderson::accelerate`
 /// does), solves for the coefficients and enqueues one `anderson_combine` task per trajectory.
 fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
-    let n = state.trajectories.len();
-    let mut shares = vec![None; n];
-    let mut seconds = 0.0;
-    for task in tasks {
-        let r: MomentsResult = parse(task)?;
-        let t = r.trajectory as usize;
-        if t >= n {
-            return Err(format!("{}: result names unknown trajectory {t}", task.key));
-        }
-        seconds += r.seconds;
-        shares[t] = Some(r.moments);
-    }
-    let k = state.anderson.entries.len().saturating_sub(1);
-    let mut total = AndersonMoments::zeros(k);
+    let (shares, seconds) = by_trajectory(state, tasks, |r: &MomentsResult| (r.trajectory, r.seconds))?;
+    let mut total = AndersonMoments::zeros(state.anderson.entries.len().saturating_sub(1));
     for (t, share) in shares.iter().enumerate() {
-        let share = share.as_ref().ok_or_else(|| format!("no Anderson share was recorded for trajectory {t}"))?;
-        total.add(share).map_err(|e| format!("trajectory {t}'s Anderson share: {e}"))?;
+        let (share, _) = share.as_ref().ok_or_else(|| format!("no Anderson share was recorded for trajectory {t}"))?;
+        total.add(&share.moments).map_err(|e| format!("trajectory {t}'s Anderson share: {e}"))?;
     }
     let coefficients = anderson::coefficients(&total);
     state.task_s += seconds;
     state.estimate_s += wall_seconds(finished, seconds);
-    let results: Vec<Vec<CorrectionsRef>> =
-        state.anderson.entries.iter().map(|e| corrections_refs(state, &e.results)).collect();
     let tasks = state
         .trajectories
         .iter()
@@ -948,7 +940,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
             TaskInput::AndersonCombine {
                 prefix: state.prefix.clone(),
                 iteration: state.iteration,
-                results: results.iter().map(|e| e[traj.index as usize].clone()).collect(),
+                results: history_refs(state, traj.index, |e| &e.results),
                 coefficients: coefficients.clone(),
             }
             .task(traj.id.clone())
@@ -960,30 +952,45 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
 
 /// The combinations become the next iteration's corrections.
 fn after_combine(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
-    let n = state.trajectories.len();
-    let mut accelerated = vec![None; n];
-    let mut seconds = 0.0;
-    for task in tasks {
-        let r: CombineResult = parse(task)?;
-        let t = r.trajectory as usize;
-        if t >= n {
-            return Err(format!("{}: result names unknown trajectory {t}", task.key));
-        }
-        seconds += r.seconds;
+    let (combined, seconds) = by_trajectory(state, tasks, |r: &CombineResult| (r.trajectory, r.seconds))?;
+    let mut accelerated = Vec::with_capacity(combined.len());
+    for (t, c) in combined.iter().enumerate() {
+        let (_, task) =
+            c.as_ref().ok_or_else(|| format!("trajectory {t}'s accelerated corrections were not recorded"))?;
         let out = task
             .outputs
             .iter()
             .find(|o| o.name == OUTPUT_ACCELERATED)
             .ok_or_else(|| format!("{}: no accelerated corrections recorded", task.key))?;
-        accelerated[t] = Some(out.object_key.clone());
-    }
-    if let Some(t) = accelerated.iter().position(Option::is_none) {
-        return Err(format!("trajectory {t}'s accelerated corrections were not recorded"));
+        accelerated.push(Some(out.object_key.clone()));
     }
     state.corrections = accelerated;
     state.task_s += seconds;
     state.estimate_s += wall_seconds(finished, seconds);
     Ok(estimate_stage(state))
+}
+
+/// Per trajectory index, its task's result and the task (`None` where no task named it).
+type ByTrajectory<'a, T> = Vec<Option<(T, &'a FinishedTask)>>;
+
+/// A per-trajectory stage's results by trajectory index, and the sum of the tasks' seconds
+/// (`of`: a result's trajectory index and seconds).
+fn by_trajectory<'a, T: serde::de::DeserializeOwned>(
+    state: &PlanState,
+    tasks: &'a [FinishedTask],
+    of: impl Fn(&T) -> (u32, f64),
+) -> Result<(ByTrajectory<'a, T>, f64), String> {
+    let mut out: ByTrajectory<'a, T> = state.trajectories.iter().map(|_| None).collect();
+    let mut seconds = 0.0;
+    for task in tasks {
+        let r: T = parse(task)?;
+        let (t, s) = of(&r);
+        let slot =
+            out.get_mut(t as usize).ok_or_else(|| format!("{}: result names unknown trajectory {t}", task.key))?;
+        seconds += s;
+        *slot = Some((r, task));
+    }
+    Ok((out, seconds))
 }
 
 fn export_stage(state: &PlanState) -> Next {
