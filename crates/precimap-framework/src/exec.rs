@@ -517,8 +517,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let result = MomentsResult { trajectory, moments, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs: Vec::new() })
         }
-        TaskInput::AndersonCombine { prefix, iteration, results, coefficients } => {
-            let trajectory = results.last().map_or(0, |c| c.trajectory);
+        TaskInput::AndersonCombine { prefix, iteration, trajectory, results, coefficients } => {
             let read = read_corrections_many(ctx, &results).await?;
             let combined = blocking(move || {
                 anderson::combine(trajectory as usize, &read.iter().collect::<Vec<_>>(), &coefficients)

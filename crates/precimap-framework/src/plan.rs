@@ -184,6 +184,7 @@ pub enum TaskInput {
     AndersonCombine {
         prefix: String,
         iteration: u32,
+        trajectory: u32,
         results: Vec<CorrectionsRef>,
         coefficients: Vec<f64>,
     },
@@ -940,6 +941,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
             TaskInput::AndersonCombine {
                 prefix: state.prefix.clone(),
                 iteration: state.iteration,
+                trajectory: traj.index,
                 results: history_refs(state, traj.index, |e| &e.results),
                 coefficients: coefficients.clone(),
             }
