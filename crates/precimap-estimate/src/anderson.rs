@@ -47,14 +47,15 @@ impl<T> AndersonHistory<T> {
     /// Records a finished iteration and returns whether the next one should start from
     /// [`accelerate`] over the history instead of from `results`. Iterations that do not
     /// accelerate ([`IterationStep::accelerates`]) clear the history, and so does a change of
-    /// unknowns or cells ([`IterationStep::continues_history`]).
+    /// unknowns or cells ([`IterationStep::continues_history`]). `results` is called only for an
+    /// iteration that is kept: the drivers copy their corrections for the history, and only then.
     pub fn record(
         &mut self,
         params: &Parameters,
         step: &IterationStep,
         momentum_carried: bool,
         starts: Vec<T>,
-        results: Vec<T>,
+        results: impl FnOnce() -> Vec<T>,
     ) -> bool {
         if !step.accelerates(momentum_carried, params) {
             self.entries.clear();
@@ -65,7 +66,7 @@ impl<T> AndersonHistory<T> {
             self.entries.clear();
         }
         self.step = Some(*step);
-        self.entries.push(AndersonEntry { starts, results });
+        self.entries.push(AndersonEntry { starts, results: results() });
         let keep = params.anderson_depth + 1;
         if self.entries.len() > keep {
             self.entries.drain(..self.entries.len() - keep);
@@ -140,14 +141,14 @@ impl AndersonMoments {
         self.rhs.len()
     }
 
-    /// Adds another share (element by element: summing the trajectories' shares in trajectory
-    /// order gives the same bits wherever it is done).
-    pub fn add(&mut self, other: &Self) -> Result<(), AndersonError> {
+    /// Adds trajectory `trajectory`'s share (element by element: summing the trajectories'
+    /// shares in trajectory order gives the same bits wherever it is done).
+    pub fn add(&mut self, trajectory: usize, other: &Self) -> Result<(), AndersonError> {
         let k = self.differences();
         if other.rhs.len() != k || other.gram.len() != k * k || self.gram.len() != k * k {
             return Err(AndersonError::Shape {
-                trajectory: 0,
-                detail: format!("a share over {} differences added to one over {k}", other.rhs.len()),
+                trajectory,
+                detail: format!("its share is over {} differences where the others' are over {k}", other.rhs.len()),
             });
         }
         for (a, b) in self.gram.iter_mut().zip(&other.gram) {
@@ -185,7 +186,7 @@ pub fn accelerate(histories: &[TrajectoryHistory<'_>]) -> Result<Acceleration, A
                 ),
             });
         }
-        total.add(&trajectory_moments(t, h)?)?;
+        total.add(t, &trajectory_moments(t, h)?)?;
     }
     let coefficients = coefficients(&total);
     let corrections =
@@ -205,12 +206,7 @@ pub fn trajectory_moments(trajectory: usize, h: &TrajectoryHistory<'_>) -> Resul
     if h.starts.len() != entries {
         return Err(shape(format!("{} starts and {entries} results", h.starts.len())));
     }
-    let newest = h.results.last().map(|c| (c.first_anchor, c.values.len()));
-    for c in h.starts.iter().chain(&h.results) {
-        if Some((c.first_anchor, c.values.len())) != newest {
-            return Err(shape("the history's corrections cover different anchors".into()));
-        }
-    }
+    same_anchors(trajectory, h.starts.iter().chain(&h.results))?;
     let k = entries - 1;
     let steps: Vec<Vec<f64>> = h.starts.iter().zip(&h.results).map(|(x, g)| weighted_step(x, g)).collect();
     if steps.iter().flatten().any(|v| !v.is_finite()) {
@@ -260,9 +256,7 @@ pub fn combine(
     let Some(newest) = results.last().filter(|_| results.len() == k + 1) else {
         return Err(shape(format!("{} results for {k} coefficients (expected {})", results.len(), k + 1)));
     };
-    if results.iter().any(|c| (c.first_anchor, c.values.len()) != (newest.first_anchor, newest.values.len())) {
-        return Err(shape("the history's corrections cover different anchors".into()));
-    }
+    same_anchors(trajectory, results)?;
     let values = (0..newest.values.len())
         .map(|a| {
             std::array::from_fn(|c| {
@@ -275,6 +269,23 @@ pub fn combine(
         })
         .collect();
     Ok(TrajectoryCorrections { first_anchor: newest.first_anchor, values })
+}
+
+/// Whether every one of a trajectory's recorded corrections covers the same anchors.
+fn same_anchors<'a>(
+    trajectory: usize,
+    history: impl IntoIterator<Item = &'a &'a TrajectoryCorrections>,
+) -> Result<(), AndersonError> {
+    let mut span = None;
+    for c in history {
+        if *span.get_or_insert((c.first_anchor, c.values.len())) != (c.first_anchor, c.values.len()) {
+            return Err(AndersonError::Shape {
+                trajectory,
+                detail: "the history's corrections cover different anchors".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// `G(x) − x` with rotations as displacements at [`CHANGE_RANGE_M`], as the convergence test
@@ -453,7 +464,7 @@ mod tests {
         // The shares' sum is what `accelerate` solved.
         let mut total = AndersonMoments::zeros(2);
         for (t, h) in per.iter().enumerate() {
-            total.add(&trajectory_moments(t, h).unwrap()).unwrap();
+            total.add(t, &trajectory_moments(t, h).unwrap()).unwrap();
         }
         assert_eq!(coefficients(&total), both.coefficients);
     }
@@ -462,8 +473,11 @@ mod tests {
     fn shares_and_combinations_of_the_wrong_shape_are_errors() {
         let a = corrections(0, &[[0.0; 6]]);
         let mut two = AndersonMoments::zeros(2);
-        let err = two.add(&AndersonMoments::zeros(3)).unwrap_err();
-        assert!(err.to_string().contains("3 differences added to one over 2"), "{err}");
+        let err = two.add(1, &AndersonMoments::zeros(3)).unwrap_err();
+        assert!(
+            err.to_string().contains("trajectory 1: its share is over 3 differences where the others' are over 2"),
+            "{err}"
+        );
         let err = combine(4, &[&a, &a], &[0.5, 0.5]).unwrap_err();
         assert!(err.to_string().starts_with("trajectory 4: 2 results for 2 coefficients"), "{err}");
         let nan = corrections(0, &[[f64::NAN; 6]]);
@@ -478,25 +492,25 @@ mod tests {
         let settle = params.schedule[17];
         let momentum_step = params.schedule[10];
         let mut h = AndersonHistory::<u32>::default();
-        assert!(!h.record(&params, &settle, false, vec![1], vec![2]), "one entry is not enough");
-        assert!(h.record(&params, &settle, false, vec![2], vec![3]));
-        assert!(h.record(&params, &settle, false, vec![3], vec![4]));
-        assert!(h.record(&params, &settle, false, vec![4], vec![5]));
+        assert!(!h.record(&params, &settle, false, vec![1], || vec![2]), "one entry is not enough");
+        assert!(h.record(&params, &settle, false, vec![2], || vec![3]));
+        assert!(h.record(&params, &settle, false, vec![3], || vec![4]));
+        assert!(h.record(&params, &settle, false, vec![4], || vec![5]));
         assert_eq!(h.entries.len(), 3);
         assert_eq!(h.trajectory(0), (vec![&2, &3, &4], vec![&3, &4, &5]));
         // A step momentum carries into clears it.
-        assert!(!h.record(&params, &momentum_step, true, vec![5], vec![6]));
+        assert!(!h.record(&params, &momentum_step, true, vec![5], || vec![6]));
         assert!(h.entries.is_empty());
         // So does a change of unknowns.
-        assert!(!h.record(&params, &settle, false, vec![6], vec![7]));
+        assert!(!h.record(&params, &settle, false, vec![6], || vec![7]));
         let translation_only = IterationStep { rotation: false, ..settle };
-        assert!(!h.record(&params, &translation_only, false, vec![7], vec![8]));
+        assert!(!h.record(&params, &translation_only, false, vec![7], || vec![8]));
         assert_eq!(h.entries.len(), 1);
         // Off by default.
         let off = Parameters::default();
         let mut h = AndersonHistory::<u32>::default();
-        assert!(!h.record(&off, &settle, false, vec![1], vec![2]));
-        assert!(!h.record(&off, &settle, false, vec![2], vec![3]));
+        assert!(!h.record(&off, &settle, false, vec![1], || vec![2]));
+        assert!(!h.record(&off, &settle, false, vec![2], || vec![3]));
         assert!(h.entries.is_empty());
     }
 }

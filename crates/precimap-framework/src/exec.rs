@@ -506,8 +506,10 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             })
         }
         TaskInput::AndersonMoments { trajectory, starts, results } => {
-            let starts = read_corrections_many(ctx, &starts).await?;
-            let results = read_corrections_many(ctx, &results).await?;
+            // One batch of reads for both lists.
+            let n = starts.len();
+            let mut starts = read_corrections_many(ctx, &[starts, results].concat()).await?;
+            let results = starts.split_off(n);
             let moments = blocking(move || {
                 let history = TrajectoryHistory { starts: starts.iter().collect(), results: results.iter().collect() };
                 anderson::trajectory_moments(trajectory as usize, &history)

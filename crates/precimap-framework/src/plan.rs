@@ -842,8 +842,8 @@ fn after_solve(
         reports[t] = Some(r.report);
     }
     state.trajectory_reports = reports.into_iter().flatten().collect();
-    let results = state.corrections.clone();
-    let accelerate = state.anderson.record(&state.params, &step, momentum_carried, starts, results);
+    let accelerate =
+        state.anderson.record(&state.params, &step, momentum_carried, starts, || state.corrections.clone());
     let stats = state.pending_stats.take().unwrap_or_else(|| TileStats::new(TileKey { tx: 0, ty: 0 }));
     state.task_s += seconds;
     // Wall time from the map stage's enqueueing to the last solve, as the in-process driver
@@ -929,7 +929,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
     let mut total = AndersonMoments::zeros(state.anderson.entries.len().saturating_sub(1));
     for (t, share) in shares.iter().enumerate() {
         let (share, _) = share.as_ref().ok_or_else(|| format!("no Anderson share was recorded for trajectory {t}"))?;
-        total.add(&share.moments).map_err(|e| format!("trajectory {t}'s Anderson share: {e}"))?;
+        total.add(t, &share.moments).map_err(|e| format!("Anderson acceleration: {e}"))?;
     }
     let coefficients = anderson::coefficients(&total);
     state.task_s += seconds;

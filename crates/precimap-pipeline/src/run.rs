@@ -272,9 +272,7 @@ pub fn run_campaign(
         sol.iter().for_each(|s| changes.merge(&s.change_histogram));
         let next: Vec<TrajectoryCorrections> = sol.iter().map(|s| s.corrections.clone()).collect();
         let starts = std::mem::replace(&mut corrections, next);
-        // The history keeps copies only where acceleration is on.
-        let results = if campaign.params.anderson_depth > 0 { corrections.clone() } else { Vec::new() };
-        let mix = anderson.record(&campaign.params, step, before.is_some(), starts, results);
+        let mix = anderson.record(&campaign.params, step, before.is_some(), starts, || corrections.clone());
         previous = Some((started_from, *step));
         solutions = sol;
         histogram = stats.histogram.clone();
