@@ -61,14 +61,16 @@ struct Entry {
     hy: f32,
 }
 
-/// An [`Entry`] in triangle order, with its pixel, the corner its triangle hangs off and the
-/// model (where its pull goes).
-#[derive(Clone, Copy, Debug)]
-struct RawEntry {
-    pixel: u32,
-    corner: u32,
-    model: u32,
-    entry: Entry,
+/// The entries in triangle order, as columns: each column is dropped when it is done with,
+/// and an entry's pass (chunk and anchor) is its corner's, read when the entries are sorted.
+/// 24 bytes per entry where a row with the [`Entry`] in it took 36 and a copy of the corners
+/// and models 8 more.
+struct RawEntries {
+    pixel: Vec<u32>,
+    /// The corner the triangle hangs off and the model it was sampled on (where its pull goes).
+    corner_model: Vec<(u32, u32)>,
+    /// Height at the centre and slope in the model's plane.
+    height: Vec<[f32; 3]>,
 }
 
 /// A core point in pixel order: its index, pass (chunk and anchor) and plane coordinates.
@@ -144,11 +146,14 @@ fn counting_sort(
     for b in 0..buckets {
         start[b + 1] += start[b];
     }
-    let mut fill = start.clone();
+    // Each bucket's first position serves as its fill cursor, which ends on the next bucket's
+    // first position: one shift restores the starts without a second array.
     for (i, k) in keys.enumerate() {
-        put(fill[k as usize] as usize, i);
-        fill[k as usize] += 1;
+        put(start[k as usize] as usize, i);
+        start[k as usize] += 1;
     }
+    start.copy_within(0..buckets, 1);
+    start[0] = 0;
     start
 }
 
@@ -179,10 +184,14 @@ pub(super) fn pixel_latent<S: LatentSink>(
     // Per model: Σ spacing, spacing samples, member points, core points.
     let mut spacing = vec![[0.0f64; 4]; models.len()];
     let mut uvh = vec![[0.0f64; 3]; n];
-    // The core points, in point order.
-    let mut core: Vec<Item> = Vec::new();
+    // The core points, in point order (their pass and plane coordinates are looked up when they
+    // are sorted: 4 bytes each here instead of an [`Item`]'s 40).
+    let mut core: Vec<u32> = Vec::new();
+    // Per chunk, its first point.
+    let mut chunk_start = Vec::with_capacity(t.chunks.len());
     let mut base = 0usize;
-    for (c, chunk) in t.chunks.iter().enumerate() {
+    for chunk in t.chunks {
+        chunk_start.push(base);
         for k in 0..chunk.len() {
             let a = base + k;
             let id = t.model_of[a];
@@ -201,7 +210,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
             s[2] += 1.0;
             if in_core(p) {
                 s[3] += 1.0;
-                core.push(Item { point: a as u32, chunk: c as u32, anchor: chunk.anchor[k], u, v, h });
+                core.push(a as u32);
             }
             let (right, down) = (chunk.right[k], chunk.down[k]);
             if right != NO_NEIGHBOUR && down != NO_NEIGHBOUR {
@@ -258,8 +267,17 @@ pub(super) fn pixel_latent<S: LatentSink>(
     //    stay in chunk and point order, so anchors rise within a chunk).
     let chunk_of: Vec<u32> =
         t.chunks.iter().enumerate().flat_map(|(c, chunk)| std::iter::repeat_n(c as u32, chunk.len())).collect();
-    let mut raw: Vec<RawEntry> = Vec::with_capacity(2 * n);
-    t.for_each(|id, p, corners, _strip, anchor, first| {
+    // A point's pass: its chunk and anchor.
+    let pass_of = |a: usize| {
+        let c = chunk_of[a] as usize;
+        (c as u32, t.chunks[c].anchor[a - chunk_start[c]])
+    };
+    let mut raw = RawEntries {
+        pixel: Vec::with_capacity(2 * n),
+        corner_model: Vec::with_capacity(2 * n),
+        height: Vec::with_capacity(2 * n),
+    };
+    t.for_each(|id, p, corners, _strip, _anchor, first| {
         let g = &grids[id as usize];
         if g.nu == 0 {
             return;
@@ -292,47 +310,55 @@ pub(super) fn pixel_latent<S: LatentSink>(
         if i0 > i1 || j0 > j1 {
             return;
         }
-        let entry = Entry { chunk: chunk_of[first], anchor, raw: 0, h: 0.0, hx: plane.hx as f32, hy: plane.hy as f32 };
+        let (hx, hy) = (plane.hx as f32, plane.hy as f32);
         const SLACK: f64 = -1e-9;
         for j in j0..=j1 {
             let dv = (j as f64 - ys) * g.size;
             for i in i0..=i1 {
                 let (l1, l2) = plane.barycentric((i as f64 - xs) * g.size, dv);
                 if l1 >= SLACK && l2 >= SLACK && 1.0 - l1 - l2 >= SLACK {
-                    raw.push(RawEntry {
-                        pixel: (g.offset + j as usize * g.nu as usize + i as usize) as u32,
-                        corner: first as u32,
-                        model: id,
-                        entry: Entry { raw: raw.len() as u32, h: plane.height(l1, l2) as f32, ..entry },
-                    });
+                    raw.pixel.push((g.offset + j as usize * g.nu as usize + i as usize) as u32);
+                    raw.corner_model.push((first as u32, id));
+                    raw.height.push([plane.height(l1, l2) as f32, hx, hy]);
                 }
             }
         }
     });
-    let mut entries = vec![Entry::default(); raw.len()];
+    let mut entries = vec![Entry::default(); raw.pixel.len()];
     // The scan head of the corner each entry hangs off (the common-mode field's rows), read by
-    // corner: `raw` is in corner order, so the reads are sequential, and a raw entry stays 36
-    // bytes instead of 56 with the position in it.
-    let mut entry_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { raw.len() } else { 0 }];
-    let entry_start = counting_sort(raw.iter().map(|r| r.pixel), pixel_count, |at, r| {
-        entries[at] = raw[r].entry;
+    // corner as the entry's pass is: the raw entries are in corner order, so the reads are
+    // sequential.
+    let mut entry_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { raw.pixel.len() } else { 0 }];
+    let entry_start = counting_sort(raw.pixel.iter().copied(), pixel_count, |at, r| {
+        let corner = raw.corner_model[r].0 as usize;
+        let (chunk, anchor) = pass_of(corner);
+        let [h, hx, hy] = raw.height[r];
+        entries[at] = Entry { chunk, anchor, raw: r as u32, h, hx, hy };
         if let (Some(v), Some(from)) = (entry_vehicle.get_mut(at), vehicle) {
-            *v = from[raw[r].corner as usize];
+            *v = from[corner];
         }
     });
     // Where each entry's pull goes, in triangle order; the rest of the raw entries is done with.
-    let corner_model: Vec<(u32, u32)> = match pulls {
-        Some(_) => raw.iter().map(|r| (r.corner, r.model)).collect(),
+    let corner_model = match pulls {
+        Some(_) => std::mem::take(&mut raw.corner_model),
         None => Vec::new(),
     };
     drop(raw);
 
     // 4. The core points sorted by pixel (stably, so in chunk and point order within a pixel),
     //    gathered into pixel order once: the per-pixel loop reads them in sequence.
-    let pixel_of = |item: &Item| grids[t.model_of[item.point as usize] as usize].pixel(item.u, item.v) as u32;
+    let pixel_of = |&a: &u32| {
+        let [u, v, _] = uvh[a as usize];
+        grids[t.model_of[a as usize] as usize].pixel(u, v) as u32
+    };
     let mut items = vec![Item::default(); core.len()];
-    let item_start = counting_sort(core.iter().map(pixel_of), pixel_count, |at, i| items[at] = core[i]);
-    drop((core, uvh));
+    let item_start = counting_sort(core.iter().map(pixel_of), pixel_count, |at, i| {
+        let point = core[i];
+        let [u, v, h] = uvh[point as usize];
+        let (chunk, anchor) = pass_of(point as usize);
+        items[at] = Item { point, chunk, anchor, u, v, h };
+    });
+    drop((core, uvh, chunk_of));
 
     // 5. Per pixel: each point's other passes (all entries but its own pass's run), its latent
     //    height, and the pulls its residual sends to those entries' triangles.
@@ -468,4 +494,36 @@ pub(super) fn pixel_latent<S: LatentSink>(
         CornerPulls { sums, other_models, next_other: 0 }
     });
     (Latent { height: latent, others, covering, pull: Vec::new() }, corner_pulls)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::counting_sort;
+
+    /// The counting sort is a stable sort by key, and its starts bound each bucket.
+    #[test]
+    fn counting_sort_is_stable_and_its_starts_bound_the_buckets() {
+        // A fixed pseudo-random sequence (an LCG), with empty buckets and runs of equal keys.
+        let mut state = 12345u64;
+        for (len, buckets) in [(0usize, 1usize), (1, 1), (7, 3), (1000, 17), (5000, 4096)] {
+            let keys: Vec<u32> = (0..len)
+                .map(|_| {
+                    state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                    ((state >> 33) % buckets as u64) as u32
+                })
+                .collect();
+            let mut sorted = vec![usize::MAX; len];
+            let start = counting_sort(keys.iter().copied(), buckets, |at, i| sorted[at] = i);
+            let mut expected: Vec<usize> = (0..len).collect();
+            expected.sort_by_key(|&i| keys[i]);
+            assert_eq!(sorted, expected, "{len} keys in {buckets} buckets");
+            assert_eq!(start.len(), buckets + 1);
+            assert_eq!((start[0], start[buckets] as usize), (0, len));
+            for b in 0..buckets {
+                let run = &sorted[start[b] as usize..start[b + 1] as usize];
+                assert!(run.iter().all(|&i| keys[i] == b as u32), "bucket {b} of {buckets}");
+                assert_eq!(run.len(), keys.iter().filter(|&&k| k == b as u32).count());
+            }
+        }
+    }
 }
