@@ -82,7 +82,13 @@ pub fn read_latent_maps(result_dir: &Path) -> Result<Option<Vec<LatentMapPoint>>
     files.retain(|p| p.extension().is_some_and(|e| e == "las"));
     files.sort();
     let maps = files.par_iter().map(|p| precimap_formats::read_latent_map(p)).collect::<Result<Vec<_>, _>>()?;
-    Ok(Some(maps.into_iter().flatten().collect()))
+    // Into one array of the exact size, each tile's freed as it is moved: the map is held once,
+    // not twice (or thrice, by a growing array's copies).
+    let mut all = Vec::with_capacity(maps.iter().map(Vec::len).sum());
+    for tile in maps {
+        all.extend(tile);
+    }
+    Ok(Some(all))
 }
 
 /// Compares `map` with the truth of every strip (`CAMP/truth/{strip}.truth`), the map moved
@@ -96,15 +102,20 @@ pub fn evaluate_latent_map(
 ) -> Result<LatentMapEvaluation, EvalError> {
     let cell = 2.0 * MATCH_RADIUS_M;
     let key = |p: [f64; 3]| p.map(|v| (v / cell).floor() as i64);
-    let shifted: Vec<[f64; 3]> = map.iter().map(|p| [0, 1, 2].map(|k| p.position[k] - campaign_shift[k])).collect();
+    // Computed where used rather than held: a copy of every map point would cost 24 bytes each.
+    let shifted = |i: usize| [0, 1, 2].map(|k| map[i].position[k] - campaign_shift[k]);
     let mut cells: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
-    for (i, p) in shifted.iter().enumerate() {
-        cells.entry(key(*p)).or_default().push(i as u32);
+    for i in 0..map.len() {
+        cells.entry(key(shifted(i))).or_default().push(i as u32);
     }
+    // One array of best matches per split of the strips, updated in place strip after strip
+    // (a few per thread), not one per strip: on a campaign of 10 M map points each is 160 MB.
     let best = strip_ids
         .par_iter()
-        .map(|id| -> Result<Vec<Match>, EvalError> {
-            let mut best = vec![NO_MATCH; map.len()];
+        .try_fold(Vec::new, |mut best: Vec<Match>, id| -> Result<Vec<Match>, EvalError> {
+            if best.is_empty() {
+                best = vec![NO_MATCH; map.len()];
+            }
             let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
             while let Some(t) = truth.next_point()? {
                 if !t.class.is_surface() {
@@ -127,7 +138,8 @@ pub fn evaluate_latent_map(
                     let Some(members) = cells.get(&c) else { continue };
                     for &i in members {
                         let m = &map[i as usize];
-                        let d = [0, 1, 2].map(|k| shifted[i as usize][k] - t.position[k]);
+                        let shifted = shifted(i as usize);
+                        let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);
                         let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
                         let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
                         let slot = &mut best[i as usize];
@@ -150,17 +162,19 @@ pub fn evaluate_latent_map(
             }
             Ok(best)
         })
-        .try_reduce(
-            || vec![NO_MATCH; map.len()],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    if y.distance2 < x.distance2 {
-                        *x = y;
-                    }
+        .try_reduce(Vec::new, |mut a, b| {
+            if a.is_empty() {
+                return Ok(b);
+            }
+            for (x, y) in a.iter_mut().zip(b) {
+                if y.distance2 < x.distance2 {
+                    *x = y;
                 }
-                Ok(a)
-            },
-        )?;
+            }
+            Ok(a)
+        })?;
+    // No strips (an empty manifest cannot get here, but the figures must not index past it).
+    let best = if best.is_empty() { vec![NO_MATCH; map.len()] } else { best };
     Ok(figures(map, &best))
 }
 
@@ -247,21 +261,37 @@ mod tests {
     /// point far from any truth and one whose normal agrees with no surface near it: the road
     /// and the wall are measured along the map's normals, per class, and the tile's shift
     /// comes off; foliage beside the map is never a match.
-    #[test]
-    fn map_points_are_measured_against_the_nearest_agreeing_true_surface() {
-        let dir = std::env::temp_dir().join(format!("precimap-eval-latent-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let mut w = TruthWriter::create(&dir.join("s1.truth")).unwrap();
+    /// Writes the test's truth (a road, a wall and foliage over the road) into `dir`, dealt
+    /// round-robin into `strips` strips `s1`, `s2`, …; returns their ids.
+    fn write_truth(dir: &Path, strips: usize) -> Vec<String> {
+        std::fs::create_dir_all(dir).unwrap();
+        let ids: Vec<String> = (1..=strips).map(|k| format!("s{k}")).collect();
+        let mut writers: Vec<_> =
+            ids.iter().map(|id| TruthWriter::create(&dir.join(format!("{id}.truth"))).unwrap()).collect();
         let point = |position, normal, class| TruthPoint { position, normal, surface_id: class as u32, class };
+        let mut next = 0usize;
+        let mut push = |p: TruthPoint| {
+            writers[next % strips].push(&p).unwrap();
+            next += 1;
+        };
         for i in 0..100 {
             for j in 0..100 {
                 let (x, y) = (1.0 + 0.02 * i as f64, 1.0 + 0.02 * j as f64);
-                w.push(&point([x, y, 0.0], [0.0, 0.0, -1.0], SurfaceClass::Road)).unwrap();
-                w.push(&point([3.0, x, 0.5 + 0.02 * j as f64], [-1.0, 0.0, 0.0], SurfaceClass::Facade)).unwrap();
-                w.push(&point([x, y, 0.004], [0.0, 0.0, 1.0], SurfaceClass::Foliage)).unwrap();
+                push(point([x, y, 0.0], [0.0, 0.0, -1.0], SurfaceClass::Road));
+                push(point([3.0, x, 0.5 + 0.02 * j as f64], [-1.0, 0.0, 0.0], SurfaceClass::Facade));
+                push(point([x, y, 0.004], [0.0, 0.0, 1.0], SurfaceClass::Foliage));
             }
         }
-        w.finish().unwrap();
+        for w in writers {
+            w.finish().unwrap();
+        }
+        ids
+    }
+
+    #[test]
+    fn map_points_are_measured_against_the_nearest_agreeing_true_surface() {
+        let dir = std::env::temp_dir().join(format!("precimap-eval-latent-{}", std::process::id()));
+        let ids = write_truth(&dir, 1);
         let mut map = Vec::new();
         for i in 0..100 {
             let (x, y) = (1.05 + 0.1 * (i % 10) as f64, 1.05 + 0.1 * (i / 10) as f64);
@@ -278,8 +308,15 @@ mod tests {
                 p.position[k] += shift[k];
             }
         }
-        let f = evaluate_latent_map(&map, &["s1".to_string()], &dir, shift).unwrap();
+        let f = evaluate_latent_map(&map, &ids, &dir, shift).unwrap();
+        // The same truth dealt into 7 strips: each strip's best matches merge into the same
+        // figures (the strips are matched in parallel, several into one array of matches).
+        let dealt = std::env::temp_dir().join(format!("precimap-eval-latent-dealt-{}", std::process::id()));
+        let dealt_ids = write_truth(&dealt, 7);
+        let from_seven = evaluate_latent_map(&map, &dealt_ids, &dealt, shift).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
+        std::fs::remove_dir_all(&dealt).unwrap();
+        assert_eq!(from_seven, f);
         assert_eq!((f.points, f.matched), (202, 200), "{f:?}");
         let road = &f.per_class["road"];
         let facade = &f.per_class["facade"];
