@@ -115,69 +115,68 @@ pub fn evaluate_latent_map(
     // (a few per thread), not one per strip: on a campaign of 10 M map points each is 160 MB.
     let best = strip_ids
         .par_iter()
-        .try_fold(Vec::new, |mut best: Vec<Match>, id| -> Result<Vec<Match>, EvalError> {
-            if best.is_empty() {
-                best = vec![NO_MATCH; map.len()];
-            }
-            let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
-            while let Some(t) = truth.next_point()? {
-                if !t.class.is_surface() {
-                    continue;
-                }
-                let n = t.normal.map(f64::from);
-                // The cells a sphere of the match radius can reach: the point's own and, per
-                // axis, the neighbour on its nearer side (cells are twice the radius).
-                let base = key(t.position);
-                let toward = [0, 1, 2].map(|k| {
-                    let f = t.position[k] / cell - base[k] as f64;
-                    if f < 0.5 {
-                        -1
-                    } else {
-                        1
+        .try_fold(
+            || vec![NO_MATCH; map.len()],
+            |mut best, id| -> Result<Vec<Match>, EvalError> {
+                let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
+                while let Some(t) = truth.next_point()? {
+                    if !t.class.is_surface() {
+                        continue;
                     }
-                });
-                for corner in 0..8 {
-                    let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
-                    let Some(members) = cells.get(&c) else { continue };
-                    for &i in members {
-                        let m = &map[i as usize];
-                        let shifted = shifted(i as usize);
-                        let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);
-                        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                        let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
-                        let slot = &mut best[i as usize];
-                        if d2 > MATCH_RADIUS_M * MATCH_RADIUS_M
-                            || cos.abs() < MATCH_MIN_COS
-                            || d2 as f32 >= slot.distance2
-                        {
-                            continue;
+                    let n = t.normal.map(f64::from);
+                    // The cells a sphere of the match radius can reach: the point's own and, per
+                    // axis, the neighbour on its nearer side (cells are twice the radius).
+                    let base = key(t.position);
+                    let toward = [0, 1, 2].map(|k| {
+                        let f = t.position[k] / cell - base[k] as f64;
+                        if f < 0.5 {
+                            -1
+                        } else {
+                            1
                         }
-                        let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
-                        let shift = campaign_shift[0] * n[0] + campaign_shift[1] * n[1] + campaign_shift[2] * n[2];
-                        *slot = Match {
-                            distance2: d2 as f32,
-                            error: (along * cos.signum()) as f32,
-                            shift_along: (shift * cos.signum()) as f32,
-                            class: t.class as u8,
-                        };
+                    });
+                    for corner in 0..8 {
+                        let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
+                        let Some(members) = cells.get(&c) else { continue };
+                        for &i in members {
+                            let m = &map[i as usize];
+                            let shifted = shifted(i as usize);
+                            let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);
+                            let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                            let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
+                            let slot = &mut best[i as usize];
+                            if d2 > MATCH_RADIUS_M * MATCH_RADIUS_M
+                                || cos.abs() < MATCH_MIN_COS
+                                || d2 as f32 >= slot.distance2
+                            {
+                                continue;
+                            }
+                            let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+                            let shift = campaign_shift[0] * n[0] + campaign_shift[1] * n[1] + campaign_shift[2] * n[2];
+                            *slot = Match {
+                                distance2: d2 as f32,
+                                error: (along * cos.signum()) as f32,
+                                shift_along: (shift * cos.signum()) as f32,
+                                class: t.class as u8,
+                            };
+                        }
                     }
                 }
-            }
-            Ok(best)
-        })
-        .try_reduce(Vec::new, |mut a, b| {
-            if a.is_empty() {
-                return Ok(b);
-            }
+                Ok(best)
+            },
+        )
+        // Without an identity: one would be another full array per split.
+        .try_reduce_with(|mut a, b| {
             for (x, y) in a.iter_mut().zip(b) {
                 if y.distance2 < x.distance2 {
                     *x = y;
                 }
             }
             Ok(a)
-        })?;
-    // No strips (an empty manifest cannot get here, but the figures must not index past it).
-    let best = if best.is_empty() { vec![NO_MATCH; map.len()] } else { best };
+        })
+        .transpose()?
+        // No strips: no matches (an empty manifest cannot get here).
+        .unwrap_or_else(|| vec![NO_MATCH; map.len()]);
     Ok(figures(map, &best))
 }
 
