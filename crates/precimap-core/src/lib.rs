@@ -2,11 +2,12 @@
 //!
 //! Nothing in here does I/O: rotations and poses ([`geom`]), trajectories with arc length
 //! ([`trajectory`]), the estimation parameters with the paper's defaults ([`params`]), tile keys
-//! ([`tile`]), the per-anchor pose corrections ([`corrections`]) and the exported latent map's
-//! points ([`latent`]).
+//! ([`tile`]), the per-anchor pose corrections ([`corrections`]), the exported latent map's
+//! points ([`latent`]) and a fast hasher for integer keys ([`hash`]).
 
 pub mod corrections;
 pub mod geom;
+pub mod hash;
 pub mod histogram;
 pub mod latent;
 pub mod params;

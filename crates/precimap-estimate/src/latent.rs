@@ -1,10 +1,10 @@
 //! Gathering the latent map as a product ([`LatentMapGrid`]) and its QC σ map, from the samples
 //! the latent-height routes of [`crate::tile`] produce under every core point.
 
-use crate::hash::FxHashMap;
 use crate::stats::LatentStdMap;
 use crate::tile::dominant_axis;
 use precimap_core::geom::floor;
+use precimap_core::hash::FxHashMap;
 use precimap_core::LatentMapPoint;
 
 /// The latent surface under one core point of a tile.

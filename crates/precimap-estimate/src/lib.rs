@@ -11,7 +11,6 @@ pub mod anderson;
 pub mod blocks;
 pub mod chunk;
 pub mod field;
-mod hash;
 pub mod latent;
 pub mod prepare;
 pub mod solve;

@@ -25,11 +25,11 @@
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use crate::field::{FieldAccumulator, FieldEquations};
-use crate::hash::FxHashMap;
 use crate::latent::{LatentMapGrid, LatentRecord, LatentSample, LatentSink};
 use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::{ceil, floor, SmallRotation};
+use precimap_core::hash::FxHashMap;
 use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey};
 use std::collections::BTreeMap;
 

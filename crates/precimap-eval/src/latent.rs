@@ -12,12 +12,14 @@
 //! truth: the truth streams past it strip by strip.
 
 use crate::{AbsHistogram, ErrorStats, EvalError};
+use precimap_core::hash::FxHashMap;
 use precimap_core::LatentMapPoint;
 use precimap_sim::truth::{SurfaceClass, TruthReader};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, PoisonError};
 
 /// Farthest truth point a map point is compared with (half the default voxel).
 pub const MATCH_RADIUS_M: f64 = 0.05;
@@ -58,17 +60,98 @@ pub struct LatentClassFigures {
     pub error_without_tile_shift_rms_m: f64,
 }
 
-/// The best truth match of one map point so far: its error without the campaign's shift, and
-/// the shift's share along the true normal.
+/// The best truth match of one map point so far: its error without the campaign's shift, the
+/// shift's share along the true normal, and the strip and surface class of the truth point.
+/// Of equally distant truth points the first strip's wins (then the first in that strip), so the
+/// figures do not depend on which thread matched which strip.
 #[derive(Clone, Copy)]
 struct Match {
     distance2: f32,
     error: f32,
     shift_along: f32,
-    class: u8,
+    /// Strip index × 256 + surface class ([`NO_CLASS`]: no match).
+    strip_class: u32,
 }
 
-const NO_MATCH: Match = Match { distance2: f32::INFINITY, error: 0.0, shift_along: 0.0, class: u8::MAX };
+/// The class of a map point without a match.
+const NO_CLASS: u8 = u8::MAX;
+/// Strips a campaign may have for [`Match::strip_class`].
+const MAX_STRIPS: usize = 1 << 24;
+const NO_MATCH: Match = Match { distance2: f32::INFINITY, error: 0.0, shift_along: 0.0, strip_class: NO_CLASS as u32 };
+
+impl Match {
+    fn class(&self) -> u8 {
+        self.strip_class as u8
+    }
+
+    /// Whether this match beats `other`: nearer, or as near from an earlier strip.
+    #[inline]
+    fn beats(&self, other: &Match) -> bool {
+        self.distance2 < other.distance2
+            || (self.distance2 == other.distance2 && self.strip_class >> 8 < other.strip_class >> 8)
+    }
+}
+
+/// The map points by cell of twice the match radius: their indices sorted by cell, and per
+/// occupied cell its run of them: 4 bytes per point plus 24–48 per cell (the table's load
+/// varies), where a hash map of one `Vec` per cell took 87–142 per cell, a third of them in the
+/// cell's own allocation (about one map point per cell at the default voxel).
+struct CellIndex {
+    /// The lowest cell: keys are relative to it, in `i32`.
+    origin: [i64; 3],
+    order: Vec<u32>,
+    runs: FxHashMap<[i32; 3], (u32, u32)>,
+}
+
+impl CellIndex {
+    fn new(n: usize, cell_of: impl Fn(usize) -> [i64; 3]) -> Result<Self, EvalError> {
+        let mut origin = [i64::MAX; 3];
+        for i in 0..n {
+            let c = cell_of(i);
+            for k in 0..3 {
+                origin[k] = origin[k].min(c[k]);
+            }
+        }
+        let relative = |c: [i64; 3]| -> Option<[i32; 3]> {
+            let mut r = [0i32; 3];
+            for k in 0..3 {
+                r[k] = i32::try_from(c[k].checked_sub(origin[k])?).ok()?;
+            }
+            Some(r)
+        };
+        let mut keyed = Vec::with_capacity(n);
+        for i in 0..n {
+            let key = relative(cell_of(i)).ok_or_else(|| EvalError::LatentMapExtent { cells: cell_of(i), origin })?;
+            keyed.push((key, i as u32));
+        }
+        keyed.sort_unstable();
+        let mut runs = FxHashMap::default();
+        runs.reserve(keyed.chunk_by(|a, b| a.0 == b.0).count());
+        let mut start = 0u32;
+        for run in keyed.chunk_by(|a, b| a.0 == b.0) {
+            runs.insert(run[0].0, (start, run.len() as u32));
+            start += run.len() as u32;
+        }
+        let order = keyed.into_iter().map(|(_, i)| i).collect();
+        Ok(Self { origin, order, runs })
+    }
+
+    /// The map points in `cell`.
+    #[inline]
+    fn members(&self, cell: [i64; 3]) -> &[u32] {
+        let mut key = [0i32; 3];
+        for k in 0..3 {
+            match i32::try_from(cell[k].wrapping_sub(self.origin[k])) {
+                Ok(v) => key[k] = v,
+                Err(_) => return &[],
+            }
+        }
+        match self.runs.get(&key) {
+            Some(&(start, len)) => &self.order[start as usize..(start + len) as usize],
+            None => &[],
+        }
+    }
+}
 
 /// Reads `OUT/latent/*.las`; `None` when the folder does not exist (a result without a map).
 pub fn read_latent_maps(result_dir: &Path) -> Result<Option<Vec<LatentMapPoint>>, EvalError> {
@@ -103,80 +186,81 @@ pub fn evaluate_latent_map(
     truth_dir: &Path,
     campaign_shift: [f64; 3],
 ) -> Result<LatentMapEvaluation, EvalError> {
+    if strip_ids.len() > MAX_STRIPS {
+        return Err(EvalError::TooManyStrips { strips: strip_ids.len(), most: MAX_STRIPS });
+    }
     let cell = 2.0 * MATCH_RADIUS_M;
     let key = |p: [f64; 3]| p.map(|v| (v / cell).floor() as i64);
     // Computed where used rather than held: a copy of every map point would cost 24 bytes each.
     let shifted = |i: usize| [0, 1, 2].map(|k| map[i].position[k] - campaign_shift[k]);
-    let mut cells: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
-    for i in 0..map.len() {
-        cells.entry(key(shifted(i))).or_default().push(i as u32);
-    }
-    // One array of best matches per split of the strips, updated in place strip after strip
-    // (a few per thread), not one per strip: on a campaign of 10 M map points each is 160 MB.
-    let best = strip_ids
-        .par_iter()
-        .try_fold(
-            || vec![NO_MATCH; map.len()],
-            |mut best, id| -> Result<Vec<Match>, EvalError> {
-                let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
-                while let Some(t) = truth.next_point()? {
-                    if !t.class.is_surface() {
+    let cells = CellIndex::new(map.len(), |i| key(shifted(i)))?;
+    // One array of best matches per thread, updated in place by every strip the thread takes
+    // (on a campaign of 10 M map points each is 160 MB): what matches which strip then does not
+    // change how many arrays there are, and ties are settled by strip order ([`Match::beats`]).
+    let per_thread: Vec<Mutex<Vec<Match>>> = (0..rayon::current_num_threads()).map(|_| Mutex::default()).collect();
+    strip_ids.par_iter().enumerate().try_for_each(|(strip, id)| -> Result<(), EvalError> {
+        let thread = rayon::current_thread_index().unwrap_or(0) % per_thread.len();
+        // Uncontended: only this thread takes this lock, and nothing below waits on rayon.
+        let mut best = per_thread[thread].lock().unwrap_or_else(PoisonError::into_inner);
+        if best.is_empty() {
+            *best = vec![NO_MATCH; map.len()];
+        }
+        let strip = (strip as u32) << 8;
+        let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
+        while let Some(t) = truth.next_point()? {
+            if !t.class.is_surface() {
+                continue;
+            }
+            let n = t.normal.map(f64::from);
+            // The cells a sphere of the match radius can reach: the point's own and, per
+            // axis, the neighbour on its nearer side (cells are twice the radius).
+            let base = key(t.position);
+            let toward = [0, 1, 2].map(|k| {
+                let f = t.position[k] / cell - base[k] as f64;
+                if f < 0.5 {
+                    -1
+                } else {
+                    1
+                }
+            });
+            for corner in 0..8 {
+                let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
+                for &i in cells.members(c) {
+                    let m = &map[i as usize];
+                    let shifted = shifted(i as usize);
+                    let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);
+                    let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                    let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
+                    let slot = &mut best[i as usize];
+                    if d2 > MATCH_RADIUS_M * MATCH_RADIUS_M || cos.abs() < MATCH_MIN_COS {
                         continue;
                     }
-                    let n = t.normal.map(f64::from);
-                    // The cells a sphere of the match radius can reach: the point's own and, per
-                    // axis, the neighbour on its nearer side (cells are twice the radius).
-                    let base = key(t.position);
-                    let toward = [0, 1, 2].map(|k| {
-                        let f = t.position[k] / cell - base[k] as f64;
-                        if f < 0.5 {
-                            -1
-                        } else {
-                            1
-                        }
-                    });
-                    for corner in 0..8 {
-                        let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
-                        let Some(members) = cells.get(&c) else { continue };
-                        for &i in members {
-                            let m = &map[i as usize];
-                            let shifted = shifted(i as usize);
-                            let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);
-                            let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                            let cos = n[0] * m.normal[0] as f64 + n[1] * m.normal[1] as f64 + n[2] * m.normal[2] as f64;
-                            let slot = &mut best[i as usize];
-                            if d2 > MATCH_RADIUS_M * MATCH_RADIUS_M
-                                || cos.abs() < MATCH_MIN_COS
-                                || d2 as f32 >= slot.distance2
-                            {
-                                continue;
-                            }
-                            let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
-                            let shift = campaign_shift[0] * n[0] + campaign_shift[1] * n[1] + campaign_shift[2] * n[2];
-                            *slot = Match {
-                                distance2: d2 as f32,
-                                error: (along * cos.signum()) as f32,
-                                shift_along: (shift * cos.signum()) as f32,
-                                class: t.class as u8,
-                            };
-                        }
+                    let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+                    let shift = campaign_shift[0] * n[0] + campaign_shift[1] * n[1] + campaign_shift[2] * n[2];
+                    let candidate = Match {
+                        distance2: d2 as f32,
+                        error: (along * cos.signum()) as f32,
+                        shift_along: (shift * cos.signum()) as f32,
+                        strip_class: strip | t.class as u32,
+                    };
+                    if candidate.beats(slot) {
+                        *slot = candidate;
                     }
                 }
-                Ok(best)
-            },
-        )
-        // Without an identity: one would be another full array per split.
-        .try_reduce_with(|mut a, b| {
-            for (x, y) in a.iter_mut().zip(b) {
-                if y.distance2 < x.distance2 {
-                    *x = y;
-                }
             }
-            Ok(a)
-        })
-        .transpose()?
-        // No strips: no matches (an empty manifest cannot get here).
-        .unwrap_or_else(|| vec![NO_MATCH; map.len()]);
+        }
+        Ok(())
+    })?;
+    drop(cells);
+    let mut arrays = per_thread.into_iter().map(|a| a.into_inner().unwrap_or_else(PoisonError::into_inner));
+    let mut best = arrays.find(|a| !a.is_empty()).unwrap_or_else(|| vec![NO_MATCH; map.len()]);
+    for other in arrays.filter(|a| !a.is_empty()) {
+        for (x, y) in best.iter_mut().zip(other) {
+            if y.beats(x) {
+                *x = y;
+            }
+        }
+    }
     Ok(figures(map, &best))
 }
 
@@ -187,20 +271,20 @@ fn figures(map: &[LatentMapPoint], best: &[Match]) -> LatentMapEvaluation {
     };
     // Per tile: sum and count of the errors, for its shift.
     let mut tiles: HashMap<(i64, i64), (f64, usize)> = HashMap::new();
-    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class != u8::MAX) {
+    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class() != NO_CLASS) {
         let t = tiles.entry(tile_of(p)).or_default();
         t.0 += m.error as f64;
         t.1 += 1;
     }
     let mut all = Errors::default();
     let mut classes: BTreeMap<u8, Errors> = BTreeMap::new();
-    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class != u8::MAX) {
+    for (p, m) in map.iter().zip(best).filter(|(_, m)| m.class() != NO_CLASS) {
         let e = m.error as f64;
         let (sum, count) = tiles[&tile_of(p)];
         let tile_free = (count >= TILE_MIN_POINTS).then(|| e - sum / count as f64);
         let absolute = e + m.shift_along as f64;
         all.add(absolute, e, tile_free);
-        classes.entry(m.class).or_default().add(absolute, e, tile_free);
+        classes.entry(m.class()).or_default().add(absolute, e, tile_free);
     }
     let mut std = AbsHistogram::new();
     map.iter().for_each(|p| std.add(p.std_m as f64));
@@ -334,5 +418,47 @@ mod tests {
         // One tile: its mean (2 mm) comes off every point.
         let want = ((100.0 * 0.001f64.powi(2) + 100.0 * 0.001f64.powi(2) + 100.0 * 0.001f64.powi(2)) / 200.0).sqrt();
         assert!((f.error_without_tile_shift_rms_m - want).abs() < 1e-5, "{} {want}", f.error_without_tile_shift_rms_m);
+    }
+
+    /// Truth points equally far from a map point in several strips: the first strip's is the
+    /// match, whichever thread matched which strip (each strip puts its point on another side,
+    /// so each would give another error). Repeated 200 times: a race shows only sometimes (a
+    /// comparison by distance alone failed 4 runs in 5).
+    #[test]
+    fn equally_near_truth_points_resolve_to_the_first_strip() {
+        let dir = std::env::temp_dir().join(format!("precimap-eval-latent-ties-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let strips = 12;
+        let ids: Vec<String> = (0..strips).map(|k| format!("t{k}")).collect();
+        // Map points on a 10 cm grid at z = 0; strip k's truth point at each lies 1 cm away,
+        // above (even k) or below (odd k), with a class that tells four strips in a row apart.
+        let map: Vec<LatentMapPoint> = (0..400)
+            .map(|i| map_point([0.05 + 0.1 * (i % 20) as f64, 0.05 + 0.1 * (i / 20) as f64, 0.0], [0.0, 0.0, 1.0]))
+            .collect();
+        let classes = [SurfaceClass::Sidewalk, SurfaceClass::Road, SurfaceClass::Curb, SurfaceClass::Car];
+        for (k, id) in ids.iter().enumerate() {
+            let mut w = TruthWriter::create(&dir.join(format!("{id}.truth"))).unwrap();
+            let z = if k % 2 == 0 { 0.01 } else { -0.01 };
+            for m in &map {
+                let [x, y, _] = m.position;
+                let class = classes[k % 4];
+                w.push(&TruthPoint { position: [x, y, z], normal: [0.0, 0.0, 1.0], surface_id: k as u32, class })
+                    .unwrap();
+            }
+            w.finish().unwrap();
+        }
+        for _ in 0..200 {
+            let f = evaluate_latent_map(&map, &ids, &dir, [0.0; 3]).unwrap();
+            assert_eq!(f.matched, 400);
+            // t0's point lies 1 cm above each map point: the map is 1 cm below it.
+            assert!((f.error_mean_m + 0.01).abs() < 1e-6, "{f:?}");
+            assert_eq!(f.per_class.keys().collect::<Vec<_>>(), ["sidewalk"], "{f:?}");
+        }
+        let later: Vec<String> = ids[1..].to_vec();
+        let f = evaluate_latent_map(&map, &later, &dir, [0.0; 3]).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        // Without t0, t1's point below each map point.
+        assert!((f.error_mean_m - 0.01).abs() < 1e-6, "{f:?}");
+        assert_eq!(f.per_class.keys().collect::<Vec<_>>(), ["road"], "{f:?}");
     }
 }

@@ -238,6 +238,10 @@ pub enum EvalError {
     BadNormal { strip: String, path: PathBuf, index: u64, normal: [f32; 3] },
     #[error("{}: {message}", path.display())]
     Report { path: PathBuf, message: String },
+    #[error("the latent map (OUT/latent/*.las) has a point in cell {cells:?}, more than 2³¹ cells of 10 cm from its lowest cell {origin:?}: a map point's coordinates are corrupt; re-export the map with `precimap run`")]
+    LatentMapExtent { cells: [i64; 3], origin: [i64; 3] },
+    #[error("{strips} strips: the latent map's evaluation tells at most {most} strips apart")]
+    TooManyStrips { strips: usize, most: usize },
 }
 
 /// Evaluates the result folder `result_dir` of `precimap run` against the truth folder
