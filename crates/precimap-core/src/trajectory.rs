@@ -132,6 +132,29 @@ impl Trajectory {
         Some((i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)))
     }
 
+    /// [`Self::locate`] trying segment `*hint` first, and leaving the found segment there: O(1)
+    /// for the slowly rising times of a strip's points (thousands per segment at 200 Hz), with
+    /// the same result as [`Self::locate`] (times rise strictly, so `times[i] ≤ t < times[i+1]`
+    /// holds for one segment only, the one its binary search finds).
+    #[inline]
+    pub fn locate_from(&self, t: f64, hint: &mut usize) -> Option<(usize, f64)> {
+        let i = *hint;
+        if i + 1 < self.times.len() && self.times[i] <= t && t < self.times[i + 1] {
+            let (t0, t1) = (self.times[i], self.times[i + 1]);
+            return Some((i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)));
+        }
+        let found = self.locate(t)?;
+        *hint = found.0;
+        Some(found)
+    }
+
+    /// [`Self::position_at`] through [`Self::locate_from`].
+    #[inline]
+    pub fn position_at_from(&self, t: f64, hint: &mut usize) -> Option<Vec3> {
+        let (i, lambda) = self.locate_from(t, hint)?;
+        Some(self.position_in_segment(i, lambda))
+    }
+
     /// Interpolated pose: positions linearly, rotations along the geodesic between samples.
     pub fn pose_at(&self, t: f64) -> Option<Pose> {
         let (i, lambda) = self.locate(t)?;
@@ -211,6 +234,28 @@ mod tests {
         assert!(tr.pose_at(99.0).is_none());
         assert!(tr.pose_at(105.0).is_some());
         assert_eq!(tr.length_m(), 50.0);
+    }
+
+    /// From any hint, at sample times, between them, at both ends and outside the span: the
+    /// hinted look-up finds what the binary search finds, and leaves its segment as the hint.
+    #[test]
+    fn locate_from_any_hint_equals_locate() {
+        let tr = straight();
+        let mut times: Vec<f64> = (0..=44).map(|i| 99.9 + i as f64 * 0.125).collect();
+        times.extend(tr.times().to_vec());
+        times.extend([104.999_999, 105.0, 105.000_001]);
+        for &t in &times {
+            for start in [0, 3, 9, 10, 11, 1000] {
+                let mut hint = start;
+                let found = tr.locate_from(t, &mut hint);
+                assert_eq!(found, tr.locate(t), "t {t} from hint {start}");
+                assert_eq!(tr.position_at_from(t, &mut hint.clone()), tr.position_at(t), "t {t}");
+                if let Some((i, _)) = found {
+                    assert_eq!(tr.locate_from(t, &mut hint), found);
+                    assert!(hint == i || hint == start, "t {t}: hint {hint}, segment {i}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -206,6 +206,11 @@ pub fn evaluate_latent_map(
             *best = vec![NO_MATCH; map.len()];
         }
         let strip = (strip as u32) << 8;
+        // Consecutive truth points (along a scan line, centimetres apart) mostly reach the same
+        // cells, whose runs are then looked up once (the look-ups miss the cache: the run table
+        // is hundreds of megabytes).
+        let mut reached = ([i64::MIN; 3], [0i64; 3]);
+        let mut runs: [&[u32]; 8] = [&[]; 8];
         let mut truth = TruthReader::open(&truth_dir.join(format!("{id}.truth")))?;
         while let Some(t) = truth.next_point()? {
             if !t.class.is_surface() {
@@ -223,9 +228,14 @@ pub fn evaluate_latent_map(
                     1
                 }
             });
-            for corner in 0..8 {
-                let c = [0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 });
-                for &i in cells.members(c) {
+            if (base, toward) != reached {
+                reached = (base, toward);
+                for (corner, run) in runs.iter_mut().enumerate() {
+                    *run = cells.members([0, 1, 2].map(|k| base[k] + if corner >> k & 1 == 1 { toward[k] } else { 0 }));
+                }
+            }
+            for run in runs {
+                for &i in run {
                     let m = &map[i as usize];
                     let shifted = shifted(i as usize);
                     let d = [0, 1, 2].map(|k| shifted[k] - t.position[k]);

@@ -31,7 +31,7 @@ pub use stats::{
     signed_normal_error, strip_offset_spread, AbsHistogram, ClassSurfaceStripMeans, ErrorStats, GroupStripMeans,
     ShiftFreeMeans, SurfaceStripMeans, TileStripMeans,
 };
-pub use trajectory::{position_error_at, trajectory_errors, TrajectoryErrors};
+pub use trajectory::{position_error_at, position_error_from, trajectory_errors, TrajectoryErrors};
 
 use precimap_core::{TileKey, Trajectory};
 use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, resolve_uri, FormatError, ManifestError};
@@ -428,6 +428,8 @@ fn evaluate_strip(
     let assignment_ids = per_point_ids("assignments", "asg", "assignment", precimap_formats::read_assignments)?;
     let mut tally = SegmentTally::default();
     let mut assigned = AssignmentTally::default();
+    // Per trajectory (truth, input, result), the segment the last point's time fell in.
+    let mut segment_hints = [0usize; 3];
     let mut i = 0usize;
     while let Some(t) = truth.next_point()? {
         let k = i;
@@ -467,11 +469,11 @@ fn evaluate_strip(
         }
         if let Some(tr) = trajectory {
             let time = before.gps_time[k];
-            if let Some(truth_position) = tr.truth.position_at(time) {
-                if let Some(g) = position_error_at(&tr.input, truth_position, time) {
+            if let Some(truth_position) = tr.truth.position_at_from(time, &mut segment_hints[0]) {
+                if let Some(g) = position_error_from(&tr.input, truth_position, time, &mut segment_hints[1]) {
                     out.shift_free_before.add_datum_sample(tile, g);
                 }
-                if let Some(g) = position_error_at(&tr.result, truth_position, time) {
+                if let Some(g) = position_error_from(&tr.result, truth_position, time, &mut segment_hints[2]) {
                     out.shift_free_after.add_datum_sample(tile, g);
                 }
             }

@@ -8,6 +8,7 @@
 //! within 1 cm, each surface planar) count as one true surface; curved surfaces (poles, trunks,
 //! crowns) keep their ids. The purity by raw simulator id is reported alongside.
 
+use precimap_core::hash::FxHashMap;
 use precimap_sim::truth::SurfaceClass;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
@@ -21,11 +22,11 @@ const DROPPED: u32 = u32::MAX - 1;
 #[derive(Clone, Debug, Default)]
 pub struct SegmentTally {
     /// (segment, true surface id) → points.
-    per_segment_surface: HashMap<(u32, u32), u64>,
+    per_segment_surface: FxHashMap<(u32, u32), u64>,
     /// Road points per segment.
-    road_per_segment: HashMap<u32, u64>,
+    road_per_segment: FxHashMap<u32, u64>,
     /// Per simulator surface id: class, Σ normal, Σ normal·position, points.
-    surfaces: HashMap<u32, SurfaceSums>,
+    surfaces: FxHashMap<u32, SurfaceSums>,
     surface_points: u64,
     surface_removed: u64,
     foliage_points: u64,

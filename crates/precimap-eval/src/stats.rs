@@ -1,6 +1,7 @@
 //! Pure, mergeable statistics the evaluation is built from: error moments with an |error|
 //! histogram for percentiles, and per tile–strip means for the strip offset spread.
 
+use precimap_core::hash::FxHashMap;
 use precimap_core::histogram::LogBins;
 use precimap_core::TileKey;
 use std::collections::{BTreeMap, HashMap};
@@ -112,7 +113,7 @@ impl ErrorStats {
 /// ([`TileStripMeans`]) or (tile, true surface) pairs ([`SurfaceStripMeans`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GroupStripMeans<K: Eq + std::hash::Hash> {
-    cells: HashMap<(K, u32), (u64, f64)>,
+    cells: FxHashMap<(K, u32), (u64, f64)>,
 }
 
 /// Strip means per 15 m tile.
@@ -128,7 +129,7 @@ pub type ClassSurfaceStripMeans = GroupStripMeans<(u8, TileKey, u32)>;
 
 impl<K: Eq + std::hash::Hash> Default for GroupStripMeans<K> {
     fn default() -> Self {
-        Self { cells: HashMap::new() }
+        Self { cells: FxHashMap::default() }
     }
 }
 
@@ -223,10 +224,10 @@ impl GroupStripMeans<TileKey> {
 /// strips agree; these figures tell how much of the spread such a shift explains.
 #[derive(Clone, Debug, Default)]
 pub struct ShiftFreeMeans {
-    pairs: HashMap<(TileKey, u32), (u64, f64, [f64; 3])>,
-    tiles: HashMap<TileKey, ([[f64; 3]; 3], [f64; 3])>,
+    pairs: FxHashMap<(TileKey, u32), (u64, f64, [f64; 3])>,
+    tiles: FxHashMap<TileKey, ([[f64; 3]; 3], [f64; 3])>,
     /// Per tile Σ of the trajectory position error at each surface point's time, and the count.
-    datum: HashMap<TileKey, ([f64; 3], u64)>,
+    datum: FxHashMap<TileKey, ([f64; 3], u64)>,
 }
 
 impl ShiftFreeMeans {

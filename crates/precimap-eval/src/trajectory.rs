@@ -53,7 +53,12 @@ impl TrajectoryErrors {
 /// Position error `eval − truth_position` at time `t` (`eval` interpolated linearly); `None`
 /// outside its time span.
 pub fn position_error_at(eval: &Trajectory, truth_position: Vec3, t: f64) -> Option<[f64; 3]> {
-    let d = eval.position_at(t)? - truth_position;
+    position_error_from(eval, truth_position, t, &mut 0)
+}
+
+/// [`position_error_at`] looking `t` up from segment `*hint` ([`Trajectory::locate_from`]).
+pub fn position_error_from(eval: &Trajectory, truth_position: Vec3, t: f64, hint: &mut usize) -> Option<[f64; 3]> {
+    let d = eval.position_at_from(t, hint)? - truth_position;
     Some([d.x, d.y, d.z])
 }
 
