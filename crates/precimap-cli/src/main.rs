@@ -143,8 +143,11 @@ pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
 }
 
 fn main() {
-    limit_malloc_arenas();
-    if let Err(e) = real_main() {
+    // Parsed before the process executes itself again (`limit_malloc_arenas`), which needs the
+    // subcommand; the new image parses the same arguments again.
+    let cli = Cli::parse();
+    limit_malloc_arenas(fixes_mmap_threshold(&cli));
+    if let Err(e) = real_main(cli) {
         eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }
@@ -157,13 +160,15 @@ fn main() {
 /// arguments and streams) with the limit set. A limit already set, or a failed exec, leaves
 /// glibc's default.
 ///
-/// `evaluate` also gets a fixed mmap threshold of [`EVALUATE_MMAP_THRESHOLD`]: glibc's own rises
-/// to the size of the largest block freed (up to 32 MiB), so a strip's arrays (tens of MB) come
-/// from the heap after the first strip, and the heap keeps them when they are freed; the latent
-/// map is then read on top of every strip's arrays (ARCHITECTURE, "`evaluate` in less memory").
+/// With `fixed_mmap_threshold` (`evaluate`) the process also gets a fixed mmap threshold of
+/// [`EVALUATE_MMAP_THRESHOLD`]: glibc's own rises to the size of the largest block freed (up to
+/// 32 MiB), so a strip's arrays (tens of MB) come from the heap after the first strip, and the
+/// heap keeps them when they are freed; the latent map is then read on top of every strip's
+/// arrays (ARCHITECTURE, "`evaluate` in less memory").
 /// Estimation keeps glibc's threshold: it reuses such memory from tile to tile, and fresh
 /// mappings would fault in again every time.
-fn limit_malloc_arenas() {
+#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(unused_variables))]
+fn limit_malloc_arenas(fixed_mmap_threshold: bool) {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         use std::os::unix::process::CommandExt as _;
@@ -178,9 +183,8 @@ fn limit_malloc_arenas() {
             command.arg0(name);
         }
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let args: Vec<std::ffi::OsString> = args.collect();
         const MALLOC_MMAP_THRESHOLD: &str = "MALLOC_MMAP_THRESHOLD_";
-        if subcommand(&args) == Some("evaluate") && std::env::var_os(MALLOC_MMAP_THRESHOLD).is_none() {
+        if fixed_mmap_threshold && std::env::var_os(MALLOC_MMAP_THRESHOLD).is_none() {
             command.env(MALLOC_MMAP_THRESHOLD, EVALUATE_MMAP_THRESHOLD.to_string());
         }
         // `exec` returns only when it failed; then carry on as we are.
@@ -196,21 +200,9 @@ fn limit_malloc_arenas() {
 #[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
 const EVALUATE_MMAP_THRESHOLD: usize = 1 << 20;
 
-/// The subcommand in the arguments after the program name: the first that is neither an option
-/// nor the value of the global `--threads`.
-#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
-fn subcommand(args: &[std::ffi::OsString]) -> Option<&str> {
-    let mut args = args.iter().map(|a| a.to_str());
-    while let Some(arg) = args.next() {
-        match arg? {
-            "--threads" => {
-                args.next();
-            }
-            a if a.starts_with('-') => {}
-            a => return Some(a),
-        }
-    }
-    None
+/// Whether the command runs with [`EVALUATE_MMAP_THRESHOLD`] (`evaluate` alone).
+fn fixes_mmap_threshold(cli: &Cli) -> bool {
+    matches!(cli.command, Command::Evaluate { .. })
 }
 
 /// The error and its causes joined by ": ", leaving out a cause whose text the message already
@@ -227,8 +219,7 @@ fn error_chain(e: &anyhow::Error) -> String {
     out
 }
 
-fn real_main() -> Result<()> {
-    let cli = Cli::parse();
+fn real_main(cli: Cli) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("PRECIMAP_LOG").unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
@@ -329,15 +320,20 @@ fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Re
 
 #[cfg(test)]
 mod tests {
-    use super::subcommand;
+    use super::{fixes_mmap_threshold, Cli};
+    use clap::Parser;
 
     #[test]
     fn the_subcommand_is_found_past_global_options() {
-        let args = |a: &[&str]| a.iter().map(std::ffi::OsString::from).collect::<Vec<_>>();
-        assert_eq!(subcommand(&args(&["evaluate", "--truth", "t"])), Some("evaluate"));
-        assert_eq!(subcommand(&args(&["--threads", "2", "evaluate"])), Some("evaluate"));
-        assert_eq!(subcommand(&args(&["--threads=2", "run", "m.json"])), Some("run"));
-        assert_eq!(subcommand(&args(&["--help"])), None);
-        assert_eq!(subcommand(&args(&[])), None);
+        let fixes = |a: &[&str]| {
+            Cli::try_parse_from(std::iter::once("precimap").chain(a.iter().copied()))
+                .ok()
+                .map(|c| fixes_mmap_threshold(&c))
+        };
+        assert_eq!(fixes(&["evaluate", "--truth", "t", "--result", "r"]), Some(true));
+        assert_eq!(fixes(&["--threads", "2", "evaluate", "--truth", "t", "--result", "r"]), Some(true));
+        assert_eq!(fixes(&["--threads=2", "run", "m.json", "--out", "o"]), Some(false));
+        assert_eq!(fixes(&["--help"]), None);
+        assert_eq!(fixes(&[]), None);
     }
 }
