@@ -128,8 +128,14 @@ impl Trajectory {
             Ok(i) => i.min(self.times.len() - 2),
             Err(i) => i - 1,
         };
+        Some(self.in_segment(i, t))
+    }
+
+    /// Segment `i` and the fraction of it at `t`.
+    #[inline]
+    fn in_segment(&self, i: usize, t: f64) -> (usize, f64) {
         let (t0, t1) = (self.times[i], self.times[i + 1]);
-        Some((i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)))
+        (i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0))
     }
 
     /// [`Self::locate`] trying segment `*hint` first, and leaving the found segment there: O(1)
@@ -140,8 +146,7 @@ impl Trajectory {
     pub fn locate_from(&self, t: f64, hint: &mut usize) -> Option<(usize, f64)> {
         let i = *hint;
         if i + 1 < self.times.len() && self.times[i] <= t && t < self.times[i + 1] {
-            let (t0, t1) = (self.times[i], self.times[i + 1]);
-            return Some((i, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)));
+            return Some(self.in_segment(i, t));
         }
         let found = self.locate(t)?;
         *hint = found.0;

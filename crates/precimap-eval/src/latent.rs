@@ -112,16 +112,10 @@ impl CellIndex {
                 origin[k] = origin[k].min(c[k]);
             }
         }
-        let relative = |c: [i64; 3]| -> Option<[i32; 3]> {
-            let mut r = [0i32; 3];
-            for k in 0..3 {
-                r[k] = i32::try_from(c[k].checked_sub(origin[k])?).ok()?;
-            }
-            Some(r)
-        };
         let mut keyed = Vec::with_capacity(n);
         for i in 0..n {
-            let key = relative(cell_of(i)).ok_or_else(|| EvalError::LatentMapExtent { cells: cell_of(i), origin })?;
+            let key =
+                relative(cell_of(i), origin).ok_or_else(|| EvalError::LatentMapExtent { cells: cell_of(i), origin })?;
             keyed.push((key, i as u32));
         }
         keyed.sort_unstable();
@@ -139,18 +133,21 @@ impl CellIndex {
     /// The map points in `cell`.
     #[inline]
     fn members(&self, cell: [i64; 3]) -> &[u32] {
-        let mut key = [0i32; 3];
-        for k in 0..3 {
-            match i32::try_from(cell[k].wrapping_sub(self.origin[k])) {
-                Ok(v) => key[k] = v,
-                Err(_) => return &[],
-            }
-        }
-        match self.runs.get(&key) {
+        match relative(cell, self.origin).and_then(|key| self.runs.get(&key)) {
             Some(&(start, len)) => &self.order[start as usize..(start + len) as usize],
             None => &[],
         }
     }
+}
+
+/// `cell` relative to `origin`, if that fits an `i32` per axis.
+#[inline]
+fn relative(cell: [i64; 3], origin: [i64; 3]) -> Option<[i32; 3]> {
+    let mut r = [0i32; 3];
+    for k in 0..3 {
+        r[k] = i32::try_from(cell[k].checked_sub(origin[k])?).ok()?;
+    }
+    Some(r)
 }
 
 /// Reads `OUT/latent/*.las`; `None` when the folder does not exist (a result without a map).
