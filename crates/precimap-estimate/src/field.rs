@@ -19,10 +19,10 @@
 //! two-level method, with the data blocks of the same map task: the map moves with the field,
 //! so a point's residual barely changes.
 //!
-//! The field's unknowns are dense (three per node, nodes every `common_mode_field_m` over the
-//! area the trajectories cover): 30 m nodes over 1 km² are ~3,400 unknowns, a Cholesky of a few
-//! seconds; the default 15 m nodes four times as many. A city-sized campaign needs a sparse
-//! factorisation or a coarser grid.
+//! The field has three unknowns per node, nodes every `common_mode_field_m` where anchors or
+//! observations reach, each coupled only to the nodes near it: its normal equations are solved
+//! by a sparse Cholesky in nested-dissection order (`precimap_solve::sparse`), whose factor grows
+//! about as n log n for a street network.
 
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::floor;
@@ -322,7 +322,7 @@ pub fn remove_field_share(
     for i in 0..nodes {
         a.add(i, i, 1e-3);
     }
-    let factor = a.factorise(MAX_FIELD_ENVELOPE).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let factor = a.factorise(MAX_FIELD_FACTOR_ENTRIES).map_err(|e| FieldError::from_sparse(e, nodes))?;
     let per_axis: Vec<Vec<f64>> = (0..3).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
     let fit = FieldSolution {
         spacing_m: spacing,
@@ -358,11 +358,11 @@ impl FieldError {
     }
 }
 
-/// Most factor entries the field's sparse solve may hold (1 GiB). The envelope after reverse
-/// Cuthill–McKee grows with the nodes times the street network's width in nodes, so this is a
-/// campaign of many km² at 15 m nodes (the dense solve it replaced stopped at 3,000 nodes,
-/// ~0.7 km² of tiles).
-pub const MAX_FIELD_ENVELOPE: usize = 1 << 27;
+/// Most factor entries the field's sparse solve may hold (12 bytes each: 1 GiB). After nested
+/// dissection a synthetic street network of 110 km² at 15 m nodes needs half of this and one of
+/// 248 km² more, so the limit lies near 200 km² (`precimap bench field-solve --blocks N`;
+/// ARCHITECTURE.md, "The common-mode field's sparse solve").
+pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,
 /// smoothness and curvature terms, linearised about the current corrections.
@@ -371,15 +371,15 @@ pub fn solve_field<'a>(
     trajectories: &[FieldTrajectory],
     params: &Parameters,
 ) -> Result<FieldSolution, FieldError> {
-    solve_field_within(equations, trajectories, params, MAX_FIELD_ENVELOPE)
+    solve_field_within(equations, trajectories, params, MAX_FIELD_FACTOR_ENTRIES)
 }
 
-/// [`solve_field`] with at most `max_envelope` factor entries.
+/// [`solve_field`] with at most `max_factor_entries` factor entries.
 fn solve_field_within<'a>(
     equations: impl IntoIterator<Item = &'a FieldEquations>,
     trajectories: &[FieldTrajectory],
     params: &Parameters,
-    max_envelope: usize,
+    max_factor_entries: usize,
 ) -> Result<FieldSolution, FieldError> {
     let spacing = params.common_mode_field_m;
     for (t, tr) in trajectories.iter().enumerate() {
@@ -475,7 +475,7 @@ fn solve_field_within<'a>(
     for i in 0..dim {
         h.add(i, i, prior * 1e-2);
     }
-    let solution = h.solve(&rhs, max_envelope).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let solution = h.solve(&rhs, max_factor_entries).map_err(|e| FieldError::from_sparse(e, nodes))?;
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
@@ -660,7 +660,7 @@ mod tests {
         }
         // Every anchor 1 cm nodes apart touches four nodes of its own: 800 anchors, 3,200 nodes,
         // more than the dense solve took. The sparse one solves it (the prior alone takes the
-        // offset out again) unless its envelope limit is lower than the factor needs.
+        // offset out again) unless its limit is lower than the factor needs.
         let fine = Parameters { common_mode_field_m: 0.01, ..Default::default() };
         let many: Vec<[f64; 2]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047]).collect();
         let long = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 800] };

@@ -1,19 +1,21 @@
-//! Exact solve of a sparse symmetric positive definite system: reverse Cuthill–McKee ordering,
-//! then a Cholesky factorisation in the envelope (skyline) of the reordered matrix, which holds
-//! all of the factor's fill-in.
+//! Exact solve of a sparse symmetric positive definite system: a nested-dissection ordering, then
+//! a sparse Cholesky factorisation (elimination tree, row patterns by `ereach`, up-looking
+//! numeric factorisation) that stores only the factor's non-zeros.
 //!
 //! Written for the common-mode field (`precimap_estimate::field`): its unknowns are the nodes of a
-//! grid laid over the streets, coupled only to the nodes near them, so after RCM each row reaches
-//! back only across the width of the street network. Memory and time then grow with the envelope
-//! (Σ row widths, Σ width²), not with the square and cube of the unknowns as a dense solve does.
+//! grid laid over the streets, coupled only to the nodes near them. Nested dissection orders each
+//! half of the network before the separator between them, recursively, so the factor's fill stays
+//! near O(n log n) entries and its work near O(n^1.5) for such planar-like networks. The reverse
+//! Cuthill–McKee envelope it replaced (stop 13) held O(n × network width) entries: 1 GiB at
+//! ~40 km² of 15 m nodes, where a city campaign had to coarsen its field.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SparseError {
     #[error("the system is not positive definite: pivot {pivot} of {unknowns} is {value:e}")]
     NotPositiveDefinite { pivot: usize, unknowns: usize, value: f64 },
-    #[error("the system's envelope holds {entries} entries after ordering, more than the {limit} it may use")]
+    #[error("the system's factor holds {entries} entries after ordering, more than the {limit} it may use")]
     TooLarge { entries: usize, limit: usize },
     #[error("entry ({row}, {column}) lies outside the {unknowns} unknowns")]
     OutOfRange { row: usize, column: usize, unknowns: usize },
@@ -59,115 +61,222 @@ impl SymmetricSparse {
         self.lower.get(&key).copied().unwrap_or(0.0)
     }
 
-    /// Factorises the matrix (at most `max_envelope` stored factor entries) and solves for `rhs`.
-    pub fn solve(&self, rhs: &[f64], max_envelope: usize) -> Result<Vec<f64>, SparseError> {
-        Ok(self.factorise(max_envelope)?.solve(rhs))
+    /// Factorises the matrix (at most `max_entries` stored factor entries) and solves for `rhs`.
+    pub fn solve(&self, rhs: &[f64], max_entries: usize) -> Result<Vec<f64>, SparseError> {
+        Ok(self.factorise(max_entries)?.solve(rhs))
     }
 
-    /// The envelope Cholesky factor of the RCM-reordered matrix.
-    pub fn factorise(&self, max_envelope: usize) -> Result<EnvelopeCholesky, SparseError> {
+    /// The Cholesky factor of the matrix in nested-dissection order, refused (before any of it
+    /// is allocated) if it would hold more than `max_entries` entries.
+    pub fn factorise(&self, max_entries: usize) -> Result<SparseCholesky, SparseError> {
         if let Some((row, column)) = self.out_of_range {
             return Err(SparseError::OutOfRange { row, column, unknowns: self.unknowns });
         }
         let n = self.unknowns;
-        let order = reverse_cuthill_mckee(n, self.lower.keys().map(|&(i, j)| (i as usize, j as usize)));
-        let mut position = vec![0usize; n];
+        let order = nested_dissection(n, self.lower.keys().map(|&(i, j)| (i as usize, j as usize)));
+        let mut position = vec![0u32; n];
         for (new, &old) in order.iter().enumerate() {
-            position[old] = new;
+            position[old] = new as u32;
         }
-        // Each reordered row's first column, then the rows' offsets in one array.
-        let mut first: Vec<usize> = (0..n).collect();
-        for &(i, j) in self.lower.keys() {
-            let (a, b) = (position[i as usize], position[j as usize]);
-            let (row, column) = if a >= b { (a, b) } else { (b, a) };
-            first[row] = first[row].min(column);
+        // The reordered lower triangle by rows (row k: its columns ≤ k), in a fixed order: the
+        // hash map's order would make the sums below differ in their last bits between runs.
+        let mut entries: Vec<(u32, u32, f64)> = self
+            .lower
+            .iter()
+            .map(|(&(i, j), &v)| {
+                let (a, b) = (position[i as usize], position[j as usize]);
+                if a >= b {
+                    (a, b, v)
+                } else {
+                    (b, a, v)
+                }
+            })
+            .collect();
+        entries.sort_unstable_by_key(|&(r, c, _)| (r, c));
+        let mut row_start = vec![0usize; n + 1];
+        for &(r, ..) in &entries {
+            row_start[r as usize + 1] += 1;
         }
-        let mut offset = Vec::with_capacity(n + 1);
-        offset.push(0usize);
-        for (i, &f) in first.iter().enumerate() {
-            let next = offset[i] + (i - f + 1);
-            if next > max_envelope {
-                let entries = next + (i + 1..n).map(|r| r - first[r] + 1).sum::<usize>();
-                return Err(SparseError::TooLarge { entries, limit: max_envelope });
-            }
-            offset.push(next);
+        for k in 0..n {
+            row_start[k + 1] += row_start[k];
         }
-        let mut values = vec![0.0f64; offset[n]];
-        for (&(i, j), &v) in &self.lower {
-            let (a, b) = (position[i as usize], position[j as usize]);
-            let (row, column) = if a >= b { (a, b) } else { (b, a) };
-            values[offset[row] + column - first[row]] = v;
-        }
-        let mut factor = EnvelopeCholesky { first, offset, values, order };
-        factor.factorise_in_place()?;
+        let columns: Vec<u32> = entries.iter().map(|e| e.1).collect();
+        let values: Vec<f64> = entries.iter().map(|e| e.2).collect();
+        drop(entries);
+        let rows = LowerRows { start: row_start, column: columns, value: values };
+        let mut factor = SparseCholesky::symbolic(&rows, order, max_entries)?;
+        factor.numeric(&rows)?;
         Ok(factor)
     }
 }
 
-/// A Cholesky factor `L` (`P A Pᵀ = L Lᵀ`) stored row by row from each row's first non-zero
-/// column to the diagonal.
+/// A lower triangle stored by rows (row k's columns rise, the last may be k itself).
+struct LowerRows {
+    start: Vec<usize>,
+    column: Vec<u32>,
+    value: Vec<f64>,
+}
+
+impl LowerRows {
+    fn row(&self, k: usize) -> (&[u32], &[f64]) {
+        let (s, e) = (self.start[k], self.start[k + 1]);
+        (&self.column[s..e], &self.value[s..e])
+    }
+}
+
+const NONE: u32 = u32::MAX;
+
+/// A Cholesky factor `L` (`P A Pᵀ = L Lᵀ`) stored by columns, each column's diagonal first.
 #[derive(Clone, Debug)]
-pub struct EnvelopeCholesky {
-    first: Vec<usize>,
-    offset: Vec<usize>,
-    values: Vec<f64>,
+pub struct SparseCholesky {
+    /// Column j holds entries `start[j]..start[j + 1]`.
+    start: Vec<usize>,
+    row: Vec<u32>,
+    value: Vec<f64>,
+    /// Elimination tree: the parent of each column, [`NONE`] for roots.
+    parent: Vec<u32>,
     /// New position → original unknown.
     order: Vec<usize>,
 }
 
-impl EnvelopeCholesky {
+/// Row k's pattern in `L` (the columns j < k with `L[k][j] ≠ 0`), each column before its
+/// elimination-tree ancestors: the columns reached from row k's entries climbing the tree until
+/// a column already reached (Liu; CSparse's `ereach`). `flag` marks the reached columns with k,
+/// `path` and `stack` are scratch of n entries; the pattern is `stack[top..]`.
+fn row_pattern(
+    k: usize,
+    columns: &[u32],
+    parent: &[u32],
+    flag: &mut [u32],
+    path: &mut [u32],
+    stack: &mut [u32],
+) -> usize {
+    let n = stack.len();
+    let mut top = n;
+    flag[k] = k as u32;
+    for &j in columns {
+        let mut i = j;
+        let mut len = 0;
+        // Every column of row k has k as an ancestor, where the climb stops at the latest.
+        while i != NONE && flag[i as usize] != k as u32 {
+            path[len] = i;
+            len += 1;
+            flag[i as usize] = k as u32;
+            i = parent[i as usize];
+        }
+        while len > 0 {
+            len -= 1;
+            top -= 1;
+            stack[top] = path[len];
+        }
+    }
+    top
+}
+
+impl SparseCholesky {
     /// Stored factor entries.
-    pub fn envelope(&self) -> usize {
-        self.values.len()
+    pub fn entries(&self) -> usize {
+        self.value.len()
     }
 
-    /// Row-oriented (bordering) Cholesky: row i's entries are dot products of contiguous pieces of
-    /// rows already factorised, and fill-in never leaves the envelope.
-    fn factorise_in_place(&mut self) -> Result<(), SparseError> {
-        let n = self.first.len();
-        for i in 0..n {
-            let (fi, oi) = (self.first[i], self.offset[i]);
-            let (done, rest) = self.values.split_at_mut(oi);
-            let row = &mut rest[..i - fi + 1];
-            for j in fi..i {
-                let (fj, oj) = (self.first[j], self.offset[j]);
-                let lo = fi.max(fj);
-                let lj = &done[oj + lo - fj..oj + j - fj];
-                let li = &row[lo - fi..j - fi];
-                let dot: f64 = li.iter().zip(lj).map(|(a, b)| a * b).sum();
-                let diagonal = done[oj + j - fj];
-                row[j - fi] = (row[j - fi] - dot) / diagonal;
+    /// Elimination tree and column counts; the factor's arrays, allocated only within the limit.
+    fn symbolic(rows: &LowerRows, order: Vec<usize>, max_entries: usize) -> Result<Self, SparseError> {
+        let n = order.len();
+        let mut parent = vec![NONE; n];
+        let mut ancestor = vec![NONE; n];
+        for k in 0..n {
+            for &j in rows.row(k).0 {
+                // Climb from j to its current root, compressing the path onto k.
+                let mut i = j;
+                while i != NONE && (i as usize) < k {
+                    let next = ancestor[i as usize];
+                    ancestor[i as usize] = k as u32;
+                    if next == NONE {
+                        parent[i as usize] = k as u32;
+                    }
+                    i = next;
+                }
             }
-            let off: f64 = row[..i - fi].iter().map(|v| v * v).sum();
-            let d = row[i - fi] - off;
+        }
+        drop(ancestor);
+        let (mut flag, mut path, mut stack) = (vec![NONE; n], vec![0u32; n], vec![0u32; n]);
+        // Each column's diagonal, plus one entry per row whose pattern holds it.
+        let mut count = vec![1usize; n];
+        for k in 0..n {
+            let top = row_pattern(k, rows.row(k).0, &parent, &mut flag, &mut path, &mut stack);
+            for &j in &stack[top..] {
+                count[j as usize] += 1;
+            }
+        }
+        let entries: usize = count.iter().sum();
+        if entries > max_entries {
+            return Err(SparseError::TooLarge { entries, limit: max_entries });
+        }
+        let mut start = Vec::with_capacity(n + 1);
+        start.push(0usize);
+        for &c in &count {
+            start.push(start.last().copied().unwrap_or(0) + c);
+        }
+        Ok(Self { start, row: vec![0; entries], value: vec![0.0; entries], parent, order })
+    }
+
+    /// Up-looking factorisation: row k of `L` solves `L[..k][..k] l = A[..k][k]` over row k's
+    /// pattern, each column in the pattern before its ancestors (CSparse's `cs_chol`).
+    fn numeric(&mut self, rows: &LowerRows) -> Result<(), SparseError> {
+        let n = self.order.len();
+        let (mut flag, mut path, mut stack) = (vec![NONE; n], vec![0u32; n], vec![0u32; n]);
+        // Next free entry of each column (its diagonal comes first).
+        let mut next: Vec<usize> = self.start[..n].iter().map(|s| s + 1).collect();
+        let mut x = vec![0.0f64; n];
+        for k in 0..n {
+            let (columns, values) = rows.row(k);
+            let top = row_pattern(k, columns, &self.parent, &mut flag, &mut path, &mut stack);
+            for (&j, &v) in columns.iter().zip(values) {
+                x[j as usize] = v;
+            }
+            let mut d = x[k];
+            x[k] = 0.0;
+            for &j in &stack[top..] {
+                let j = j as usize;
+                let (first, end) = (self.start[j], next[j]);
+                let lkj = x[j] / self.value[first];
+                x[j] = 0.0;
+                for p in first + 1..end {
+                    x[self.row[p] as usize] -= self.value[p] * lkj;
+                }
+                d -= lkj * lkj;
+                self.row[end] = k as u32;
+                self.value[end] = lkj;
+                next[j] = end + 1;
+            }
             if !(d > 0.0 && d.is_finite()) {
-                return Err(SparseError::NotPositiveDefinite { pivot: i, unknowns: n, value: d });
+                return Err(SparseError::NotPositiveDefinite { pivot: k, unknowns: n, value: d });
             }
-            row[i - fi] = d.sqrt();
+            let first = self.start[k];
+            self.row[first] = k as u32;
+            self.value[first] = d.sqrt();
         }
         Ok(())
     }
 
     /// Solves `A x = rhs` (original order).
     pub fn solve(&self, rhs: &[f64]) -> Vec<f64> {
-        let n = self.first.len();
+        let n = self.order.len();
         let mut y: Vec<f64> = self.order.iter().map(|&old| rhs[old]).collect();
-        // L y' = y, row by row.
-        for i in 0..n {
-            let (fi, oi) = (self.first[i], self.offset[i]);
-            let row = &self.values[oi..oi + i - fi + 1];
-            let dot: f64 = row[..i - fi].iter().zip(&y[fi..i]).map(|(a, b)| a * b).sum();
-            y[i] = (y[i] - dot) / row[i - fi];
-        }
-        // Lᵀ x = y', column by column from the last.
-        for i in (0..n).rev() {
-            let (fi, oi) = (self.first[i], self.offset[i]);
-            let row = &self.values[oi..oi + i - fi + 1];
-            y[i] /= row[i - fi];
-            let xi = y[i];
-            for (yk, l) in y[fi..i].iter_mut().zip(&row[..i - fi]) {
-                *yk -= l * xi;
+        // L y' = y, column by column.
+        for j in 0..n {
+            let (first, end) = (self.start[j], self.start[j + 1]);
+            y[j] /= self.value[first];
+            let yj = y[j];
+            for p in first + 1..end {
+                y[self.row[p] as usize] -= self.value[p] * yj;
             }
+        }
+        // Lᵀ x = y', from the last column.
+        for j in (0..n).rev() {
+            let (first, end) = (self.start[j], self.start[j + 1]);
+            let dot: f64 = (first + 1..end).map(|p| self.value[p] * y[self.row[p] as usize]).sum();
+            y[j] = (y[j] - dot) / self.value[first];
         }
         let mut x = vec![0.0; n];
         for (new, &old) in self.order.iter().enumerate() {
@@ -177,92 +286,229 @@ impl EnvelopeCholesky {
     }
 }
 
-/// Reverse Cuthill–McKee order of the graph whose edges are the off-diagonal `pairs`: every
-/// connected component from a pseudo-peripheral start, breadth first with the neighbours by
-/// ascending degree, and the whole order reversed. Deterministic for a given set of pairs.
-pub fn reverse_cuthill_mckee(n: usize, pairs: impl Iterator<Item = (usize, usize)>) -> Vec<usize> {
-    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
-    for (i, j) in pairs {
-        if i != j {
-            neighbours[i].push(j as u32);
-            neighbours[j].push(i as u32);
+/// Parts of at most this many unknowns are not dissected further: their own fill is small.
+const LEAF_UNKNOWNS: usize = 64;
+
+/// The graph of the off-diagonal pairs, as sorted, de-duplicated neighbour lists.
+struct Graph {
+    start: Vec<usize>,
+    neighbour: Vec<u32>,
+}
+
+impl Graph {
+    fn new(n: usize, pairs: impl Iterator<Item = (usize, usize)>) -> Self {
+        let edges: Vec<(u32, u32)> = pairs.filter(|&(i, j)| i != j).map(|(i, j)| (i as u32, j as u32)).collect();
+        let mut start = vec![0usize; n + 1];
+        for &(i, j) in &edges {
+            start[i as usize + 1] += 1;
+            start[j as usize + 1] += 1;
+        }
+        for v in 0..n {
+            start[v + 1] += start[v];
+        }
+        let mut fill = start.clone();
+        let mut neighbour = vec![0u32; start[n]];
+        for &(i, j) in &edges {
+            neighbour[fill[i as usize]] = j;
+            fill[i as usize] += 1;
+            neighbour[fill[j as usize]] = i;
+            fill[j as usize] += 1;
+        }
+        drop(edges);
+        // Sorted and de-duplicated in place, the lists compacted to the front.
+        let mut compact = Vec::with_capacity(n + 1);
+        compact.push(0usize);
+        let mut write = 0;
+        for v in 0..n {
+            let (s, e) = (start[v], start[v + 1]);
+            neighbour[s..e].sort_unstable();
+            let mut last = NONE;
+            for r in s..e {
+                let w = neighbour[r];
+                if w != last {
+                    neighbour[write] = w;
+                    write += 1;
+                    last = w;
+                }
+            }
+            compact.push(write);
+        }
+        neighbour.truncate(write);
+        Self { start: compact, neighbour }
+    }
+
+    fn neighbours(&self, v: usize) -> &[u32] {
+        &self.neighbour[self.start[v]..self.start[v + 1]]
+    }
+}
+
+/// Nested-dissection order of the graph whose edges are the off-diagonal `pairs` (George's
+/// automatic nested dissection by level structures): from a pseudo-peripheral node of each
+/// connected part, breadth-first levels; a small level near the middle separates the levels
+/// before it from those after it; both sides are ordered first (recursively), the separator
+/// last. Parts of at most [`LEAF_UNKNOWNS`] stay as they are. Deterministic for a given set of
+/// pairs.
+pub fn nested_dissection(n: usize, pairs: impl Iterator<Item = (usize, usize)>) -> Vec<usize> {
+    let graph = Graph::new(n, pairs);
+    let mut d = Dissection {
+        graph: &graph,
+        region: vec![0; n],
+        next_region: 1,
+        level: vec![u32::MAX; n],
+        order: Vec::with_capacity(n),
+    };
+    d.dissect((0..n as u32).collect(), 0);
+    d.order
+}
+
+struct Dissection<'a> {
+    graph: &'a Graph,
+    /// Each node's current part; [`NONE`] once ordered.
+    region: Vec<u32>,
+    next_region: u32,
+    /// Breadth-first level scratch ([`u32::MAX`] outside a search).
+    level: Vec<u32>,
+    order: Vec<usize>,
+}
+
+impl Dissection<'_> {
+    /// Orders `nodes` (all of region `id`). A stack of work instead of recursion: a graph whose
+    /// levels split unevenly may nest deeper than a thread's stack allows.
+    fn dissect(&mut self, nodes: Vec<u32>, id: u32) {
+        enum Work {
+            Dissect(Vec<u32>, u32),
+            Place(Vec<u32>),
+        }
+        let mut work = vec![Work::Dissect(nodes, id)];
+        while let Some(next) = work.pop() {
+            let (nodes, id) = match next {
+                Work::Place(nodes) => {
+                    self.place(&nodes);
+                    continue;
+                }
+                Work::Dissect(nodes, id) => (nodes, id),
+            };
+            if nodes.len() <= LEAF_UNKNOWNS {
+                self.place(&nodes);
+                continue;
+            }
+            let start = self.pseudo_peripheral(nodes[0], id);
+            let (reached, depth) = self.levels(start, id);
+            // Nodes of other connected parts (not reached: no level): ordered after this one.
+            if reached.len() < nodes.len() {
+                let rest = nodes.iter().copied().filter(|&v| self.level[v as usize] == u32::MAX).collect();
+                work.push(Work::Dissect(rest, id));
+            }
+            drop(nodes);
+            let levels = self.level_of(&reached);
+            if depth < 2 || reached.len() <= LEAF_UNKNOWNS {
+                self.place(&reached);
+                continue;
+            }
+            let separator_level = choose_separator(&levels, depth as usize) as u32;
+            let (a, b) = (self.next_region, self.next_region + 1);
+            self.next_region += 2;
+            let (mut before, mut after, mut separator) = (Vec::new(), Vec::new(), Vec::new());
+            for (&v, &l) in reached.iter().zip(&levels) {
+                if l < separator_level {
+                    self.region[v as usize] = a;
+                    before.push(v);
+                } else if l > separator_level {
+                    self.region[v as usize] = b;
+                    after.push(v);
+                } else {
+                    separator.push(v);
+                }
+            }
+            // Popped in reverse: both sides first, then the separator.
+            work.push(Work::Place(separator));
+            work.push(Work::Dissect(after, b));
+            work.push(Work::Dissect(before, a));
         }
     }
-    for list in &mut neighbours {
-        list.sort_unstable();
-        list.dedup();
-    }
-    let degree: Vec<usize> = neighbours.iter().map(Vec::len).collect();
-    for list in &mut neighbours {
-        list.sort_by_key(|&v| (degree[v as usize], v));
-    }
-    let mut placed = vec![false; n];
-    let mut order = Vec::with_capacity(n);
-    let mut level = vec![usize::MAX; n];
-    // Unplaced nodes by ascending degree: each component starts from its least connected node.
-    let mut starts: Vec<usize> = (0..n).collect();
-    starts.sort_by_key(|&v| (degree[v], v));
-    for &seed in &starts {
-        if placed[seed] {
-            continue;
+
+    fn place(&mut self, nodes: &[u32]) {
+        for &v in nodes {
+            self.region[v as usize] = NONE;
+            self.order.push(v as usize);
         }
-        let start = pseudo_peripheral(seed, &neighbours, &degree, &mut level);
-        let mut queue = VecDeque::from([start]);
-        placed[start] = true;
-        while let Some(v) = queue.pop_front() {
-            order.push(v);
-            for &w in &neighbours[v] {
+    }
+
+    /// The nodes of region `id` reachable from `start`, in breadth-first order, and the depth;
+    /// `level` holds their levels until [`Self::level_of`] reads and clears them.
+    fn levels(&mut self, start: u32, id: u32) -> (Vec<u32>, u32) {
+        let mut reached = vec![start];
+        self.level[start as usize] = 0;
+        let mut head = 0;
+        while head < reached.len() {
+            let v = reached[head] as usize;
+            head += 1;
+            let next = self.level[v] + 1;
+            for &w in self.graph.neighbours(v) {
                 let w = w as usize;
-                if !placed[w] {
-                    placed[w] = true;
-                    queue.push_back(w);
+                if self.region[w] == id && self.level[w] == u32::MAX {
+                    self.level[w] = next;
+                    reached.push(w as u32);
                 }
             }
         }
+        let depth = self.level[*reached.last().unwrap_or(&start) as usize];
+        (reached, depth)
     }
-    order.reverse();
-    order
-}
 
-/// A node of `seed`'s component far from the others (George–Liu): breadth first from the
-/// current guess, then from the least connected node of the deepest level, while the depth grows.
-fn pseudo_peripheral(seed: usize, neighbours: &[Vec<u32>], degree: &[usize], level: &mut [usize]) -> usize {
-    let mut start = seed;
-    let mut depth = 0;
-    loop {
-        let (deepest, d) = breadth_first_levels(start, neighbours, level);
-        let candidate = deepest.into_iter().min_by_key(|&v| (degree[v], v)).unwrap_or(start);
-        if d <= depth || candidate == start {
-            return start;
-        }
-        depth = d;
-        start = candidate;
+    /// The levels of `reached`, cleared from the scratch.
+    fn level_of(&mut self, reached: &[u32]) -> Vec<u32> {
+        reached.iter().map(|&v| std::mem::replace(&mut self.level[v as usize], u32::MAX)).collect()
     }
-}
 
-/// The nodes of the deepest breadth-first level from `start`, and that depth. `level` is scratch
-/// (reset for the nodes reached before returning).
-fn breadth_first_levels(start: usize, neighbours: &[Vec<u32>], level: &mut [usize]) -> (Vec<usize>, usize) {
-    let mut reached = vec![start];
-    level[start] = 0;
-    let mut head = 0;
-    while head < reached.len() {
-        let v = reached[head];
-        head += 1;
-        for &w in &neighbours[v] {
-            let w = w as usize;
-            if level[w] == usize::MAX {
-                level[w] = level[v] + 1;
-                reached.push(w);
+    /// A node of `seed`'s connected part of region `id` far from the others (George–Liu):
+    /// breadth first from the current guess, then from the least connected node of the deepest
+    /// level, while the depth grows.
+    fn pseudo_peripheral(&mut self, seed: u32, id: u32) -> u32 {
+        let (mut start, mut depth) = (seed, 0);
+        loop {
+            let (reached, d) = self.levels(start, id);
+            let levels = self.level_of(&reached);
+            let degree = |v: u32| self.graph.neighbours(v as usize).len();
+            let candidate = reached
+                .iter()
+                .zip(&levels)
+                .filter(|&(_, &l)| l == d)
+                .map(|(&v, _)| v)
+                .min_by_key(|&v| (degree(v), v))
+                .unwrap_or(start);
+            if d <= depth || candidate == start {
+                return start;
             }
+            depth = d;
+            start = candidate;
         }
     }
-    let depth = level[*reached.last().unwrap_or(&start)];
-    let deepest = reached.iter().copied().filter(|&v| level[v] == depth).collect();
-    for &v in &reached {
-        level[v] = usize::MAX;
+}
+
+/// The separating level: the smallest of those with at least 30 % of the nodes on either side
+/// (the most balanced one if none has), never the first or the last, so both sides hold nodes.
+fn choose_separator(levels: &[u32], depth: usize) -> usize {
+    let mut size = vec![0usize; depth + 1];
+    for &l in levels {
+        size[l as usize] += 1;
     }
-    (deepest, depth)
+    let total = levels.len();
+    let mut best: Option<(usize, usize)> = None;
+    let mut balanced = (usize::MAX, 1);
+    let mut before = size[0];
+    for (l, &s) in size.iter().enumerate().take(depth).skip(1) {
+        let after = total - before - s;
+        let imbalance = before.abs_diff(after);
+        if imbalance < balanced.0 {
+            balanced = (imbalance, l);
+        }
+        if 10 * before >= 3 * total && 10 * after >= 3 * total && best.is_none_or(|(bs, _)| s < bs) {
+            best = Some((s, l));
+        }
+        before += s;
+    }
+    best.map_or(balanced.1, |(_, l)| l)
 }
 
 /// A field-like system over a street network: nodes on a square grid of `blocks` × `blocks` city
@@ -331,7 +577,7 @@ pub struct SparseBench {
     /// Stored entries of the matrix's lower triangle.
     pub stored: usize,
     /// Stored entries of the factor after ordering.
-    pub envelope: usize,
+    pub factor_entries: usize,
     /// Ordering, factorisation and solve, seconds on the calling thread.
     pub sparse_s: f64,
     /// nalgebra's dense Cholesky of the same system, where it has at most 6,000 unknowns.
@@ -340,7 +586,7 @@ pub struct SparseBench {
     pub dense_relative_difference: Option<f64>,
 }
 
-/// Solves [`street_network_system`] with the envelope Cholesky, and with a dense Cholesky where it
+/// Solves [`street_network_system`] with the sparse Cholesky, and with a dense Cholesky where it
 /// is small enough to form.
 pub fn bench_street_network(blocks: usize) -> Result<SparseBench, SparseError> {
     let (m, rhs) = street_network_system(blocks, 0x5EED);
@@ -373,7 +619,7 @@ pub fn bench_street_network(blocks: usize) -> Result<SparseBench, SparseError> {
         blocks,
         unknowns: n,
         stored: m.stored(),
-        envelope: factor.envelope(),
+        factor_entries: factor.entries(),
         sparse_s,
         dense_s,
         dense_relative_difference,
@@ -428,7 +674,7 @@ mod tests {
     }
 
     #[test]
-    fn envelope_cholesky_equals_the_dense_solve() {
+    fn sparse_cholesky_equals_the_dense_solve() {
         for (side, seed) in [(1, 1), (2, 2), (5, 3), (12, 4), (30, 5)] {
             let (sparse, dense) = grid_system(side, seed);
             let n = sparse.unknowns();
@@ -448,27 +694,47 @@ mod tests {
     }
 
     #[test]
-    fn rcm_keeps_a_grid_envelope_near_its_width() {
-        // A 30 × 30 grid in shuffled numbering: RCM's envelope is about n × side (the dense
-        // lower triangle would be n²/2, a random order far more than n × side).
-        let (sparse, _) = grid_system(30, 7);
+    fn nested_dissection_keeps_a_grid_factor_far_below_its_envelope() {
+        // A 60 × 60 grid in shuffled numbering. Reverse Cuthill–McKee's envelope (the solver
+        // before stop 34) is about n × side entries; nested dissection's factor grows as
+        // n log n, and the factor must still solve the system exactly.
+        let side = 60;
+        let (sparse, dense) = grid_system(side, 7);
         let factor = sparse.factorise(usize::MAX).unwrap();
         let n = sparse.unknowns();
-        assert!(factor.envelope() < 2 * n * 30, "envelope {} for {n} unknowns", factor.envelope());
-        assert!(factor.envelope() < n * n / 8);
+        assert!(factor.entries() < n * side / 2, "{} factor entries for {n} unknowns", factor.entries());
+        let rhs: Vec<f64> = (0..n).map(|i| (i % 7) as f64 - 3.0).collect();
+        let x = factor.solve(&rhs);
+        let r = &dense * nalgebra::DVector::from_vec(x) - nalgebra::DVector::from_vec(rhs);
+        assert!(r.amax() < 1e-8, "residual {}", r.amax());
     }
 
     #[test]
-    fn rcm_orders_every_node_once_across_components() {
-        let order = reverse_cuthill_mckee(7, [(0, 1), (1, 2), (4, 5), (3, 3)].into_iter());
+    fn nested_dissection_orders_every_node_once_across_components() {
+        // Two grids (one large enough to be dissected), a path, isolated nodes and a self-pair.
+        let mut pairs = Vec::new();
+        let grid = |offset: usize, side: usize, pairs: &mut Vec<(usize, usize)>| {
+            for r in 0..side {
+                for c in 0..side {
+                    let k = offset + r * side + c;
+                    if c + 1 < side {
+                        pairs.push((k, k + 1));
+                    }
+                    if r + 1 < side {
+                        pairs.push((k + side, k));
+                    }
+                }
+            }
+        };
+        grid(0, 25, &mut pairs);
+        grid(625, 5, &mut pairs);
+        pairs.extend([(650, 651), (651, 652), (653, 653)]);
+        let n = 660;
+        let order = nested_dissection(n, pairs.iter().copied());
         let mut sorted = order.clone();
         sorted.sort_unstable();
-        assert_eq!(sorted, (0..7).collect::<Vec<_>>());
-        // A path stays a path: its neighbours stay adjacent in the order.
-        let at = |v: usize| order.iter().position(|&o| o == v).unwrap() as i64;
-        assert_eq!((at(0) - at(1)).abs(), 1);
-        assert_eq!((at(1) - at(2)).abs(), 1);
-        assert_eq!((at(4) - at(5)).abs(), 1);
+        assert_eq!(sorted, (0..n).collect::<Vec<_>>());
+        assert_eq!(order, nested_dissection(n, pairs.iter().copied()), "deterministic");
     }
 
     #[test]
