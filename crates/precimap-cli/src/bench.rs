@@ -149,11 +149,19 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
                     b.unknowns
                 );
                 outln!(
-                    "  sparse (nested dissection + Cholesky): {:.3} s, {} factor entries ({:.1} MiB; dense: {:.1} MiB)",
+                    "  sparse (nested dissection by straight cuts + Cholesky): {:.3} s, {} factor entries ({:.1} MiB; dense: {:.1} MiB)",
                     b.sparse_s,
                     b.factor_entries,
                     b.factor_entries as f64 * 12.0 / 1048576.0,
                     (b.unknowns as f64).powi(2) * 8.0 / 1048576.0
+                );
+                outln!(
+                    "  ordered by level structures instead (no coordinates): {:.3} s, {} factor entries \
+                     (cuts: {:.2}× the speed, {:.2}× fewer entries)",
+                    b.level_set_s,
+                    b.level_set_factor_entries,
+                    b.level_set_s / b.sparse_s,
+                    b.level_set_factor_entries as f64 / b.factor_entries as f64
                 );
                 match (b.dense_s, b.dense_relative_difference) {
                     (Some(d), Some(diff)) => outln!(

@@ -197,7 +197,7 @@ pub struct Parameters {
     /// 15 m since stop 12 (30 m before): on medium the spread without the campaign's shift falls
     /// 2.90 → 1.28 mm. With the default schedule's settling (stop 13), 10 m nodes gain 1–2 % on
     /// medium and lose 1–2 % on small seed 1 for 2.25× the nodes. The field's sparse solve takes
-    /// a street network of ~200 km² at 15 m (`MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
+    /// a street network of ~290 km² at 15 m (`MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
     /// ARCHITECTURE.md, "The common-mode field's sparse solve").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step

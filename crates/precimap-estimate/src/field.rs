@@ -21,8 +21,8 @@
 //!
 //! The field has three unknowns per node, nodes every `common_mode_field_m` where anchors or
 //! observations reach, each coupled only to the nodes near it: its normal equations are solved
-//! by a sparse Cholesky in nested-dissection order (`precimap_solve::sparse`), whose factor grows
-//! about as n log n for a street network.
+//! by a sparse Cholesky in nested-dissection order, cut straight across the street network at the
+//! nodes' grid positions (`precimap_solve::sparse`), whose factor grows about as n log n.
 
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::floor;
@@ -322,7 +322,9 @@ pub fn remove_field_share(
     for i in 0..nodes {
         a.add(i, i, 1e-3);
     }
-    let factor = a.factorise(MAX_FIELD_FACTOR_ENTRIES).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let coordinates: Vec<[f64; 2]> = index.keys().map(|&(x, y)| [x as f64, y as f64]).collect();
+    let factor =
+        a.factorise_at(MAX_FIELD_FACTOR_ENTRIES, &coordinates).map_err(|e| FieldError::from_sparse(e, nodes))?;
     let per_axis: Vec<Vec<f64>> = (0..3).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
     let fit = FieldSolution {
         spacing_m: spacing,
@@ -347,20 +349,24 @@ pub enum FieldError {
          or set it to 0"
     )]
     TooLarge { nodes: usize, entries: usize, limit: usize },
+    /// A system the field built wrongly (a bug, not the data's fault).
+    #[error("the common-mode field's solve: {0}")]
+    Solve(SparseError),
 }
 
 impl FieldError {
     fn from_sparse(e: SparseError, nodes: usize) -> Self {
         match e {
             SparseError::TooLarge { entries, limit } => FieldError::TooLarge { nodes, entries, limit },
-            SparseError::NotPositiveDefinite { .. } | SparseError::OutOfRange { .. } => FieldError::Singular { nodes },
+            SparseError::NotPositiveDefinite { .. } => FieldError::Singular { nodes },
+            e @ (SparseError::OutOfRange { .. } | SparseError::Coordinates { .. }) => FieldError::Solve(e),
         }
     }
 }
 
 /// Most factor entries the field's sparse solve may hold (12 bytes each: 1 GiB). After nested
-/// dissection a synthetic street network of 110 km² at 15 m nodes needs half of this and one of
-/// 248 km² more, so the limit lies near 200 km² (`precimap bench field-solve --blocks N`;
+/// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this, so the
+/// limit lies near 290 km² of such a network (`precimap bench field-solve --blocks N`;
 /// ARCHITECTURE.md, "The common-mode field's sparse solve").
 pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
@@ -475,7 +481,10 @@ fn solve_field_within<'a>(
     for i in 0..dim {
         h.add(i, i, prior * 1e-2);
     }
-    let solution = h.solve(&rhs, max_factor_entries).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    // Each node's three unknowns at its grid position: the order cuts the network straight.
+    let coordinates: Vec<[f64; 2]> = index.keys().flat_map(|&(x, y)| [[x as f64, y as f64]; 3]).collect();
+    let solution =
+        h.factorise_at(max_factor_entries, &coordinates).map_err(|e| FieldError::from_sparse(e, nodes))?.solve(&rhs);
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
