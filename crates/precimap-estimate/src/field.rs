@@ -345,7 +345,7 @@ pub enum FieldError {
     Singular { nodes: usize },
     #[error(
         "the common-mode field's {nodes} nodes need {entries} factor entries, more than the {limit} \
-         (8 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing) \
+         (12 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing) \
          or set it to 0"
     )]
     TooLarge { nodes: usize, entries: usize, limit: usize },
