@@ -274,6 +274,12 @@ fn number_nodes(
     index
 }
 
+/// The grid position of every unknown, `per_node` consecutive unknowns per node in the order of
+/// `index`: what the sparse solve's order cuts the street network by.
+fn unknown_positions(index: &BTreeMap<FieldNode, usize>, per_node: usize) -> Vec<[f64; 2]> {
+    index.keys().flat_map(|&(x, y)| std::iter::repeat_n([x as f64, y as f64], per_node)).collect()
+}
+
 /// `previous` moved so that `current − previous` (the step momentum carries on) loses its
 /// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
 /// next iteration, so carrying it as well overshoots and the two levels fight.
@@ -322,9 +328,9 @@ pub fn remove_field_share(
     for i in 0..nodes {
         a.add(i, i, 1e-3);
     }
-    let coordinates: Vec<[f64; 2]> = index.keys().map(|&(x, y)| [x as f64, y as f64]).collect();
-    let factor =
-        a.factorise_at(MAX_FIELD_FACTOR_ENTRIES, &coordinates).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let factor = a
+        .factorise_at(MAX_FIELD_FACTOR_ENTRIES, &unknown_positions(&index, 1))
+        .map_err(|e| FieldError::from_sparse(e, nodes))?;
     let per_axis: Vec<Vec<f64>> = (0..3).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
     let fit = FieldSolution {
         spacing_m: spacing,
@@ -481,10 +487,10 @@ fn solve_field_within<'a>(
     for i in 0..dim {
         h.add(i, i, prior * 1e-2);
     }
-    // Each node's three unknowns at its grid position: the order cuts the network straight.
-    let coordinates: Vec<[f64; 2]> = index.keys().flat_map(|&(x, y)| [[x as f64, y as f64]; 3]).collect();
-    let solution =
-        h.factorise_at(max_factor_entries, &coordinates).map_err(|e| FieldError::from_sparse(e, nodes))?.solve(&rhs);
+    let solution = h
+        .factorise_at(max_factor_entries, &unknown_positions(&index, 3))
+        .map_err(|e| FieldError::from_sparse(e, nodes))?
+        .solve(&rhs);
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),

@@ -379,15 +379,41 @@ impl Graph {
 /// pairs.
 pub fn nested_dissection(n: usize, pairs: impl Iterator<Item = (usize, usize)>) -> Vec<usize> {
     let graph = Graph::new(n, pairs);
-    let mut d = Dissection {
-        graph: &graph,
-        region: vec![0; n],
-        next_region: 1,
-        level: vec![u32::MAX; n],
-        order: Vec::with_capacity(n),
-    };
-    d.dissect((0..n as u32).collect(), 0);
-    d.order
+    let mut d = Dissection { graph: &graph, region: vec![0; n], next_region: 1, level: vec![u32::MAX; n] };
+    dissection_order(n, |nodes| d.split(nodes))
+}
+
+/// How a part of a nested dissection splits: `parts` are ordered first, in this order, then the
+/// `separator`.
+struct Split {
+    parts: Vec<Vec<u32>>,
+    separator: Vec<u32>,
+}
+
+/// The order of a nested dissection of unknowns `0..n`: every part of more than
+/// [`LEAF_UNKNOWNS`] is split by `split` (a part with nothing to split returns no parts and
+/// itself as the separator), smaller parts stay as they are. On a work stack, not by recursion: a
+/// graph split unevenly may nest deeper than a thread's stack allows.
+fn dissection_order(n: usize, mut split: impl FnMut(Vec<u32>) -> Split) -> Vec<usize> {
+    enum Work {
+        Dissect(Vec<u32>),
+        Place(Vec<u32>),
+    }
+    let mut order = Vec::with_capacity(n);
+    let mut work = vec![Work::Dissect((0..n as u32).collect())];
+    while let Some(next) = work.pop() {
+        match next {
+            Work::Place(nodes) => order.extend(nodes.iter().map(|&v| v as usize)),
+            Work::Dissect(nodes) if nodes.len() <= LEAF_UNKNOWNS => order.extend(nodes.iter().map(|&v| v as usize)),
+            Work::Dissect(nodes) => {
+                let Split { parts, separator } = split(nodes);
+                // Popped in reverse: the parts in their order, then the separator.
+                work.push(Work::Place(separator));
+                work.extend(parts.into_iter().rev().map(Work::Dissect));
+            }
+        }
+    }
+    order
 }
 
 /// Nested-dissection order of the graph of `pairs` whose unknowns lie at `coordinates`. Each part
@@ -405,24 +431,7 @@ pub fn geometric_nested_dissection(
     // Each unknown's part (a fresh label per part being cut) and rank along the cut's axis.
     let (mut part, mut rank) = (vec![0u32; n], vec![0u32; n]);
     let mut next_part = 1u32;
-    let mut order = Vec::with_capacity(n);
-    enum Work {
-        Dissect(Vec<u32>),
-        Place(Vec<u32>),
-    }
-    let mut work = vec![Work::Dissect((0..n as u32).collect())];
-    while let Some(next) = work.pop() {
-        let mut nodes = match next {
-            Work::Place(nodes) => {
-                order.extend(nodes.iter().map(|&v| v as usize));
-                continue;
-            }
-            Work::Dissect(nodes) => nodes,
-        };
-        if nodes.len() <= LEAF_UNKNOWNS {
-            order.extend(nodes.iter().map(|&v| v as usize));
-            continue;
-        }
+    dissection_order(n, |mut nodes| {
         let label = next_part;
         next_part += 1;
         for &v in &nodes {
@@ -493,84 +502,54 @@ pub fn geometric_nested_dissection(
                 .iter()
                 .any(|&w| part[w as usize] == label && other_ranks.contains(&rank[w as usize]))
         });
-        work.push(Work::Place(separator));
-        work.push(Work::Dissect(other_side));
-        work.push(Work::Dissect(inside));
-    }
-    order
+        Split { parts: vec![inside, other_side], separator }
+    })
 }
 
 struct Dissection<'a> {
     graph: &'a Graph,
-    /// Each node's current part; [`NONE`] once ordered.
+    /// Each node's current part: every node of a part carries its label.
     region: Vec<u32>,
     next_region: u32,
     /// Breadth-first level scratch ([`u32::MAX`] outside a search).
     level: Vec<u32>,
-    order: Vec<usize>,
 }
 
 impl Dissection<'_> {
-    /// Orders `nodes` (all of region `id`). A stack of work instead of recursion: a graph whose
-    /// levels split unevenly may nest deeper than a thread's stack allows.
-    fn dissect(&mut self, nodes: Vec<u32>, id: u32) {
-        enum Work {
-            Dissect(Vec<u32>, u32),
-            Place(Vec<u32>),
+    /// Splits `nodes` (a part: all of one region) at a breadth-first level. Nodes the search does
+    /// not reach (other connected parts) are a part of their own; ordered before the separator,
+    /// they share no edge with it, so the fill is the same.
+    fn split(&mut self, nodes: Vec<u32>) -> Split {
+        let id = self.region[nodes[0] as usize];
+        let start = self.pseudo_peripheral(nodes[0], id);
+        let (reached, depth) = self.levels(start, id);
+        // Not reached: no level.
+        let rest: Vec<u32> = if reached.len() < nodes.len() {
+            nodes.iter().copied().filter(|&v| self.level[v as usize] == u32::MAX).collect()
+        } else {
+            Vec::new()
+        };
+        drop(nodes);
+        let levels = self.level_of(&reached);
+        if depth < 2 || reached.len() <= LEAF_UNKNOWNS {
+            return Split { parts: vec![rest], separator: reached };
         }
-        let mut work = vec![Work::Dissect(nodes, id)];
-        while let Some(next) = work.pop() {
-            let (nodes, id) = match next {
-                Work::Place(nodes) => {
-                    self.place(&nodes);
-                    continue;
-                }
-                Work::Dissect(nodes, id) => (nodes, id),
-            };
-            if nodes.len() <= LEAF_UNKNOWNS {
-                self.place(&nodes);
-                continue;
+        let separator_level = choose_separator(&levels, depth as usize) as u32;
+        let (a, b) = (self.next_region, self.next_region + 1);
+        self.next_region += 2;
+        let (mut before, mut after, mut separator) = (Vec::new(), Vec::new(), Vec::new());
+        for (&v, &l) in reached.iter().zip(&levels) {
+            if l < separator_level {
+                self.region[v as usize] = a;
+                before.push(v);
+            } else if l > separator_level {
+                self.region[v as usize] = b;
+                after.push(v);
+            } else {
+                separator.push(v);
             }
-            let start = self.pseudo_peripheral(nodes[0], id);
-            let (reached, depth) = self.levels(start, id);
-            // Nodes of other connected parts (not reached: no level): ordered after this one.
-            if reached.len() < nodes.len() {
-                let rest = nodes.iter().copied().filter(|&v| self.level[v as usize] == u32::MAX).collect();
-                work.push(Work::Dissect(rest, id));
-            }
-            drop(nodes);
-            let levels = self.level_of(&reached);
-            if depth < 2 || reached.len() <= LEAF_UNKNOWNS {
-                self.place(&reached);
-                continue;
-            }
-            let separator_level = choose_separator(&levels, depth as usize) as u32;
-            let (a, b) = (self.next_region, self.next_region + 1);
-            self.next_region += 2;
-            let (mut before, mut after, mut separator) = (Vec::new(), Vec::new(), Vec::new());
-            for (&v, &l) in reached.iter().zip(&levels) {
-                if l < separator_level {
-                    self.region[v as usize] = a;
-                    before.push(v);
-                } else if l > separator_level {
-                    self.region[v as usize] = b;
-                    after.push(v);
-                } else {
-                    separator.push(v);
-                }
-            }
-            // Popped in reverse: both sides first, then the separator.
-            work.push(Work::Place(separator));
-            work.push(Work::Dissect(after, b));
-            work.push(Work::Dissect(before, a));
         }
-    }
-
-    fn place(&mut self, nodes: &[u32]) {
-        for &v in nodes {
-            self.region[v as usize] = NONE;
-            self.order.push(v as usize);
-        }
+        Split { parts: vec![before, after, rest], separator }
     }
 
     /// The nodes of region `id` reachable from `start`, in breadth-first order, and the depth;
