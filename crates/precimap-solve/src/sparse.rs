@@ -521,16 +521,19 @@ impl Dissection<'_> {
     /// they share no edge with it, so the fill is the same.
     fn split(&mut self, nodes: Vec<u32>) -> Split {
         let id = self.region[nodes[0] as usize];
-        let start = self.pseudo_peripheral(nodes[0], id);
-        let (reached, depth) = self.levels(start, id);
-        // Not reached: no level.
+        let (reached, levels, depth) = self.pseudo_peripheral(nodes[0], id);
         let rest: Vec<u32> = if reached.len() < nodes.len() {
-            nodes.iter().copied().filter(|&v| self.level[v as usize] == u32::MAX).collect()
+            // The reached nodes marked in the level scratch for the moment.
+            for &v in &reached {
+                self.level[v as usize] = 0;
+            }
+            let rest = nodes.iter().copied().filter(|&v| self.level[v as usize] == u32::MAX).collect();
+            self.level_of(&reached);
+            rest
         } else {
             Vec::new()
         };
         drop(nodes);
-        let levels = self.level_of(&reached);
         if depth < 2 || reached.len() <= LEAF_UNKNOWNS {
             return Split { parts: vec![rest], separator: reached };
         }
@@ -579,10 +582,11 @@ impl Dissection<'_> {
         reached.iter().map(|&v| std::mem::replace(&mut self.level[v as usize], u32::MAX)).collect()
     }
 
-    /// A node of `seed`'s connected part of region `id` far from the others (George–Liu):
-    /// breadth first from the current guess, then from the least connected node of the deepest
-    /// level, while the depth grows.
-    fn pseudo_peripheral(&mut self, seed: u32, id: u32) -> u32 {
+    /// The level structure from a node of `seed`'s connected part of region `id` far from the
+    /// others (George–Liu: breadth first from the current guess, then from the least connected
+    /// node of the deepest level, while the depth grows): the nodes reached in breadth-first
+    /// order, their levels and the depth. The last search is the one returned, not run again.
+    fn pseudo_peripheral(&mut self, seed: u32, id: u32) -> (Vec<u32>, Vec<u32>, u32) {
         let (mut start, mut depth) = (seed, 0);
         loop {
             let (reached, d) = self.levels(start, id);
@@ -596,7 +600,7 @@ impl Dissection<'_> {
                 .min_by_key(|&v| (degree(v), v))
                 .unwrap_or(start);
             if d <= depth || candidate == start {
-                return start;
+                return (reached, levels, d);
             }
             depth = d;
             start = candidate;
