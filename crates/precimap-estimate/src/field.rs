@@ -59,6 +59,12 @@ fn accumulate(row: &mut Vec<(usize, f64)>, index: usize, value: f64) {
     }
 }
 
+/// Slots of a row: the four corners of the point's own cell, then the four of the other
+/// passes' cell.
+const SLOTS: usize = 8;
+/// Slot pairs `s ≤ t`, row-major.
+const SLOT_PAIRS: usize = SLOTS * (SLOTS + 1) / 2;
+
 /// The field's data normal equations from one tile: `H` as 3×3 blocks over node pairs
 /// (`a ≤ b`, indices into `nodes`, row-major), `rhs = −Σ ω·row·e`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -71,6 +77,13 @@ pub struct FieldEquations {
 
 /// Sums observation rows in a tile. A tile's points see a handful of nodes, so the nodes are a
 /// short list and `H` is dense over them.
+///
+/// A row is `r ⊗ w`: per node a scalar `r` (the bilinear weights times `±k`) times the surface
+/// normal `w`, so its product is `(r rᵀ) ⊗ (w wᵀ)`. Consecutive points mostly lie on one surface
+/// model (one `w`) with both positions in the same two cells, so a *run* of such rows sums only
+/// `ω r rᵀ` and `ω r e` over the eight corner slots (44 products a row, where the 3×3 blocks
+/// took 216) and multiplies by `w wᵀ` and `w` once, when the run ends. A slot's node is created
+/// when the run ends, and only if a row reached it with a non-zero weight.
 #[derive(Debug)]
 pub struct FieldAccumulator {
     spacing: f64,
@@ -79,15 +92,57 @@ pub struct FieldAccumulator {
     h: Vec<[f64; 6]>,
     rhs: Vec<[f64; 3]>,
     observations: u64,
-    row: Vec<(usize, f64)>,
+    run: Run,
     /// Per position of a row (the point's scan head, the other passes' mean), the cell it fell
     /// in last and the indices of that cell's four nodes ([`UNKNOWN`] until looked up):
-    /// consecutive points mostly share their cells, and the look-up is a search of `nodes`.
+    /// consecutive runs mostly share their cells, and the look-up is a search of `nodes`.
     cells: [(FieldNode, [usize; 4]); 2],
+}
+
+/// The rows summed since the surface normal or either cell last changed.
+#[derive(Debug)]
+struct Run {
+    /// Own cell, other passes' cell (their lower-left nodes) and the normal's bits.
+    key: Option<(FieldNode, FieldNode, [u64; 3])>,
+    w: [f64; 3],
+    /// `Σ ω r_s r_t` over slot pairs `s ≤ t` and `Σ ω r_s e` per slot.
+    rr: [f64; SLOT_PAIRS],
+    re: [f64; SLOTS],
+    /// A row reached the slot with a non-zero weight.
+    reached: [bool; SLOTS],
+    /// The slot of each corner of the other passes' cell: its own (4 + corner) or, for a node
+    /// the two cells share, the point's cell's slot of it.
+    slot: [usize; 4],
+}
+
+impl Run {
+    fn new() -> Self {
+        Self {
+            key: None,
+            w: [0.0; 3],
+            rr: [0.0; SLOT_PAIRS],
+            re: [0.0; SLOTS],
+            reached: [false; SLOTS],
+            slot: [4, 5, 6, 7],
+        }
+    }
 }
 
 /// A node index not looked up yet.
 const UNKNOWN: usize = usize::MAX;
+
+/// The four nodes of the cell with lower-left node `cell`, in [`bilinear`]'s order.
+#[inline]
+fn corners(cell: FieldNode) -> [FieldNode; 4] {
+    [cell, (cell.0 + 1, cell.1), (cell.0, cell.1 + 1), (cell.0 + 1, cell.1 + 1)]
+}
+
+/// The four bilinear weights of [`bilinear`] at `(x, y)` and the lower-left node of its cell.
+#[inline]
+fn cell_weights(x: f64, y: f64, spacing: f64) -> (FieldNode, [f64; 4]) {
+    let weights = bilinear(x, y, spacing);
+    (weights[0].0, weights.map(|(_, phi)| phi))
+}
 
 impl FieldAccumulator {
     pub fn new(spacing: f64) -> Self {
@@ -97,7 +152,7 @@ impl FieldAccumulator {
             h: Vec::new(),
             rhs: Vec::new(),
             observations: 0,
-            row: Vec::new(),
+            run: Run::new(),
             cells: [((i64::MIN, i64::MIN), [UNKNOWN; 4]); 2],
         }
     }
@@ -121,50 +176,96 @@ impl FieldAccumulator {
     /// One observation with residual `e` and weight `weight`: the point's own scan head at
     /// `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
     /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`.
+    #[inline]
     pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
-        let mut row = std::mem::take(&mut self.row);
-        row.clear();
-        for (position, (sign, at)) in [(k, vehicle), (-k, others)].into_iter().enumerate() {
-            let weights = bilinear(at[0], at[1], self.spacing);
-            let cell = weights[0].0;
+        let (own_cell, own) = cell_weights(vehicle[0], vehicle[1], self.spacing);
+        let (other_cell, other) = cell_weights(others[0], others[1], self.spacing);
+        let key = (own_cell, other_cell, w.map(f64::to_bits));
+        if self.run.key != Some(key) {
+            self.end_run();
+            self.run.key = Some(key);
+            self.run.w = w;
+            // A corner both cells share is one slot, so that the row's two weights there are
+            // summed first, as one node's entry (a row whose positions coincide is exactly zero).
+            let own_corners = corners(own_cell);
+            for (c, node) in corners(other_cell).iter().enumerate() {
+                self.run.slot[c] = own_corners.iter().position(|n| n == node).unwrap_or(4 + c);
+            }
+        }
+        let run = &mut self.run;
+        let mut r = [0.0; SLOTS];
+        for c in 0..4 {
+            r[c] = k * own[c];
+            run.reached[c] |= own[c] != 0.0;
+        }
+        for c in 0..4 {
+            let slot = run.slot[c];
+            r[slot] += -k * other[c];
+            run.reached[slot] |= other[c] != 0.0;
+        }
+        let mut pair = 0;
+        for s in 0..SLOTS {
+            let ws = weight * r[s];
+            run.re[s] += ws * e;
+            for &rt in &r[s..] {
+                run.rr[pair] += ws * rt;
+                pair += 1;
+            }
+        }
+        self.observations += 1;
+    }
+
+    /// Adds the current run's sums to `H` and the right-hand side.
+    fn end_run(&mut self) {
+        let Some((own_cell, other_cell, _)) = self.run.key.take() else { return };
+        let mut node = [UNKNOWN; SLOTS];
+        for (position, cell) in [own_cell, other_cell].into_iter().enumerate() {
             if self.cells[position].0 != cell {
                 self.cells[position] = (cell, [UNKNOWN; 4]);
             }
-            for (corner, (node, phi)) in weights.into_iter().enumerate() {
-                // A node is created only where a row reaches it, as before the cache.
-                if phi == 0.0 {
+            for (corner, at) in corners(cell).into_iter().enumerate() {
+                let slot = 4 * position + corner;
+                if !self.run.reached[slot] {
                     continue;
                 }
                 let mut i = self.cells[position].1[corner];
                 if i == UNKNOWN {
-                    i = self.index(node);
+                    i = self.index(at);
                     self.cells[position].1[corner] = i;
                 }
-                accumulate(&mut row, i, sign * phi);
+                node[slot] = i;
             }
         }
         let n = self.nodes.len();
+        let w = self.run.w;
         let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
-        for (i, &(a, ra)) in row.iter().enumerate() {
-            let s = weight * ra * e;
-            for c in 0..3 {
-                self.rhs[a][c] -= s * w[c];
+        let mut pair = 0;
+        for s in 0..SLOTS {
+            let a = node[s];
+            if a == UNKNOWN {
+                pair += SLOTS - s;
+                continue;
             }
-            // Each unordered pair once, without a branch on the order of its nodes (the product
-            // in node order, as the sums have always been formed).
-            for &(b, rb) in &row[i..] {
-                let s = if a <= b { weight * ra * rb } else { weight * rb * ra };
+            for c in 0..3 {
+                self.rhs[a][c] -= self.run.re[s] * w[c];
+            }
+            for t in s..SLOTS {
+                let (b, sum) = (node[t], self.run.rr[pair]);
+                pair += 1;
+                if b == UNKNOWN {
+                    continue;
+                }
                 let m = &mut self.h[a.min(b) * n + a.max(b)];
                 for c in 0..6 {
-                    m[c] += s * ww[c];
+                    m[c] += sum * ww[c];
                 }
             }
         }
-        self.row = row;
-        self.observations += 1;
+        self.run = Run::new();
     }
 
-    pub fn finish(self) -> FieldEquations {
+    pub fn finish(mut self) -> FieldEquations {
+        self.end_run();
         let n = self.nodes.len();
         let mut order: Vec<usize> = (0..n).collect();
         order.sort_by_key(|&i| self.nodes[i]);
@@ -553,66 +654,101 @@ mod tests {
         assert!(row.values().sum::<f64>().abs() < 1e-12);
     }
 
-    /// The cell cache gives the equations, node order and all, bit for bit, that looking every
-    /// node up gives: rows that leave a cell and come back, that share nodes between their two
-    /// positions, and that fall on a node line (a zero weight creates no node).
+    /// The runs give the equations that summing every row's 3×3 blocks into `H` directly gives
+    /// (to rounding): runs that leave a cell and come back, rows whose two positions share
+    /// nodes or a whole cell, normals that change every few rows, and rows on a node line (a
+    /// zero weight creates no node).
     #[test]
-    fn cached_node_look_ups_give_the_uncached_equations() {
-        fn add_uncached(
-            acc: &mut FieldAccumulator,
-            v: [f64; 2],
-            o: [f64; 2],
-            k: f64,
-            w: [f64; 3],
-            e: f64,
-            weight: f64,
-        ) {
-            let mut row = Vec::new();
-            for (sign, at) in [(k, v), (-k, o)] {
-                for (node, phi) in bilinear(at[0], at[1], acc.spacing) {
-                    if phi != 0.0 {
-                        let i = acc.index(node);
-                        accumulate(&mut row, i, sign * phi);
+    fn summed_runs_give_the_row_by_row_equations() {
+        /// Row by row: merge the row's nodes, then every pair's 3×3 block.
+        struct Direct {
+            spacing: f64,
+            h: BTreeMap<(FieldNode, FieldNode), [f64; 9]>,
+            rhs: BTreeMap<FieldNode, [f64; 3]>,
+        }
+        impl Direct {
+            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
+                let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
+                for (sign, at) in [(k, v), (-k, o)] {
+                    for (node, phi) in bilinear(at[0], at[1], self.spacing) {
+                        if phi != 0.0 {
+                            *row.entry(node).or_default() += sign * phi;
+                        }
                     }
                 }
-            }
-            let n = acc.nodes.len();
-            for &(a, ra) in &row {
-                for c in 0..3 {
-                    acc.rhs[a][c] -= weight * ra * e * w[c];
-                }
-                for &(b, rb) in &row {
-                    if b >= a {
-                        let s = weight * ra * rb;
-                        let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
-                        let m = &mut acc.h[a * n + b];
-                        for (slot, v) in ww.into_iter().enumerate() {
-                            m[slot] += s * v;
+                for (&a, &ra) in &row {
+                    let rhs = self.rhs.entry(a).or_default();
+                    for c in 0..3 {
+                        rhs[c] -= weight * ra * e * w[c];
+                    }
+                    for (&b, &rb) in row.range(a..) {
+                        let m = self.h.entry((a, b)).or_default();
+                        for r in 0..3 {
+                            for c in 0..3 {
+                                m[3 * r + c] += weight * ra * rb * w[r] * w[c];
+                            }
                         }
                     }
                 }
             }
-            acc.observations += 1;
         }
         let mut seed = 3u64;
         let mut rand = move || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
             (seed >> 11) as f64 / (1u64 << 53) as f64
         };
-        let (mut cached, mut uncached) = (FieldAccumulator::new(10.0), FieldAccumulator::new(10.0));
-        for i in 0..400 {
+        let spacing = 10.0;
+        let mut acc = FieldAccumulator::new(spacing);
+        let mut direct = Direct { spacing, h: BTreeMap::new(), rhs: BTreeMap::new() };
+        let mut w = [0.0, 0.0, 1.0];
+        for i in 0..2000 {
             // Back and forth over three cells; every 7th point on a node line.
-            let x = 500_000.0 + 30.0 * (i as f64 * 0.05).sin().abs() + rand();
+            let x = 500_000.0 + 30.0 * (i as f64 * 0.01).sin().abs() + rand();
             let y = if i % 7 == 0 { 5_400_010.0 } else { 5_400_005.0 + 8.0 * rand() };
-            let o = [x + 12.0 * (rand() - 0.5), y + 3.0 * rand()];
-            let w = [0.1 * rand(), 0.1 * rand(), 1.0];
+            // The other passes in the same cell, a neighbouring one (two shared nodes) or farther.
+            let o = match i / 50 % 3 {
+                0 => [x + 0.1 * rand(), y],
+                1 => [x + 12.0 * (rand() - 0.5), y + 3.0 * rand()],
+                _ => [x + 25.0, y - 14.0 * rand()],
+            };
+            // A new normal every few rows.
+            if rand() < 0.2 {
+                let (a, b) = (0.3 * (rand() - 0.5), 0.3 * (rand() - 0.5));
+                let norm = (a * a + b * b + 1.0f64).sqrt();
+                w = [a / norm, b / norm, 1.0 / norm];
+            }
             let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
-            cached.add([x, y], o, k, w, e, 5.0);
-            add_uncached(&mut uncached, [x, y], o, k, w, e, 5.0);
+            acc.add([x, y], o, k, w, e, 5.0);
+            direct.add([x, y], o, k, w, e, 5.0);
         }
-        assert!(cached.nodes.len() >= 9, "{} nodes", cached.nodes.len());
-        assert_eq!(cached.nodes, uncached.nodes);
-        assert_eq!(cached.finish(), uncached.finish());
+        // The same position for both: no node pair gets a non-zero block.
+        let same = [500_003.0, 5_400_004.0];
+        acc.add(same, same, 0.5, w, 0.01, 5.0);
+        direct.add(same, same, 0.5, w, 0.01, 5.0);
+        let eq = acc.finish();
+        assert_eq!(eq.observations, 2001);
+        assert!(eq.nodes.len() >= 12, "{} nodes", eq.nodes.len());
+        assert_eq!(eq.nodes, direct.rhs.keys().copied().collect::<Vec<_>>());
+        let scale = direct.h.values().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+        let mut nonzero = 0;
+        for (&(a, b), m) in &direct.h {
+            let (ia, ib) = (eq.nodes.binary_search(&a).unwrap() as u32, eq.nodes.binary_search(&b).unwrap() as u32);
+            match eq.pairs.iter().find(|p| (p.0, p.1) == (ia, ib)) {
+                Some((_, _, got)) => {
+                    nonzero += 1;
+                    for c in 0..9 {
+                        assert!((got[c] - m[c]).abs() <= 1e-12 * scale, "{a:?} {b:?}: {got:?} against {m:?}");
+                    }
+                }
+                None => assert!(m.iter().all(|v| v.abs() <= 1e-12 * scale), "{a:?} {b:?} missing: {m:?}"),
+            }
+        }
+        assert_eq!(nonzero, eq.pairs.len());
+        for (got, want) in eq.rhs.iter().zip(direct.rhs.values()) {
+            for c in 0..3 {
+                assert!((got[c] - want[c]).abs() <= 1e-12, "{got:?} against {want:?}");
+            }
+        }
     }
 
     #[test]
