@@ -75,8 +75,16 @@ impl IntervalMoments {
     /// Adds one observation with Jacobian row `g` (6), residual `e`, weight `w`, fraction `lambda`.
     #[inline]
     pub(crate) fn add(&mut self, g: &[f64; 6], e: f64, w: f64, lambda: f64) {
+        self.add_weighted(g, w * e, w, lambda, 1);
+    }
+
+    /// [`Self::add`] with the weighted residual `we = w·e` given: `observations` that share a
+    /// Jacobian row and fraction add as one with their weights and weighted residuals summed.
+    #[inline]
+    pub(crate) fn add_weighted(&mut self, g: &[f64; 6], we: f64, w: f64, lambda: f64, observations: u32) {
         let wl = w * lambda;
         let wll = wl * lambda;
+        let wel = we * lambda;
         let mut k = 0;
         for i in 0..6 {
             let gi = g[i];
@@ -87,10 +95,10 @@ impl IntervalMoments {
                 self.s2[k] += wll * q;
                 k += 1;
             }
-            self.v0[i] += w * gi * e;
-            self.v1[i] += wl * gi * e;
+            self.v0[i] += we * gi;
+            self.v1[i] += wel * gi;
         }
-        self.count += 1;
+        self.count += observations;
     }
 
     /// Adds this interval's contribution to the blocks of anchors `i` (`at`) and `i+1` (`after`).
@@ -126,6 +134,28 @@ pub fn merge_blocks<'a>(lists: impl IntoIterator<Item = &'a [AnchorBlock]>) -> V
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two observations with one Jacobian row and fraction, added as one with their weights and
+    /// weighted residuals summed, give the moments of adding them one by one (to rounding), and
+    /// count as two.
+    #[test]
+    fn observations_sharing_a_row_add_as_one() {
+        let g = [0.2, -0.3, 0.93, 1.7, -0.4, 2.2];
+        let (lambda, (w1, e1), (w2, e2)) = (0.3, (4.0e4, 0.004), (1.3e4, -0.011));
+        let mut apart = IntervalMoments::default();
+        apart.add(&g, e1, w1, lambda);
+        apart.add(&g, e2, w2, lambda);
+        let mut joined = IntervalMoments::default();
+        joined.add_weighted(&g, w1 * e1 + w2 * e2, w1 + w2, lambda, 2);
+        assert_eq!(joined.count, 2);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1.0);
+        for (a, b) in [(&apart.s0, &joined.s0), (&apart.s1, &joined.s1), (&apart.s2, &joined.s2)] {
+            assert!(a.iter().zip(b).all(|(x, y)| close(*x, *y)), "{a:?} against {b:?}");
+        }
+        for (a, b) in [(&apart.v0, &joined.v0), (&apart.v1, &joined.v1)] {
+            assert!(a.iter().zip(b).all(|(x, y)| close(*x, *y)), "{a:?} against {b:?}");
+        }
+    }
 
     #[test]
     fn sym_index_covers_upper_triangle_once() {

@@ -514,47 +514,56 @@ fn estimate_tile_into<S: LatentSink>(
         let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
         for k in 0..chunk.len() {
             let a = base + k;
-            if let Some(pulls) = &mut pulls {
-                let interval = (chunk.anchor[k] - first) as usize;
-                pulls.add_to(a, &models, &model_of, &measurement, &mut intervals[interval], chunk.lambda[k] as f64);
-            }
-            let p = &position[a];
-            if !in_core(p) {
-                continue;
-            }
-            stats.points += 1;
-            let id = model_of[a];
-            let latent = latent[a];
-            if id == NONE || latent.is_nan() {
-                continue;
-            }
-            let m = &models[id as usize];
-            let h = m.height(p);
-            stats.points_modelled += 1;
-            let e = h - latent;
-            histogram.add(e);
-            if e.abs() > threshold {
-                continue;
-            }
-            stats.points_used += 1;
-            if let Some(used) = used.as_deref_mut() {
-                used.push(UsedPoint { strip: chunk.strip, source: chunk.source[k], model: id });
-            }
-            stats.residual_sum_m += e;
-            stats.residual_sum2_m2 += e * e;
-            let w = m.w;
-            let rw = cross(measurement[a], w);
-            let g = [w[0], w[1], w[2], rw[0], rw[1], rw[2]];
-            // With a consistent gradient the point pulls on its own pass by its share in the
-            // latent height; the covering passes get the rest (`corner_pulls`).
-            let own_weight = match &pulls {
-                Some(_) => weight * covering[a] as f64 / (covering[a] as f64 + 1.0),
-                None => weight,
+            let lambda = chunk.lambda[k] as f64;
+            let moments = &mut intervals[(chunk.anchor[k] - first) as usize];
+            // With a consistent gradient, what the other points' residuals pull on this one
+            // through the triangles it is a corner of; on its own model the pull shares the
+            // point's own Jacobian row, so it joins the point's observation below.
+            let mut own_pull = match &mut pulls {
+                Some(pulls) => pulls.take(a, &models, &measurement, moments, lambda),
+                None => None,
             };
-            intervals[(chunk.anchor[k] - first) as usize].add(&g, e, own_weight, chunk.lambda[k] as f64);
-            if let Some(field) = field.as_mut() {
-                let [x, y, share] = others[a];
-                field.add(vehicle[a], [x, y], share, w, e, weight);
+            let p = &position[a];
+            if in_core(p) {
+                stats.points += 1;
+            }
+            let id = model_of[a];
+            let latent = if in_core(p) && id != NONE { latent[a] } else { f64::NAN };
+            if !latent.is_nan() {
+                let m = &models[id as usize];
+                let h = m.height(p);
+                stats.points_modelled += 1;
+                let e = h - latent;
+                histogram.add(e);
+                if e.abs() <= threshold {
+                    stats.points_used += 1;
+                    if let Some(used) = used.as_deref_mut() {
+                        used.push(UsedPoint { strip: chunk.strip, source: chunk.source[k], model: id });
+                    }
+                    stats.residual_sum_m += e;
+                    stats.residual_sum2_m2 += e * e;
+                    let w = m.w;
+                    let g = jacobian(w, measurement[a]);
+                    // With a consistent gradient the point pulls on its own pass by its share in
+                    // the latent height; the covering passes get the rest (`corner_pulls`).
+                    let own_weight = match &pulls {
+                        Some(_) => weight * covering[a] as f64 / (covering[a] as f64 + 1.0),
+                        None => weight,
+                    };
+                    // Both observations in one: weights add, and so do weight × residual.
+                    let (total, weighted, observations) = match own_pull.take() {
+                        Some([w_sum, we_sum]) => (own_weight + w_sum, own_weight * e - we_sum, 2),
+                        None => (own_weight, own_weight * e, 1),
+                    };
+                    moments.add_weighted(&g, weighted, total, lambda, observations);
+                    if let Some(field) = field.as_mut() {
+                        let [x, y, share] = others[a];
+                        field.add(vehicle[a], [x, y], share, w, e, weight);
+                    }
+                }
+            }
+            if let Some([w_sum, we_sum]) = own_pull {
+                moments.add(&jacobian(models[id as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
             }
         }
         let blocks = per_trajectory.entry(chunk.trajectory).or_default();
@@ -1342,41 +1351,41 @@ struct CornerPulls {
 }
 
 impl CornerPulls {
-    /// Adds the pulls on point `a` (a triangle corner) to its interval's moments; `a` must
-    /// increase from call to call.
+    /// The pull on point `a` (a triangle corner) through triangles on its own model, as
+    /// (Σ weight, Σ weight × residual), if any; and the pulls through triangles on other models
+    /// added to its interval's moments. `a` must increase from call to call.
     #[inline]
-    fn add_to(
+    fn take(
         &mut self,
         a: usize,
         models: &[SurfaceModel],
-        model_of: &[u32],
         measurement: &[[f64; 3]],
         moments: &mut IntervalMoments,
         lambda: f64,
-    ) {
-        let add = |model: u32, [w_sum, we_sum]: [f64; 2], moments: &mut IntervalMoments| {
-            let w = models[model as usize].w;
-            let rw = cross(measurement[a], w);
-            moments.add(&[w[0], w[1], w[2], rw[0], rw[1], rw[2]], -we_sum / w_sum, w_sum, lambda);
-        };
-        let sums = self.sums[a];
-        if sums[0] > 0.0 {
-            // Corners always have a model (triangles are formed from modelled points only).
-            add(model_of[a], sums, moments);
-        }
+    ) -> Option<[f64; 2]> {
         // A cursor, not a binary search per point: the calls come in point order.
         let others = &self.other_models;
         while self.next_other < others.len() && others[self.next_other].0 < a {
             self.next_other += 1;
         }
         while self.next_other < others.len() && others[self.next_other].0 == a {
-            let (_, model, sums) = others[self.next_other];
-            if sums[0] > 0.0 {
-                add(model, sums, moments);
+            let (_, model, [w_sum, we_sum]) = others[self.next_other];
+            if w_sum > 0.0 {
+                moments.add(&jacobian(models[model as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
             }
             self.next_other += 1;
         }
+        let sums = self.sums[a];
+        (sums[0] > 0.0).then_some(sums)
     }
+}
+
+/// The Jacobian row of a point's distance along the normal `w` with respect to its pass's
+/// correction (translation, then rotation about the scan head at measurement vector `r`).
+#[inline]
+fn jacobian(w: [f64; 3], r: [f64; 3]) -> [f64; 6] {
+    let rw = cross(r, w);
+    [w[0], w[1], w[2], rw[0], rw[1], rw[2]]
 }
 
 /// Gathers the pulls of [`point_latent`] (`pull`, per item: `ω/(c+1)` and `ω/(c+1)·e` of the
@@ -1982,8 +1991,9 @@ mod tests {
     }
 
     /// The pulls on triangles lying on another model than their corner's reach exactly their
-    /// corners, each once, when the points are added in order (the cursor over the sorted
-    /// entries), and entries without weight add nothing.
+    /// corners, each once, when the points are taken in order (the cursor over the sorted
+    /// entries); the pull through the corner's own model is returned (to join the point's own
+    /// observation), and entries without weight add nothing.
     #[test]
     fn corner_pulls_of_other_models_reach_their_corners() {
         let mut models = vec![SurfaceModel::new(); 3];
@@ -1991,7 +2001,6 @@ mod tests {
             m.w = w;
         }
         let n = 7;
-        let model_of = vec![0u32; n];
         let measurement: Vec<[f64; 3]> = (0..n).map(|i| [i as f64, 1.0, -2.0]).collect();
         let mut sums = vec![[0.0; 2]; n];
         sums[2] = [0.5, 0.01];
@@ -2001,11 +2010,11 @@ mod tests {
         let mut reached = 0;
         for a in 0..n {
             let mut got = IntervalMoments::default();
-            pulls.add_to(a, &models, &model_of, &measurement, &mut got, 0.25);
+            let own = pulls.take(a, &models, &measurement, &mut got, 0.25);
+            assert_eq!(own, (a == 2).then_some(sums[2]), "point {a}");
             let mut want = IntervalMoments::default();
-            let entries = std::iter::once((model_of[a], sums[a]))
-                .chain(other_models.iter().filter(|o| o.0 == a).map(|o| (o.1, o.2)));
-            for (model, [w_sum, we_sum]) in entries.filter(|e| e.1[0] > 0.0) {
+            let entries = other_models.iter().filter(|o| o.0 == a && o.2[0] > 0.0);
+            for &(_, model, [w_sum, we_sum]) in entries {
                 let w = models[model as usize].w;
                 let rw = cross(measurement[a], w);
                 want.add(&[w[0], w[1], w[2], rw[0], rw[1], rw[2]], -we_sum / w_sum, w_sum, 0.25);
@@ -2013,7 +2022,7 @@ mod tests {
             }
             assert_eq!(format!("{got:?}"), format!("{want:?}"), "point {a}");
         }
-        assert_eq!(reached, 5);
+        assert_eq!(reached, 4);
     }
 
     #[test]
