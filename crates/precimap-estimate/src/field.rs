@@ -711,9 +711,13 @@ mod tests {
                 1 => [x + 12.0 * (rand() - 0.5), y + 3.0 * rand()],
                 _ => [x + 25.0, y - 14.0 * rand()],
             };
-            // A new normal every few rows.
-            if rand() < 0.2 {
-                let (a, b) = (0.3 * (rand() - 0.5), 0.3 * (rand() - 0.5));
+            // Another normal every few rows, some of them one seen before.
+            if rand() < 0.3 {
+                let (a, b) = if rand() < 0.8 {
+                    [(0.0, 0.0), (0.1, -0.05), (-0.12, 0.02)][(3.0 * rand()) as usize]
+                } else {
+                    (0.3 * (rand() - 0.5), 0.3 * (rand() - 0.5))
+                };
                 let norm = (a * a + b * b + 1.0f64).sqrt();
                 w = [a / norm, b / norm, 1.0 / norm];
             }
