@@ -620,10 +620,10 @@ mod tests {
         c
     }
 
-    /// Version 4 holds every value bit for bit (negative, zero and extreme values too) in about
-    /// half the bytes of version 3.
+    /// Version 4 holds every value bit for bit (negative, zero and extreme values too) in fewer
+    /// bytes than version 3 (this street: 27.9 per point; small s1's chunks 41.4).
     #[test]
-    fn varint_columns_keep_every_bit_in_half_the_bytes() {
+    fn block_columns_keep_every_bit_in_fewer_bytes() {
         let mut c = street_chunk(40, 250);
         // Values whose bit patterns lie far apart: signs, zeros, extremes, and the largest index.
         c.push(
