@@ -205,12 +205,12 @@ impl TileChunk {
         let (strip, trajectory) = (u32_at(16), u32_at(20));
         let origin = [f64_at(24), f64_at(32), f64_at(40)];
         let points = u64::from_le_bytes(bytes[48..56].try_into().expect("8 bytes"));
-        let mut chunk = if version == VERSION_FIXED {
-            Self::decode_fixed_body(&bytes[HEADER_BYTES..], points)?
+        let mut chunk = Self::with_capacity(tile, strip, trajectory, origin, 0);
+        if version == VERSION_FIXED {
+            chunk.decode_fixed_body(&bytes[HEADER_BYTES..], points)?;
         } else {
-            Self::decode_body(bytes, points)?
-        };
-        (chunk.tile, chunk.strip, chunk.trajectory, chunk.origin) = (tile, strip, trajectory, origin);
+            chunk.decode_body(bytes, points)?;
+        }
         let n = chunk.len();
         for (index, &neighbour) in chunk.right.iter().chain(chunk.down.iter()).enumerate() {
             if neighbour != NO_NEIGHBOUR && neighbour as usize >= n {
@@ -220,8 +220,9 @@ impl TileChunk {
         Ok(chunk)
     }
 
-    /// Version 4's columns (`bytes` is the whole chunk, for the offsets in errors).
-    fn decode_body(bytes: &[u8], points: u64) -> Result<Self, ChunkError> {
+    /// Version 4's columns into this chunk (`bytes` is the whole chunk, for the offsets in
+    /// errors).
+    fn decode_body(&mut self, bytes: &[u8], points: u64) -> Result<(), ChunkError> {
         // Each point takes at least one byte in every column: a count beyond the bytes is corrupt,
         // and found before anything of its size is allocated.
         let body = bytes.len() - HEADER_BYTES;
@@ -231,40 +232,24 @@ impl TileChunk {
         }
         let n = points as usize;
         let mut columns = Columns { bytes, at: HEADER_BYTES, points };
-        let t0 = columns.vec3(0, n)?;
-        let r = columns.vec3(3, n)?;
-        let normal = columns.vec3(6, n)?;
-        let anchor = columns.values(9, n)?;
-        let lambda = columns.values(10, n)?.into_iter().map(f32::from_bits).collect();
-        let right = columns.neighbours(11, n)?;
-        let down = columns.neighbours(12, n)?;
-        let edge_limit = columns.values(13, n)?.into_iter().map(f32::from_bits).collect();
-        let segment = columns.values(14, n)?;
-        let source = columns.values(15, n)?;
+        self.t0 = columns.vec3(0, n)?;
+        self.r = columns.vec3(3, n)?;
+        self.normal = columns.vec3(6, n)?;
+        self.anchor = columns.values(9, n)?;
+        self.lambda = columns.values(10, n)?.into_iter().map(f32::from_bits).collect();
+        self.right = columns.neighbours(11, n)?;
+        self.down = columns.neighbours(12, n)?;
+        self.edge_limit = columns.values(13, n)?.into_iter().map(f32::from_bits).collect();
+        self.segment = columns.values(14, n)?;
+        self.source = columns.values(15, n)?;
         if columns.at != bytes.len() {
-            let found = bytes.len() - HEADER_BYTES;
-            return Err(ChunkError::Length { points, expected: columns.at - HEADER_BYTES, found });
+            return Err(ChunkError::Length { points, expected: columns.at - HEADER_BYTES, found: body });
         }
-        Ok(Self {
-            tile: TileKey { tx: 0, ty: 0 },
-            strip: 0,
-            trajectory: 0,
-            origin: [0.0; 3],
-            t0,
-            r,
-            normal,
-            anchor,
-            lambda,
-            right,
-            down,
-            edge_limit,
-            segment,
-            source,
-        })
+        Ok(())
     }
 
-    /// Version 3's fixed-width columns.
-    fn decode_fixed_body(body: &[u8], points: u64) -> Result<Self, ChunkError> {
+    /// Version 3's fixed-width columns into this chunk.
+    fn decode_fixed_body(&mut self, body: &[u8], points: u64) -> Result<(), ChunkError> {
         let expected = (points as usize).saturating_mul(FIXED_BYTES_PER_POINT);
         if body.len() != expected {
             return Err(ChunkError::Length { points, expected, found: body.len() });
@@ -290,32 +275,17 @@ impl TileChunk {
         let f32s = |s: &[u8]| -> Vec<f32> {
             s.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))).collect()
         };
-        let t0 = vec3(take(12 * n));
-        let r = vec3(take(12 * n));
-        let normal = vec3(take(12 * n));
-        let anchor = u32s(take(4 * n));
-        let right = u32s(take(4 * n));
-        let down = u32s(take(4 * n));
-        let segment = u32s(take(4 * n));
-        let source = u32s(take(4 * n));
-        let lambda = f32s(take(4 * n));
-        let edge_limit = f32s(take(4 * n));
-        Ok(Self {
-            tile: TileKey { tx: 0, ty: 0 },
-            strip: 0,
-            trajectory: 0,
-            origin: [0.0; 3],
-            t0,
-            r,
-            normal,
-            anchor,
-            lambda,
-            right,
-            down,
-            edge_limit,
-            segment,
-            source,
-        })
+        self.t0 = vec3(take(12 * n));
+        self.r = vec3(take(12 * n));
+        self.normal = vec3(take(12 * n));
+        self.anchor = u32s(take(4 * n));
+        self.right = u32s(take(4 * n));
+        self.down = u32s(take(4 * n));
+        self.segment = u32s(take(4 * n));
+        self.source = u32s(take(4 * n));
+        self.lambda = f32s(take(4 * n));
+        self.edge_limit = f32s(take(4 * n));
+        Ok(())
     }
 }
 
