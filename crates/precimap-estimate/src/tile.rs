@@ -524,11 +524,10 @@ fn estimate_tile_into<S: LatentSink>(
                 None => None,
             };
             let p = &position[a];
-            if in_core(p) {
-                stats.points += 1;
-            }
+            let core = in_core(p);
+            stats.points += core as u64;
             let id = model_of[a];
-            let latent = if in_core(p) && id != NONE { latent[a] } else { f64::NAN };
+            let latent = if core && id != NONE { latent[a] } else { f64::NAN };
             if !latent.is_nan() {
                 let m = &models[id as usize];
                 let h = m.height(p);
