@@ -71,6 +71,36 @@ struct RawEntries {
     corner_model: Vec<(u32, u32)>,
     /// Height at the centre and slope in the model's plane.
     height: Vec<[f32; 3]>,
+    /// Entries kept: the columns are longer while they fill (see [`Self::room`]).
+    len: usize,
+}
+
+impl RawEntries {
+    /// Columns of `n` entries to fill.
+    fn new(n: usize) -> Self {
+        Self { pixel: vec![0; n], corner_model: vec![(0, 0); n], height: vec![[0.0; 3]; n], len: 0 }
+    }
+
+    /// Room for `more` entries after the kept ones. Every candidate is written and only the
+    /// kept ones advance `len`: a centre inside the triangle or not is a coin toss for the
+    /// branch predictor (1.65 of 4.46 candidates per point are kept).
+    #[inline]
+    fn room(&mut self, more: usize) {
+        let need = self.len + more;
+        if need > self.pixel.len() {
+            let size = need.max(2 * self.pixel.len());
+            self.pixel.resize(size, 0);
+            self.corner_model.resize(size, (0, 0));
+            self.height.resize(size, [0.0; 3]);
+        }
+    }
+
+    /// Cuts the columns to the kept entries.
+    fn finish(&mut self) {
+        self.pixel.truncate(self.len);
+        self.corner_model.truncate(self.len);
+        self.height.truncate(self.len);
+    }
 }
 
 /// A core point in pixel order: its index, pass (chunk and anchor) and plane coordinates.
@@ -272,11 +302,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
         let c = chunk_of[a] as usize;
         (c as u32, t.chunks[c].anchor[a - chunk_start[c]])
     };
-    let mut raw = RawEntries {
-        pixel: Vec::with_capacity(2 * n),
-        corner_model: Vec::with_capacity(2 * n),
-        height: Vec::with_capacity(2 * n),
-    };
+    let mut raw = RawEntries::new(2 * n);
     t.for_each(|id, p, corners, _strip, _anchor, first| {
         let g = &grids[id as usize];
         if g.nu == 0 {
@@ -312,18 +338,21 @@ pub(super) fn pixel_latent<S: LatentSink>(
         }
         let (hx, hy) = (plane.hx as f32, plane.hy as f32);
         const SLACK: f64 = -1e-9;
+        raw.room(((i1 - i0 + 1) * (j1 - j0 + 1)) as usize);
         for j in j0..=j1 {
             let dv = (j as f64 - ys) * g.size;
             for i in i0..=i1 {
                 let (l1, l2) = plane.barycentric((i as f64 - xs) * g.size, dv);
-                if l1 >= SLACK && l2 >= SLACK && 1.0 - l1 - l2 >= SLACK {
-                    raw.pixel.push((g.offset + j as usize * g.nu as usize + i as usize) as u32);
-                    raw.corner_model.push((first as u32, id));
-                    raw.height.push([plane.height(l1, l2) as f32, hx, hy]);
-                }
+                let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
+                let at = raw.len;
+                raw.pixel[at] = (g.offset + j as usize * g.nu as usize + i as usize) as u32;
+                raw.corner_model[at] = (first as u32, id);
+                raw.height[at] = [plane.height(l1, l2) as f32, hx, hy];
+                raw.len += inside as usize;
             }
         }
     });
+    raw.finish();
     let mut entries = vec![Entry::default(); raw.pixel.len()];
     // The scan head of the corner each entry hangs off (the common-mode field's rows), read by
     // corner as the entry's pass is: the raw entries are in corner order, so the reads are
