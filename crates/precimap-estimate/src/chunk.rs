@@ -295,15 +295,16 @@ impl TileChunk {
 /// bytes that hold its largest.
 const BLOCK: usize = 64;
 
-/// `d` zigzagged: small magnitudes of either sign become small numbers.
+/// `d` zigzagged: small magnitudes of either sign become small numbers (a 32-bit `d` gives
+/// the same value as a 32-bit zigzag would).
 #[inline]
-fn zigzag(d: i32) -> u32 {
-    ((d << 1) ^ (d >> 31)) as u32
+fn zigzag(d: i64) -> u64 {
+    ((d << 1) ^ (d >> 63)) as u64
 }
 
 #[inline]
-fn unzigzag(z: u32) -> i32 {
-    (z >> 1) as i32 ^ -((z & 1) as i32)
+fn unzigzag(z: u64) -> i64 {
+    (z >> 1) as i64 ^ -((z & 1) as i64)
 }
 
 /// Zigzagged wrapping differences of consecutive values (the first from 0). In 32 bits, so that
@@ -313,7 +314,7 @@ fn deltas(values: impl Iterator<Item = u32>) -> impl Iterator<Item = u64> {
     values.map(move |v| {
         let d = v.wrapping_sub(previous) as i32;
         previous = v;
-        zigzag(d) as u64
+        zigzag(d as i64)
     })
 }
 
@@ -322,17 +323,14 @@ fn neighbour_code(k: usize, neighbour: u32) -> u64 {
     if neighbour == NO_NEIGHBOUR {
         return 0;
     }
-    let d = neighbour as i64 - k as i64;
-    (((d << 1) ^ (d >> 63)) as u64) + 1
+    zigzag(neighbour as i64 - k as i64) + 1
 }
 
 fn neighbour_from_code(k: usize, code: u64) -> Option<u32> {
     if code == 0 {
         return Some(NO_NEIGHBOUR);
     }
-    let z = code - 1;
-    let d = ((z >> 1) as i64) ^ -((z & 1) as i64);
-    (k as i64).checked_add(d).and_then(|v| u32::try_from(v).ok()).filter(|&v| v != NO_NEIGHBOUR)
+    (k as i64).checked_add(unzigzag(code - 1)).and_then(|v| u32::try_from(v).ok()).filter(|&v| v != NO_NEIGHBOUR)
 }
 
 /// Appends one column: its byte length (u64), then its `n` values in blocks of [`BLOCK`], each
@@ -394,14 +392,20 @@ impl<'a> Columns<'a> {
         Ok(Column { name, bytes: &self.bytes[..end], at: start, points: self.points })
     }
 
-    /// `n` values stored as differences ([`deltas`]: of `f32` bit patterns, or of integers).
-    fn values(&mut self, index: usize, n: usize) -> Result<Vec<u32>, ChunkError> {
+    /// Calls `put(k, value)` for the `n` values of column `index`, stored as differences
+    /// ([`deltas`]: of `f32` bit patterns, or of integers).
+    fn undelta(&mut self, index: usize, n: usize, mut put: impl FnMut(usize, u32)) -> Result<(), ChunkError> {
         let mut previous = 0u32;
-        let mut out = vec![0u32; n];
         self.next(index)?.read(n, |k, z| {
-            previous = previous.wrapping_add(unzigzag(z as u32) as u32);
-            out[k] = previous;
-        })?;
+            previous = previous.wrapping_add(unzigzag(z) as u32);
+            put(k, previous);
+        })
+    }
+
+    /// `n` values of 32 bits (see [`Self::undelta`]).
+    fn values(&mut self, index: usize, n: usize) -> Result<Vec<u32>, ChunkError> {
+        let mut out = vec![0u32; n];
+        self.undelta(index, n, |k, v| out[k] = v)?;
         Ok(out)
     }
 
@@ -409,11 +413,7 @@ impl<'a> Columns<'a> {
     fn vec3(&mut self, first: usize, n: usize) -> Result<Vec<[f32; 3]>, ChunkError> {
         let mut out = vec![[0.0f32; 3]; n];
         for axis in 0..3 {
-            let mut previous = 0u32;
-            self.next(first + axis)?.read(n, |k, z| {
-                previous = previous.wrapping_add(unzigzag(z as u32) as u32);
-                out[k][axis] = f32::from_bits(previous);
-            })?;
+            self.undelta(first + axis, n, |k, v| out[k][axis] = f32::from_bits(v))?;
         }
         Ok(out)
     }

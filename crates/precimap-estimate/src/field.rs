@@ -41,13 +41,15 @@ pub fn bilinear(x: f64, y: f64, spacing: f64) -> [(FieldNode, f64); 4] {
     let (fx, fy) = (x / spacing, y / spacing);
     let (ix, iy) = (floor(fx), floor(fy));
     let (tx, ty) = (fx - ix, fy - iy);
-    let (ix, iy) = (ix as i64, iy as i64);
-    [
-        ((ix, iy), (1.0 - tx) * (1.0 - ty)),
-        ((ix + 1, iy), tx * (1.0 - ty)),
-        ((ix, iy + 1), (1.0 - tx) * ty),
-        ((ix + 1, iy + 1), tx * ty),
-    ]
+    let [n00, n10, n01, n11] = corners((ix as i64, iy as i64));
+    [(n00, (1.0 - tx) * (1.0 - ty)), (n10, tx * (1.0 - ty)), (n01, (1.0 - tx) * ty), (n11, tx * ty)]
+}
+
+/// The four nodes of the cell with lower-left node `cell`, in the order of [`bilinear`]'s
+/// weights.
+#[inline]
+fn corners(cell: FieldNode) -> [FieldNode; 4] {
+    [cell, (cell.0 + 1, cell.1), (cell.0, cell.1 + 1), (cell.0 + 1, cell.1 + 1)]
 }
 
 /// Adds `value` to node `index` of a sparse row (a handful of entries, so a linear search).
@@ -130,12 +132,6 @@ impl Run {
 
 /// A node index not looked up yet.
 const UNKNOWN: usize = usize::MAX;
-
-/// The four nodes of the cell with lower-left node `cell`, in [`bilinear`]'s order.
-#[inline]
-fn corners(cell: FieldNode) -> [FieldNode; 4] {
-    [cell, (cell.0 + 1, cell.1), (cell.0, cell.1 + 1), (cell.0 + 1, cell.1 + 1)]
-}
 
 /// The four bilinear weights of [`bilinear`] at `(x, y)` and the lower-left node of its cell.
 #[inline]

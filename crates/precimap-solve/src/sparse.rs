@@ -74,10 +74,7 @@ impl SymmetricSparse {
     /// The Cholesky factor of the matrix in nested-dissection order, refused (before any of it
     /// is allocated) if it would hold more than `max_entries` entries.
     pub fn factorise(&self, max_entries: usize) -> Result<SparseCholesky, SparseError> {
-        if let Some((row, column)) = self.out_of_range {
-            return Err(SparseError::OutOfRange { row, column, unknowns: self.unknowns });
-        }
-        let order = nested_dissection(self.unknowns, self.pairs());
+        let order = nested_dissection(self.unknowns, self.pairs()?);
         self.factorise_in(order, max_entries)
     }
 
@@ -85,19 +82,21 @@ impl SymmetricSparse {
     /// unknown): the separators are straight cuts where they cross the fewest couplings
     /// ([`geometric_nested_dissection`]).
     pub fn factorise_at(&self, max_entries: usize, coordinates: &[[f64; 2]]) -> Result<SparseCholesky, SparseError> {
-        if let Some((row, column)) = self.out_of_range {
-            return Err(SparseError::OutOfRange { row, column, unknowns: self.unknowns });
-        }
+        let pairs = self.pairs()?;
         if coordinates.len() != self.unknowns {
             return Err(SparseError::Coordinates { given: coordinates.len(), unknowns: self.unknowns });
         }
-        let order = geometric_nested_dissection(coordinates, self.pairs());
+        let order = geometric_nested_dissection(coordinates, pairs);
         self.factorise_in(order, max_entries)
     }
 
-    /// The off-diagonal structure, as pairs of unknowns.
-    fn pairs(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
-        self.lower.keys().map(|&(i, j)| (i as usize, j as usize))
+    /// The off-diagonal structure, as pairs of unknowns; an error if an entry was added outside
+    /// the unknowns (the orderings index arrays by them).
+    fn pairs(&self) -> Result<impl Iterator<Item = (usize, usize)> + '_, SparseError> {
+        if let Some((row, column)) = self.out_of_range {
+            return Err(SparseError::OutOfRange { row, column, unknowns: self.unknowns });
+        }
+        Ok(self.lower.keys().map(|&(i, j)| (i as usize, j as usize)))
     }
 
     /// The factor in the given order (new position → original unknown).
