@@ -26,6 +26,12 @@ pub enum BenchCommand {
         /// `'{"latent_pixel_share": 0}'` for the exact point-sampled route), to measure a variant.
         #[arg(long, value_name = "JSON")]
         parameters: Option<String>,
+        /// Only the single-thread pass, once: for counting its instructions and simulated cache
+        /// misses, which do not drift with the machine's load, e.g. `valgrind --tool=callgrind
+        /// --cache-sim=yes --toggle-collect='*estimate_tile_into*'` (with `MALLOC_ARENA_MAX` set,
+        /// so that precimap does not restart itself outside valgrind).
+        #[arg(long)]
+        one_pass: bool,
         #[arg(long)]
         json: bool,
     },
@@ -103,8 +109,8 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Estimate { scale, seed, cache, parameters, json } => {
-            bench_estimate(scale, seed, &cache, parameters.as_deref(), json)
+        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, json } => {
+            bench_estimate(scale, seed, &cache, parameters.as_deref(), one_pass, json)
         }
         BenchCommand::Queue {
             postgres,
@@ -210,6 +216,7 @@ fn bench_estimate(
     seed: u64,
     cache: &Path,
     parameters: Option<&str>,
+    one_pass: bool,
     json: bool,
 ) -> Result<()> {
     let (dir, manifest) = cached_campaign(cache, scale, seed, false)?;
@@ -262,6 +269,35 @@ fn bench_estimate(
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+    if one_pass {
+        eprintln!("one 2 cm iteration over {} tiles on 1 thread, once", tiles.len());
+        let (c1, _, points, copies, largest, cpu1) = pass(&single)?;
+        let per_cpu_s = points as f64 / cpu1;
+        if json {
+            let result = serde_json::json!({
+                "scale": format!("{scale:?}").to_lowercase(),
+                "points_in_tiles": points,
+                "point_copies": copies,
+                "tiles": tiles.len(),
+                "threads": 1,
+                "grid_m": step.grid_m,
+                "estimate_points_per_s_single_thread": points as f64 / c1,
+                "estimate_points_per_cpu_s": if per_cpu_s.is_finite() { Some(per_cpu_s) } else { None },
+                "peak_rss_bytes": peak_rss_bytes(),
+                "largest_tile_points": largest,
+            });
+            outln!("{}", serde_json::to_string_pretty(&result)?);
+        } else {
+            outln!(
+                "estimate_tile, 2 cm grid, {points} points in {} tiles ({copies} copies with border overlap), one pass\n  \
+                 single thread: {:.2} M points/s, per CPU-second {:.2} M",
+                tiles.len(),
+                points as f64 / c1 / 1e6,
+                per_cpu_s / 1e6
+            );
+        }
+        return Ok(());
+    }
     eprintln!("one 2 cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len());
     let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
     let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
