@@ -464,7 +464,7 @@ fn estimate_tile_into<S: LatentSink>(
     let index = (sampled && !by_pixel).then(|| CoreIndex::new(&triangles, &in_core));
     let mut covers = Vec::new();
     let mut pixel_pulls = None;
-    let Latent { height: latent, others, covering, pull } = match &index {
+    let Latent { points: latent, pull } = match &index {
         None if by_pixel => {
             let vehicle = solves_field.then_some(vehicle.as_slice());
             let pulls = params.consistent_gradient.then_some(ItemPull { threshold, weight });
@@ -492,8 +492,8 @@ fn estimate_tile_into<S: LatentSink>(
         }
         None => {
             let vehicle = solves_field.then_some(vehicle.as_slice());
-            let (latent, others) = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, sink);
-            Latent { height: latent, others, covering: Vec::new(), pull: Vec::new() }
+            let points = raster_latent(&triangles, grid, &in_core, vehicle, &mut stats, sink);
+            Latent { points, pull: Vec::new() }
         }
     };
     // 2b. With a consistent gradient, what every used point's residual pulls on the corners of
@@ -503,7 +503,7 @@ fn estimate_tile_into<S: LatentSink>(
         None => (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull)),
     };
     drop((index, covers, pull));
-    let mut field = (!others.is_empty()).then(|| FieldAccumulator::new(params.common_mode_field_m));
+    let mut field = solves_field.then(|| FieldAccumulator::new(params.common_mode_field_m));
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
     let mut histogram = ResidualHistogram::default();
@@ -527,7 +527,8 @@ fn estimate_tile_into<S: LatentSink>(
             let core = in_core(p);
             stats.points += core as u64;
             let id = model_of[a];
-            let latent = if core && id != NONE { latent[a] } else { f64::NAN };
+            let at = &latent[a];
+            let latent = if core && id != NONE { at.height } else { f64::NAN };
             if !latent.is_nan() {
                 let m = &models[id as usize];
                 let h = m.height(p);
@@ -546,7 +547,7 @@ fn estimate_tile_into<S: LatentSink>(
                     // With a consistent gradient the point pulls on its own pass by its share in
                     // the latent height; the covering passes get the rest (`corner_pulls`).
                     let own_weight = match &pulls {
-                        Some(_) => weight * covering[a] as f64 / (covering[a] as f64 + 1.0),
+                        Some(_) => weight * at.covering as f64 / (at.covering as f64 + 1.0),
                         None => weight,
                     };
                     // Both observations in one: weights add, and so do weight × residual.
@@ -556,7 +557,7 @@ fn estimate_tile_into<S: LatentSink>(
                     };
                     moments.add_weighted(&g, weighted, total, lambda, observations);
                     if let Some(field) = field.as_mut() {
-                        let [x, y, share] = others[a];
+                        let [x, y, share] = at.others;
                         field.add(vehicle[a], [x, y], share, w, e, weight);
                     }
                 }
@@ -816,7 +817,7 @@ impl Triangles<'_> {
 /// the pixels of its models (heights interpolated at the pixel centres), and a point's latent
 /// height is the bilinear interpolation of the four pixels around it ([`latent_height`]).
 ///
-/// With `vehicle` it also returns, per point, the mean scan-head position of everything its
+/// With `vehicle` it also gives, per point, the mean scan-head position of everything its
 /// latent height averages (its own pass included, which makes the field's row
 /// `φ(v) − φ(v̄)` carry the other passes' share by itself) and a share of 1, `[x, y, 1]`.
 fn raster_latent<S: LatentSink>(
@@ -826,7 +827,7 @@ fn raster_latent<S: LatentSink>(
     vehicle: Option<&[[f64; 2]]>,
     stats: &mut TileStats,
     sink: &mut S,
-) -> (Vec<f64>, Vec<[f64; 3]>) {
+) -> Vec<PointLatent> {
     let models = t.models;
     // Raster extents from the member points; one pixel of margin on each side keeps bilinear
     // interpolation inside the raster.
@@ -890,40 +891,35 @@ fn raster_latent<S: LatentSink>(
             stats.pixel_std_sum_m += var.sqrt();
         }
     }
-    let mut others = vec![[0.0; 3]; if vehicle.is_some() { t.position.len() } else { 0 }];
-    let latent = t
-        .position
+    t.position
         .iter()
         .zip(t.model_of)
-        .enumerate()
-        .map(|(a, (p, &id))| {
+        .map(|(p, &id)| {
             if id == NONE || !in_core(p) {
-                return f64::NAN;
+                return PointLatent::default();
             }
             let m = &models[id as usize];
             let r = &rasters[id as usize];
             let (u, v, own) = m.project(p);
             let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
-            if !h.is_nan() {
-                if S::RECORDS {
-                    let (std_m, contributions) = raster_std(r, &pixels, u, v, grid);
-                    sink.add(&LatentSample {
-                        position: lifted(p, m.w, h - own),
-                        normal: m.w,
-                        residual_m: own - h,
-                        std_m,
-                        passes: contributions,
-                        used: true,
-                    });
-                }
-                if let Some(o) = others.get_mut(a) {
-                    *o = raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid);
-                }
+            if S::RECORDS && !h.is_nan() {
+                let (std_m, contributions) = raster_std(r, &pixels, u, v, grid);
+                sink.add(&LatentSample {
+                    position: lifted(p, m.w, h - own),
+                    normal: m.w,
+                    residual_m: own - h,
+                    std_m,
+                    passes: contributions,
+                    used: true,
+                });
             }
-            h
+            let others = match vehicle {
+                Some(_) if !h.is_nan() => raster_vehicle_mean(r, &pixels, &pixel_vehicle, u, v, grid),
+                _ => [0.0; 3],
+            };
+            PointLatent { height: h, others, covering: 0 }
         })
-        .collect();
-    (latent, others)
+        .collect()
 }
 
 /// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
@@ -1264,10 +1260,7 @@ fn point_latent<S: LatentSink>(
             covers.truncate(kept);
         }
     }
-    let mut latent = vec![f64::NAN; n];
-    let mut covering = vec![0u32; n];
-    // [x, y, share of the other passes in the latent mean].
-    let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
+    let mut points = vec![PointLatent::default(); n];
     let mut pull = vec![[0.0; 2]; if pull_terms.is_some() { index.items.len() } else { 0 }];
     for (q, &a) in index.items.iter().enumerate() {
         let s = &acc[q];
@@ -1294,11 +1287,12 @@ fn point_latent<S: LatentSink>(
             });
         }
         if usable {
-            latent[a as usize] = mean;
-            covering[a as usize] = s.count;
-            if let Some(o) = others.get_mut(a as usize) {
-                *o = [s.vehicle[0] / c, s.vehicle[1] / c, c / (c + 1.0)];
-            }
+            // [x, y, share of the other passes in the latent mean].
+            let others = match vehicle {
+                Some(_) => [s.vehicle[0] / c, s.vehicle[1] / c, c / (c + 1.0)],
+                None => [0.0; 3],
+            };
+            points[a as usize] = PointLatent { height: mean, others, covering: s.count };
             // The observation loop's residual `h − latent` and its test against the threshold.
             if let Some(ItemPull { threshold, weight }) = pull_terms {
                 let e = h - mean;
@@ -1310,19 +1304,34 @@ fn point_latent<S: LatentSink>(
         }
     }
     stats.pixels = index.items.len() as u64;
-    Latent { height: latent, others, covering, pull }
+    Latent { points, pull }
 }
 
-/// What [`point_latent`] finds (the raster route finds the first two only).
+/// What [`point_latent`] finds (the raster route finds no pulls and no covering counts).
 struct Latent {
-    /// Per point, the latent height (NaN: not observable).
-    height: Vec<f64>,
-    /// Per point, `[x, y, share]` for the common-mode field (empty without it).
-    others: Vec<[f64; 3]>,
-    /// Per point, the number of other passes' triangles its latent height averages.
-    covering: Vec<u32>,
+    /// Per point, what the observation loop reads of the latent map.
+    points: Vec<PointLatent>,
     /// Per item, the pulls on its covering triangles (empty without the consistent gradient).
     pull: Vec<[f64; 2]>,
+}
+
+/// What the observation loop reads of the latent map at one point, in one record: the routes
+/// write them in item (pixel) order, scattered over the points, and one record is one cache
+/// line written where three columns were three.
+#[derive(Clone, Copy, Debug)]
+struct PointLatent {
+    /// The latent height (NaN: not observable).
+    height: f64,
+    /// `[x, y, share]` for the common-mode field (zeros without it).
+    others: [f64; 3],
+    /// The number of other passes' triangles the latent height averages.
+    covering: u32,
+}
+
+impl Default for PointLatent {
+    fn default() -> Self {
+        Self { height: f64::NAN, others: [0.0; 3], covering: 0 }
+    }
 }
 
 /// The observation loop's outlier threshold and weight, for the pulls of [`point_latent`]: a

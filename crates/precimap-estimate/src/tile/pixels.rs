@@ -15,7 +15,8 @@
 //! in O(1): the work per pixel is linear in its entries and points.
 
 use super::{
-    floor_i64, lifted, CornerPulls, ItemPull, Latent, PlaneTriangle, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS,
+    floor_i64, lifted, CornerPulls, ItemPull, Latent, PlaneTriangle, PointLatent, Triangles, MAX_SLOPE, NONE,
+    SAME_PASS_ANCHORS,
 };
 use crate::chunk::NO_NEIGHBOUR;
 use crate::latent::{LatentSample, LatentSink};
@@ -49,8 +50,10 @@ impl PixelGrid {
 }
 
 /// One triangle sampled at one pixel centre: its pass (chunk, and the anchor of the corner it
-/// hangs off), its height at the centre and its slope in the model's plane, and its index in
-/// triangle order (where its pull is written back, in order of the corner it hangs off).
+/// hangs off), its height at the centre and its slope in the model's plane, its index in
+/// triangle order (where its pull is written back, in order of the corner it hangs off), and
+/// the scan head of that corner (the common-mode field's rows; zeros without the field). The
+/// sort writes each entry to a scattered place: one record there, not a second column.
 #[derive(Clone, Copy, Debug, Default)]
 struct Entry {
     chunk: u32,
@@ -59,6 +62,7 @@ struct Entry {
     h: f32,
     hx: f32,
     hy: f32,
+    vehicle: [f64; 2],
 }
 
 /// The entries in triangle order, as columns: each column is dropped when it is done with,
@@ -128,8 +132,8 @@ struct Sums {
 
 impl Sums {
     #[inline]
-    fn plus(&self, e: &Entry, vehicle: [f64; 2]) -> Self {
-        let h = e.h as f64;
+    fn plus(&self, e: &Entry) -> Self {
+        let (h, vehicle) = (e.h as f64, e.vehicle);
         Self {
             h: self.h + h,
             h2: self.h2 + h * h,
@@ -354,18 +358,14 @@ pub(super) fn pixel_latent<S: LatentSink>(
     });
     raw.finish();
     let mut entries = vec![Entry::default(); raw.pixel.len()];
-    // The scan head of the corner each entry hangs off (the common-mode field's rows), read by
-    // corner as the entry's pass is: the raw entries are in corner order, so the reads are
-    // sequential.
-    let mut entry_vehicle = vec![[0.0f64; 2]; if vehicle.is_some() { raw.pixel.len() } else { 0 }];
+    // An entry's pass and scan head are its corner's: the raw entries are in corner order, so
+    // these reads are sequential.
     let entry_start = counting_sort(raw.pixel.iter().copied(), pixel_count, |at, r| {
         let corner = raw.corner_model[r].0 as usize;
         let (chunk, anchor) = pass_of(corner);
         let [h, hx, hy] = raw.height[r];
-        entries[at] = Entry { chunk, anchor, raw: r as u32, h, hx, hy };
-        if let (Some(v), Some(from)) = (entry_vehicle.get_mut(at), vehicle) {
-            *v = from[corner];
-        }
+        let vehicle = vehicle.map_or([0.0; 2], |v| v[corner]);
+        entries[at] = Entry { chunk, anchor, raw: r as u32, h, hx, hy, vehicle };
     });
     // Where each entry's pull goes, in triangle order; the rest of the raw entries is done with.
     let corner_model = match pulls {
@@ -380,20 +380,20 @@ pub(super) fn pixel_latent<S: LatentSink>(
         let [u, v, _] = uvh[a as usize];
         grids[t.model_of[a as usize] as usize].pixel(u, v) as u32
     };
+    // The keys once: the sort reads them twice (to count, then to place).
+    let keys: Vec<u32> = core.iter().map(pixel_of).collect();
     let mut items = vec![Item::default(); core.len()];
-    let item_start = counting_sort(core.iter().map(pixel_of), pixel_count, |at, i| {
+    let item_start = counting_sort(keys.iter().copied(), pixel_count, |at, i| {
         let point = core[i];
         let [u, v, h] = uvh[point as usize];
         let (chunk, anchor) = pass_of(point as usize);
         items[at] = Item { point, chunk, anchor, u, v, h };
     });
-    drop((core, uvh, chunk_of));
+    drop((core, keys, uvh, chunk_of));
 
     // 5. Per pixel: each point's other passes (all entries but its own pass's run), its latent
     //    height, and the pulls its residual sends to those entries' triangles.
-    let mut latent = vec![f64::NAN; n];
-    let mut covering = vec![0u32; n];
-    let mut others = vec![[0.0; 3]; if vehicle.is_some() { n } else { 0 }];
+    let mut latent = vec![PointLatent::default(); n];
     // Per entry in triangle order, the pull it receives.
     let mut raw_pull = vec![[0.0f64; 2]; corner_model.len()];
     let mut prefix: Vec<Sums> = Vec::new();
@@ -416,8 +416,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
                 prefix.clear();
                 prefix.push(Sums::default());
                 for (k, e) in pixel_entries.iter().enumerate() {
-                    let v = entry_vehicle.get(es + k).copied().unwrap_or_default();
-                    let next = prefix[k].plus(e, v);
+                    let next = prefix[k].plus(e);
                     prefix.push(next);
                 }
                 let all = prefix[pixel_entries.len()];
@@ -472,11 +471,11 @@ pub(super) fn pixel_latent<S: LatentSink>(
                     if !usable {
                         continue;
                     }
-                    latent[a] = mean;
-                    covering[a] = c as u32;
-                    if let Some(o) = others.get_mut(a) {
-                        *o = [other.vehicle[0] / c, other.vehicle[1] / c, c / (c + 1.0)];
-                    }
+                    let others = match vehicle {
+                        Some(_) => [other.vehicle[0] / c, other.vehicle[1] / c, c / (c + 1.0)],
+                        None => [0.0; 3],
+                    };
+                    latent[a] = PointLatent { height: mean, others, covering: c as u32 };
                     if let Some(ItemPull { threshold, weight }) = pulls {
                         let e = h - mean;
                         if e.abs() <= threshold {
@@ -522,7 +521,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
         }
         CornerPulls { sums, other_models, next_other: 0 }
     });
-    (Latent { height: latent, others, covering, pull: Vec::new() }, corner_pulls)
+    (Latent { points: latent, pull: Vec::new() }, corner_pulls)
 }
 
 #[cfg(test)]
