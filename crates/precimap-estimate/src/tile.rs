@@ -1316,8 +1316,8 @@ struct Latent {
 }
 
 /// What the observation loop reads of the latent map at one point, in one record: the routes
-/// write them in item (pixel) order, scattered over the points, and one record is one cache
-/// line written where three columns were three.
+/// write them in item (pixel) order, scattered over the points, so one 40-byte record is
+/// written where three columns took three scattered writes.
 #[derive(Clone, Copy, Debug)]
 struct PointLatent {
     /// The latent height (NaN: not observable).
