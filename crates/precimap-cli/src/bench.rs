@@ -190,19 +190,28 @@ struct EstimateBench {
     tiles: usize,
     threads: usize,
     grid_m: f64,
-    /// estimate_tile compute on all cores, per core.
-    estimate_points_per_s_per_core: f64,
-    /// The same on one thread.
+    /// estimate_tile compute on one thread.
     estimate_points_per_s_single_thread: f64,
-    /// estimate_tile per CPU-second actually spent on a core (thread CPU time, Linux), all
-    /// threads: robust when other processes share the machine; NaN where unavailable.
+    /// estimate_tile per CPU-second actually spent on a core (thread CPU time, Linux), the
+    /// fastest pass with the defaults: robust when other processes share the machine; NaN
+    /// where unavailable.
     estimate_points_per_cpu_s: f64,
-    /// Including reading and decoding the tile chunks, all cores, per core.
-    iteration_points_per_s_per_core: f64,
-    parallel_efficiency: f64,
     /// Peak resident memory during the measured iterations.
     peak_rss_bytes: u64,
     largest_tile_points: u64,
+    /// The passes after the first (absent with `--one-pass`).
+    #[serde(flatten)]
+    more: Option<MorePasses>,
+}
+
+/// What [`bench_estimate`]'s passes after the single-thread one measure.
+#[derive(Serialize)]
+struct MorePasses {
+    /// estimate_tile compute on all cores, per core.
+    estimate_points_per_s_per_core: f64,
+    /// Including reading and decoding the tile chunks, all cores, per core.
+    iteration_points_per_s_per_core: f64,
+    parallel_efficiency: f64,
     /// Thread CPU of the fastest pass with the common-mode field's rows (the default) over a pass
     /// without them (`common_mode_field_m` 0): what the field costs the map task.
     field_cpu_ratio: f64,
@@ -268,87 +277,73 @@ fn bench_estimate(
     let pass = |pool: &rayon::ThreadPool| pass_with(pool, &campaign.params);
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
-    let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-    if one_pass {
-        eprintln!("one 2 cm iteration over {} tiles on 1 thread, once", tiles.len());
-        let (c1, _, points, copies, largest, cpu1) = pass(&single)?;
-        let per_cpu_s = points as f64 / cpu1;
-        if json {
-            let result = serde_json::json!({
-                "scale": format!("{scale:?}").to_lowercase(),
-                "points_in_tiles": points,
-                "point_copies": copies,
-                "tiles": tiles.len(),
-                "threads": 1,
-                "grid_m": step.grid_m,
-                "estimate_points_per_s_single_thread": points as f64 / c1,
-                "estimate_points_per_cpu_s": if per_cpu_s.is_finite() { Some(per_cpu_s) } else { None },
-                "peak_rss_bytes": peak_rss_bytes(),
-                "largest_tile_points": largest,
-            });
-            outln!("{}", serde_json::to_string_pretty(&result)?);
-        } else {
-            outln!(
-                "estimate_tile, 2 cm grid, {points} points in {} tiles ({copies} copies with border overlap), one pass\n  \
-                 single thread: {:.2} M points/s, per CPU-second {:.2} M",
-                tiles.len(),
-                points as f64 / c1 / 1e6,
-                per_cpu_s / 1e6
-            );
-        }
-        return Ok(());
+    match one_pass {
+        true => eprintln!("one 2 cm iteration over {} tiles on 1 thread, once", tiles.len()),
+        false => eprintln!("one 2 cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len()),
     }
-    eprintln!("one 2 cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len());
     let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
-    let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
-    let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
-    let (_, _, _, _, _, cpu_without) = pass_with(&single, &without_field)?;
-    let (_, _, _, _, _, cpu_consistent) = pass_with(&single, &gradient(true))?;
-    let (_, _, _, _, _, cpu_map_held) = pass_with(&single, &gradient(false))?;
-    let wall_all = wn.min(wn2);
-    let compute_all = cn2;
+    let mut fastest_cpu = cpu1;
+    let more = if one_pass {
+        None
+    } else {
+        let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+        let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
+        let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
+        let (_, _, _, _, _, cpu_without) = pass_with(&single, &without_field)?;
+        let (_, _, _, _, _, cpu_consistent) = pass_with(&single, &gradient(true))?;
+        let (_, _, _, _, _, cpu_map_held) = pass_with(&single, &gradient(false))?;
+        let wall_all = wn.min(wn2);
+        fastest_cpu = cpu1.min(cpu2).min(cpu3);
+        Some(MorePasses {
+            // Compute seconds are summed over tiles, i.e. core-seconds.
+            estimate_points_per_s_per_core: points as f64 / cn2,
+            iteration_points_per_s_per_core: points as f64 / (wall_all * threads as f64),
+            parallel_efficiency: (points as f64 / wall_all) / (points as f64 / c1) / threads as f64,
+            // The fastest pass with the field (the first one runs cold) against the one without.
+            field_cpu_ratio: fastest_cpu / cpu_without,
+            consistent_gradient_cpu_ratio: cpu_consistent / cpu_map_held,
+        })
+    };
     let result = EstimateBench {
         scale: format!("{scale:?}").to_lowercase(),
         points_in_tiles: points,
         point_copies: copies,
         tiles: tiles.len(),
-        threads,
+        threads: if one_pass { 1 } else { threads },
         grid_m: step.grid_m,
-        // Compute seconds are summed over tiles, i.e. core-seconds.
-        estimate_points_per_s_per_core: points as f64 / compute_all,
         estimate_points_per_s_single_thread: points as f64 / c1,
-        estimate_points_per_cpu_s: points as f64 / cpu1.min(cpu2).min(cpu3),
-        iteration_points_per_s_per_core: points as f64 / (wall_all * threads as f64),
-        parallel_efficiency: (points as f64 / wall_all) / (points as f64 / c1) / threads as f64,
+        estimate_points_per_cpu_s: points as f64 / fastest_cpu,
         peak_rss_bytes: peak_rss_bytes(),
         largest_tile_points: largest,
-        // The fastest pass with the field (the first one runs cold) against the one without.
-        field_cpu_ratio: cpu1.min(cpu2).min(cpu3) / cpu_without,
-        consistent_gradient_cpu_ratio: cpu_consistent / cpu_map_held,
+        more,
     };
     if json {
         outln!("{}", serde_json::to_string_pretty(&result)?);
     } else {
         outln!(
             "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
-             single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  {} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
-             peak RSS {:.0} MiB (largest tile {} point copies)\n  \
-             common-mode field rows: {:.3}× the CPU of the same pass without them\n  \
-             consistent gradient: {:.3}× the CPU of the same pass with the map held",
+             single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  \
+             peak RSS {:.0} MiB (largest tile {} point copies)",
             result.points_in_tiles,
             result.tiles,
             result.point_copies,
             result.estimate_points_per_s_single_thread / 1e6,
             result.estimate_points_per_cpu_s / 1e6,
-            threads,
-            result.estimate_points_per_s_per_core / 1e6,
-            result.iteration_points_per_s_per_core / 1e6,
-            result.parallel_efficiency * 100.0,
             result.peak_rss_bytes as f64 / (1 << 20) as f64,
             result.largest_tile_points,
-            result.field_cpu_ratio,
-            result.consistent_gradient_cpu_ratio
         );
+        if let Some(more) = &result.more {
+            outln!(
+                "  {threads} threads: {:.2} M points/s per core (compute), {:.2} M points/s per core including chunk reads, parallel efficiency {:.0} %\n  \
+                 common-mode field rows: {:.3}× the CPU of the same pass without them\n  \
+                 consistent gradient: {:.3}× the CPU of the same pass with the map held",
+                more.estimate_points_per_s_per_core / 1e6,
+                more.iteration_points_per_s_per_core / 1e6,
+                more.parallel_efficiency * 100.0,
+                more.field_cpu_ratio,
+                more.consistent_gradient_cpu_ratio
+            );
+        }
     }
     Ok(())
 }

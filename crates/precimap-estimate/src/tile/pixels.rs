@@ -393,7 +393,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
 
     // 5. Per pixel: each point's other passes (all entries but its own pass's run), its latent
     //    height, and the pulls its residual sends to those entries' triangles.
-    let mut latent = vec![PointLatent::default(); n];
+    let mut points = vec![PointLatent::default(); n];
     // Per entry in triangle order, the pull it receives.
     let mut raw_pull = vec![[0.0f64; 2]; corner_model.len()];
     let mut prefix: Vec<Sums> = Vec::new();
@@ -475,7 +475,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
                         Some(_) => [other.vehicle[0] / c, other.vehicle[1] / c, c / (c + 1.0)],
                         None => [0.0; 3],
                     };
-                    latent[a] = PointLatent { height: mean, others, covering: c as u32 };
+                    points[a] = PointLatent { height: mean, others, covering: c as u32 };
                     if let Some(ItemPull { threshold, weight }) = pulls {
                         let e = h - mean;
                         if e.abs() <= threshold {
@@ -521,7 +521,7 @@ pub(super) fn pixel_latent<S: LatentSink>(
         }
         CornerPulls { sums, other_models, next_other: 0 }
     });
-    (Latent { points: latent, pull: Vec::new() }, corner_pulls)
+    (Latent { points, pull: Vec::new() }, corner_pulls)
 }
 
 #[cfg(test)]
