@@ -13,7 +13,8 @@ use std::time::Instant;
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
-    /// One 2 cm estimation iteration on a simulated campaign, single-threaded and on all cores.
+    /// One estimation iteration (by default a 2 cm step) on a simulated campaign, single-threaded
+    /// and on all cores.
     Estimate {
         #[arg(long, default_value = "medium")]
         scale: precimap_sim::Scale,
@@ -32,6 +33,13 @@ pub enum BenchCommand {
         /// so that precimap does not restart itself outside valgrind).
         #[arg(long)]
         one_pass: bool,
+        /// The step's grid (metres): below `point_latent_below_grid_m` (3 cm by default) the
+        /// latent map is sampled at pixel centres, from it up rasterised at this pixel size.
+        #[arg(long, default_value_t = 0.02, value_name = "METRES")]
+        grid: f64,
+        /// The step's outlier threshold (metres).
+        #[arg(long, default_value_t = 0.3, value_name = "METRES")]
+        threshold: f64,
         #[arg(long)]
         json: bool,
     },
@@ -109,8 +117,12 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, json } => {
-            bench_estimate(scale, seed, &cache, parameters.as_deref(), one_pass, json)
+        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, json } => {
+            if !(grid.is_finite() && grid > 0.0 && threshold.is_finite() && threshold > 0.0) {
+                anyhow::bail!("--grid and --threshold must be positive numbers of metres, got {grid} and {threshold}");
+            }
+            let step = IterationStep::new(grid, threshold);
+            bench_estimate(scale, seed, &cache, parameters.as_deref(), &step, one_pass, json)
         }
         BenchCommand::Queue {
             postgres,
@@ -190,6 +202,7 @@ struct EstimateBench {
     tiles: usize,
     threads: usize,
     grid_m: f64,
+    threshold_m: f64,
     /// estimate_tile compute on one thread.
     estimate_points_per_s_single_thread: f64,
     /// estimate_tile per CPU-second actually spent on a core (thread CPU time, Linux), the
@@ -225,6 +238,7 @@ fn bench_estimate(
     seed: u64,
     cache: &Path,
     parameters: Option<&str>,
+    step: &IterationStep,
     one_pass: bool,
     json: bool,
 ) -> Result<()> {
@@ -238,7 +252,6 @@ fn bench_estimate(
     let prepared = precimap_pipeline::run::prepare_all(&campaign, &work, &|_| {})?;
     let corrections: Vec<TrajectoryCorrections> =
         prepared.anchor_ranges.iter().map(|&(a, b)| TrajectoryCorrections::zeros(a, b)).collect();
-    let step = IterationStep::new(0.02, 0.3);
     let tiles: Vec<_> = prepared.tiles.iter().collect();
     let threads = rayon::current_num_threads();
 
@@ -257,7 +270,7 @@ fn bench_estimate(
                         let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
                         let t = Instant::now();
                         let cpu = thread_cpu_s();
-                        let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, &step)?;
+                        let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, step)?;
                         let cpu = match (cpu, thread_cpu_s()) {
                             (Some(a), Some(b)) => b - a,
                             _ => f64::NAN,
@@ -277,9 +290,11 @@ fn bench_estimate(
     let pass = |pool: &rayon::ThreadPool| pass_with(pool, &campaign.params);
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    // In centimetres to a tenth (0.07 × 100 prints as 7.000000000000001).
+    let grid_cm = (step.grid_m * 1000.0).round() / 10.0;
     match one_pass {
-        true => eprintln!("one 2 cm iteration over {} tiles on 1 thread, once", tiles.len()),
-        false => eprintln!("one 2 cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len()),
+        true => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, once", tiles.len()),
+        false => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len()),
     }
     let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
     let mut fastest_cpu = cpu1;
@@ -311,6 +326,7 @@ fn bench_estimate(
         tiles: tiles.len(),
         threads: if one_pass { 1 } else { threads },
         grid_m: step.grid_m,
+        threshold_m: step.threshold_m,
         estimate_points_per_s_single_thread: points as f64 / c1,
         estimate_points_per_cpu_s: points as f64 / fastest_cpu,
         peak_rss_bytes: peak_rss_bytes(),
@@ -321,7 +337,7 @@ fn bench_estimate(
         outln!("{}", serde_json::to_string_pretty(&result)?);
     } else {
         outln!(
-            "estimate_tile, 2 cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
+            "estimate_tile, {grid_cm} cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  \
              peak RSS {:.0} MiB (largest tile {} point copies)",
             result.points_in_tiles,
