@@ -15,8 +15,7 @@
 //! in O(1): the work per pixel is linear in its entries and points.
 
 use super::{
-    floor_i64, lifted, CornerPulls, ItemPull, Latent, PlaneTriangle, PointLatent, Triangles, MAX_SLOPE, NONE,
-    SAME_PASS_ANCHORS,
+    lifted, CornerPulls, ItemPull, Latent, PixelGrid, PointLatent, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS,
 };
 use crate::chunk::NO_NEIGHBOUR;
 use crate::latent::{LatentSample, LatentSink};
@@ -25,29 +24,6 @@ use crate::stats::TileStats;
 /// Pixels per surface model at most, per member point (a floor on the pixel size where the
 /// points are denser than the step's grid would need).
 const PIXELS_PER_POINT: f64 = 4.0;
-
-/// One model's raster: pixel (i, j) has its centre at `u0 + (i + ½)·size`, `v0 + (j + ½)·size`.
-#[derive(Clone, Copy, Debug, Default)]
-struct PixelGrid {
-    u0: f64,
-    v0: f64,
-    size: f64,
-    inv: f64,
-    nu: u32,
-    nv: u32,
-    offset: usize,
-}
-
-impl PixelGrid {
-    /// The pixel holding `(u, v)` (clamped to the raster, which holds every member point).
-    #[inline]
-    fn pixel(&self, u: f64, v: f64) -> usize {
-        let inv = self.inv;
-        let i = floor_i64((u - self.u0) * inv).clamp(0, self.nu as i64 - 1) as usize;
-        let j = floor_i64((v - self.v0) * inv).clamp(0, self.nv as i64 - 1) as usize;
-        self.offset + j * self.nu as usize + i
-    }
-}
 
 /// One triangle sampled at one pixel centre: its pass (chunk, and the anchor of the corner it
 /// hangs off), its height at the centre and its slope in the model's plane, its index in
@@ -155,13 +131,6 @@ impl Sums {
             count: self.count - o.count,
         }
     }
-}
-
-/// `x.ceil() as i64` without the libm call (see [`floor_i64`]).
-#[inline]
-fn ceil_i64(x: f64) -> i64 {
-    let i = x as i64;
-    i + ((i as f64) < x) as i64
 }
 
 /// Stable counting sort by key (each `< buckets`): per bucket its first position (one more entry
@@ -312,49 +281,17 @@ pub(super) fn pixel_latent<S: LatentSink>(
         if g.nu == 0 {
             return;
         }
-        let m = &models[id as usize];
-        // Corners on this model were projected above; a corner on another (agreeing) model is
-        // projected into this one's plane.
-        let corner = |k: usize| {
-            let a = corners[k];
-            if t.model_of[a] == id {
-                uvh[a]
-            } else {
-                let (u, v, h) = m.project(&p[k]);
-                [u, v, h]
-            }
-        };
-        let Some(plane) = PlaneTriangle::new([corner(0), corner(1), corner(2)]) else { return };
-        // The centres under the triangle's bounding box (a triangle covers about one), each
-        // tested by its barycentric coordinates.
-        let (inv, [u0, v0, _], d1, d2) = (g.inv, plane.origin, plane.d1, plane.d2);
-        let (xs, ys) = ((u0 - g.u0) * inv - 0.5, (v0 - g.v0) * inv - 0.5);
-        let (x1, x2) = (xs + d1[0] * inv, xs + d2[0] * inv);
-        let (y1, y2) = (ys + d1[1] * inv, ys + d2[1] * inv);
-        // The exact box: a triangle spans about one pixel, and each row or column more would
-        // double the candidates.
-        let i0 = ceil_i64(xs.min(x1).min(x2)).max(0);
-        let i1 = floor_i64(xs.max(x1).max(x2)).min(g.nu as i64 - 1);
-        let j0 = ceil_i64(ys.min(y1).min(y2)).max(0);
-        let j1 = floor_i64(ys.max(y1).max(y2)).min(g.nv as i64 - 1);
-        if i0 > i1 || j0 > j1 {
-            return;
-        }
+        let Some(plane) = t.plane_triangle(id, &p, corners, &uvh) else { return };
+        let Some(centres) = g.centres_under(&plane) else { return };
         let (hx, hy) = (plane.hx as f32, plane.hy as f32);
-        const SLACK: f64 = -1e-9;
-        raw.room(((i1 - i0 + 1) * (j1 - j0 + 1)) as usize);
-        for j in j0..=j1 {
-            let dv = (j as f64 - ys) * g.size;
-            for i in i0..=i1 {
-                let (l1, l2) = plane.barycentric((i as f64 - xs) * g.size, dv);
-                let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
-                let at = raw.len;
-                raw.pixel[at] = (g.offset + j as usize * g.nu as usize + i as usize) as u32;
-                raw.corner_model[at] = (first as u32, id);
-                raw.height[at] = [plane.height(l1, l2) as f32, hx, hy];
-                raw.len += inside as usize;
-            }
-        }
+        raw.room(centres.len());
+        centres.for_each(|pixel, height, inside| {
+            let at = raw.len;
+            raw.pixel[at] = pixel as u32;
+            raw.corner_model[at] = (first as u32, id);
+            raw.height[at] = [height as f32, hx, hy];
+            raw.len += inside as usize;
+        });
     });
     raw.finish();
     let mut entries = vec![Entry::default(); raw.pixel.len()];
