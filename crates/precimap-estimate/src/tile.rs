@@ -754,8 +754,8 @@ impl CentreBox<'_> {
     /// `visit(pixel, height, inside)` for every centre in the box, row by row: its index in the
     /// tile's pixels, the plane's height there, and whether it lies in the triangle (by its
     /// barycentric coordinates, with 10⁻⁹ of slack). For triangles of about one centre (the
-    /// pixel route's), where the box is one or two centres and a caller can write every one
-    /// without a branch.
+    /// pixel route's), whose box holds about two (4.46 per point): a caller can write every
+    /// one without a branch.
     #[inline]
     fn for_each(&self, mut visit: impl FnMut(usize, f64, bool)) {
         const SLACK: f64 = -1e-9;
