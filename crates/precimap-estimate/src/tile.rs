@@ -718,6 +718,21 @@ impl PixelGrid {
         self.offset + j * self.nu as usize + i
     }
 
+    /// The four pixel centres around `(u, v)` that bilinear interpolation reads; `None` unless
+    /// all four lie in the raster. One look-up for every value read there (height, scan heads).
+    #[inline]
+    fn cell(&self, u: f64, v: f64) -> Option<Cell> {
+        let fu = (u - self.u0) / self.size - 0.5;
+        let fv = (v - self.v0) / self.size - 0.5;
+        let (i0, j0) = (floor(fu), floor(fv));
+        let (tu, tv) = (fu - i0, fv - j0);
+        let (i0, j0) = (i0 as i64, j0 as i64);
+        if i0 < 0 || j0 < 0 || i0 + 1 >= self.nu as i64 || j0 + 1 >= self.nv as i64 {
+            return None;
+        }
+        Some(Cell { at: self.offset + (j0 * self.nu as i64 + i0) as usize, tu, tv })
+    }
+
     /// The pixel centres under `plane`'s bounding box (the exact box: a triangle spans about
     /// one pixel, and each row or column more would double the candidates); `None` if none.
     #[inline]
@@ -823,28 +838,31 @@ fn ceil_i64(x: f64) -> i64 {
     i + ((i as f64) < x) as i64
 }
 
-/// Latent height at (u, v), bilinear between the four surrounding pixel centres, all of which
-/// must be shared by two or more strip passes. `None` also where the latent surface is steeper
-/// than [`MAX_SLOPE`] against the model plane: there (curbs, recesses, occlusion edges) the
-/// distance along the model normal does not measure the distance to the surface, and a lateral
-/// offset between strips would be read as a height difference.
+/// The four pixel centres around a point that bilinear interpolation reads: the lower-left
+/// one's index in the tile's pixels and the point's fractions of the way to the next column and
+/// row ([`PixelGrid::cell`]).
+#[derive(Clone, Copy, Debug)]
+struct Cell {
+    at: usize,
+    tu: f64,
+    tv: f64,
+}
+
+/// Latent height in `cell`, bilinear between its four pixel centres, all of which must be
+/// shared by two or more strip passes. `None` also where the latent surface is steeper than
+/// [`MAX_SLOPE`] against the model plane: there (curbs, recesses, occlusion edges) the distance
+/// along the model normal does not measure the distance to the surface, and a lateral offset
+/// between strips would be read as a height difference.
 #[inline]
-fn latent_height(r: &PixelGrid, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> Option<f64> {
-    let fu = (u - r.u0) / grid - 0.5;
-    let fv = (v - r.v0) / grid - 0.5;
-    let (i0, j0) = (floor(fu), floor(fv));
-    let (tu, tv) = (fu - i0, fv - j0);
-    let (i0, j0) = (i0 as i64, j0 as i64);
-    if i0 < 0 || j0 < 0 || i0 + 1 >= r.nu as i64 || j0 + 1 >= r.nv as i64 {
-        return None;
-    }
-    let at = |i: i64, j: i64| -> Option<f64> {
-        let p = &pixels[r.offset + (j * r.nu as i64 + i) as usize];
+fn latent_height(r: &PixelGrid, pixels: &[Pixel], cell: Cell) -> Option<f64> {
+    let (Cell { at, tu, tv }, row) = (cell, r.nu as usize);
+    let height = |k: usize| -> Option<f64> {
+        let p = &pixels[k];
         p.shared().then(|| p.mean())
     };
-    let (a, b, c, d) = (at(i0, j0)?, at(i0 + 1, j0)?, at(i0, j0 + 1)?, at(i0 + 1, j0 + 1)?);
-    let slope_u = ((b - a) * (1.0 - tv) + (d - c) * tv) / grid;
-    let slope_v = ((c - a) * (1.0 - tu) + (d - b) * tu) / grid;
+    let (a, b, c, d) = (height(at)?, height(at + 1)?, height(at + row)?, height(at + row + 1)?);
+    let slope_u = ((b - a) * (1.0 - tv) + (d - c) * tv) / r.size;
+    let slope_v = ((c - a) * (1.0 - tu) + (d - b) * tu) / r.size;
     if slope_u * slope_u + slope_v * slope_v > MAX_SLOPE * MAX_SLOPE {
         return None;
     }
@@ -1043,9 +1061,10 @@ fn raster_latent<S: LatentSink>(
             }
             let m = &models[id as usize];
             let r = &rasters[id as usize];
-            let h = latent_height(r, &pixels, u, v, grid).unwrap_or(f64::NAN);
+            let cell = r.cell(u, v);
+            let h = cell.and_then(|cell| latent_height(r, &pixels, cell)).unwrap_or(f64::NAN);
             if S::RECORDS && !h.is_nan() {
-                let (std_m, contributions) = raster_std(r, &pixels, u, v, grid);
+                let (std_m, contributions) = raster_std(r, &pixels, u, v);
                 sink.add(&LatentSample {
                     position: lifted(p, m.w, h - own),
                     normal: m.w,
@@ -1055,8 +1074,8 @@ fn raster_latent<S: LatentSink>(
                     used: true,
                 });
             }
-            let others = match vehicle {
-                Some(_) if !h.is_nan() => raster_vehicle_mean(r, &pixels, u, v, grid),
+            let others = match (vehicle, cell) {
+                (Some(_), Some(cell)) if !h.is_nan() => raster_vehicle_mean(r, &pixels, cell),
                 _ => [0.0; 3],
             };
             PointLatent { height: h, others, covering: 0 }
@@ -1067,9 +1086,9 @@ fn raster_latent<S: LatentSink>(
 /// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
 /// [`latent_height`] interpolated from, so it has contributions), and that pixel's count of
 /// surface contributions.
-fn raster_std(r: &PixelGrid, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> (f64, u32) {
-    let i = (floor((u - r.u0) / grid) as usize).min(r.nu as usize - 1);
-    let j = (floor((v - r.v0) / grid) as usize).min(r.nv as usize - 1);
+fn raster_std(r: &PixelGrid, pixels: &[Pixel], u: f64, v: f64) -> (f64, u32) {
+    let i = (floor((u - r.u0) / r.size) as usize).min(r.nu as usize - 1);
+    let j = (floor((v - r.v0) / r.size) as usize).min(r.nv as usize - 1);
     let p = &pixels[r.offset + j * r.nu as usize + i];
     let n = p.count as f64;
     let mean = p.sum as f64 / n;
@@ -1084,18 +1103,13 @@ fn lifted(p: &[f64; 3], w: [f64; 3], by: f64) -> [f64; 3] {
 
 /// Mean scan-head position of the contributions to the four pixels a point's latent height
 /// interpolates, weighted like the heights (bilinear), as `[x, y, 1]`.
-fn raster_vehicle_mean(r: &PixelGrid, pixels: &[Pixel], u: f64, v: f64, grid: f64) -> [f64; 3] {
-    let fu = (u - r.u0) / grid - 0.5;
-    let fv = (v - r.v0) / grid - 0.5;
-    let (i0, j0) = (floor(fu), floor(fv));
-    let (tu, tv) = (fu - i0, fv - j0);
-    let (i0, j0) = (i0 as usize, j0 as usize);
+fn raster_vehicle_mean(r: &PixelGrid, pixels: &[Pixel], cell: Cell) -> [f64; 3] {
+    let (Cell { at, tu, tv }, row) = (cell, r.nu as usize);
     let mut out = [0.0, 0.0, 1.0];
     for (di, dj, wgt) in
         [(0, 0, (1.0 - tu) * (1.0 - tv)), (1, 0, tu * (1.0 - tv)), (0, 1, (1.0 - tu) * tv), (1, 1, tu * tv)]
     {
-        let at = r.offset + (j0 + dj) * r.nu as usize + i0 + di;
-        let p = &pixels[at];
+        let p = &pixels[at + dj * row + di];
         let c = p.count as f64;
         out[0] += wgt * p.vehicle[0] / c;
         out[1] += wgt * p.vehicle[1] / c;
