@@ -118,10 +118,12 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, json } => {
-            if !(grid.is_finite() && grid > 0.0 && threshold.is_finite() && threshold > 0.0) {
-                anyhow::bail!("--grid and --threshold must be positive numbers of metres, got {grid} and {threshold}");
-            }
             let step = IterationStep::new(grid, threshold);
+            // The manifest's checks of a schedule step.
+            let with_step = precimap_core::Parameters { schedule: vec![step], ..Default::default() };
+            if let Some(problem) = with_step.problems().first() {
+                anyhow::bail!("--grid / --threshold: {problem}");
+            }
             bench_estimate(scale, seed, &cache, parameters.as_deref(), &step, one_pass, json)
         }
         BenchCommand::Queue {
