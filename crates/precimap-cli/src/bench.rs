@@ -214,6 +214,12 @@ struct EstimateBench {
     /// Peak resident memory during the measured iterations.
     peak_rss_bytes: u64,
     largest_tile_points: u64,
+    /// The single-thread pass's minor page faults (fresh pages the kernel had to map and zero)
+    /// per point, inside `estimate_tile` (Linux; NaN elsewhere).
+    minor_faults_per_point: f64,
+    /// The share of that pass's thread CPU spent in the kernel (mostly those faults; Linux,
+    /// in clock ticks; NaN elsewhere).
+    system_cpu_share: f64,
     /// The passes after the first (absent with `--one-pass`).
     #[serde(flatten)]
     more: Option<MorePasses>,
@@ -257,38 +263,36 @@ fn bench_estimate(
     let tiles: Vec<_> = prepared.tiles.iter().collect();
     let threads = rayon::current_num_threads();
 
-    // One pass over all tiles: returns (compute seconds summed over tiles, wall seconds, points).
     let without_field = precimap_core::Parameters { common_mode_field_m: 0.0, ..campaign.params.clone() };
     let gradient = |on| precimap_core::Parameters { consistent_gradient: on, ..campaign.params.clone() };
-    let pass_with =
-        |pool: &rayon::ThreadPool, params: &precimap_core::Parameters| -> Result<(f64, f64, u64, u64, u64, f64)> {
-            let started = Instant::now();
-            let per_tile = pool.install(|| {
-                tiles
-                    .par_iter()
-                    .map(|(tile, strips)| -> Result<(f64, u64, u64, f64)> {
-                        let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-                        let chunks = tasks::load_tile(&work, **tile, &ids)?;
-                        let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
-                        let t = Instant::now();
-                        let cpu = thread_cpu_s();
-                        let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, step)?;
-                        let cpu = match (cpu, thread_cpu_s()) {
-                            (Some(a), Some(b)) => b - a,
-                            _ => f64::NAN,
-                        };
-                        Ok((t.elapsed().as_secs_f64(), est.stats.points, copies, cpu))
-                    })
-                    .collect::<Result<Vec<_>>>()
-            })?;
-            let wall = started.elapsed().as_secs_f64();
-            let compute: f64 = per_tile.iter().map(|r| r.0).sum();
-            let points: u64 = per_tile.iter().map(|r| r.1).sum();
-            let copies: u64 = per_tile.iter().map(|r| r.2).sum();
-            let largest = per_tile.iter().map(|r| r.2).max().unwrap_or(0);
-            let cpu: f64 = per_tile.iter().map(|r| r.3).sum();
-            Ok((compute, wall, points, copies, largest, cpu))
-        };
+    // One pass over all tiles.
+    let pass_with = |pool: &rayon::ThreadPool, params: &precimap_core::Parameters| -> Result<EstimatePass> {
+        let started = Instant::now();
+        let per_tile = pool.install(|| {
+            tiles
+                .par_iter()
+                .map(|(tile, strips)| -> Result<EstimatePass> {
+                    let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
+                    let chunks = tasks::load_tile(&work, **tile, &ids)?;
+                    let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
+                    let t = Instant::now();
+                    let cpu = thread_cpu_s();
+                    let kernel = ThreadKernelUse::now();
+                    let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, step)?;
+                    let kernel = ThreadKernelUse::since(kernel);
+                    let cpu_s = match (cpu, thread_cpu_s()) {
+                        (Some(a), Some(b)) => b - a,
+                        _ => f64::NAN,
+                    };
+                    let compute_s = t.elapsed().as_secs_f64();
+                    let points = est.stats.points;
+                    Ok(EstimatePass { compute_s, wall_s: 0.0, points, copies, largest: copies, cpu_s, kernel })
+                })
+                .collect::<Result<Vec<_>>>()
+        })?;
+        let sum = per_tile.into_iter().fold(EstimatePass::default(), EstimatePass::plus);
+        Ok(EstimatePass { wall_s: started.elapsed().as_secs_f64(), ..sum })
+    };
     let pass = |pool: &rayon::ThreadPool| pass_with(pool, &campaign.params);
     reset_peak_rss();
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
@@ -298,17 +302,18 @@ fn bench_estimate(
         true => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, once", tiles.len()),
         false => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len()),
     }
-    let (c1, _w1, points, copies, largest, cpu1) = pass(&single)?;
+    let first = pass(&single)?;
+    let (c1, points, cpu1) = (first.compute_s, first.points, first.cpu_s);
     let mut fastest_cpu = cpu1;
     let more = if one_pass {
         None
     } else {
         let all = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-        let (_cn, wn, _, _, _, cpu2) = pass(&all)?;
-        let (cn2, wn2, _, _, _, cpu3) = pass(&all)?;
-        let (_, _, _, _, _, cpu_without) = pass_with(&single, &without_field)?;
-        let (_, _, _, _, _, cpu_consistent) = pass_with(&single, &gradient(true))?;
-        let (_, _, _, _, _, cpu_map_held) = pass_with(&single, &gradient(false))?;
+        let (second, third) = (pass(&all)?, pass(&all)?);
+        let (wn, wn2, cn2, cpu2, cpu3) = (second.wall_s, third.wall_s, third.compute_s, second.cpu_s, third.cpu_s);
+        let cpu_without = pass_with(&single, &without_field)?.cpu_s;
+        let cpu_consistent = pass_with(&single, &gradient(true))?.cpu_s;
+        let cpu_map_held = pass_with(&single, &gradient(false))?.cpu_s;
         let wall_all = wn.min(wn2);
         fastest_cpu = cpu1.min(cpu2).min(cpu3);
         Some(MorePasses {
@@ -324,7 +329,7 @@ fn bench_estimate(
     let result = EstimateBench {
         scale: format!("{scale:?}").to_lowercase(),
         points_in_tiles: points,
-        point_copies: copies,
+        point_copies: first.copies,
         tiles: tiles.len(),
         threads: if one_pass { 1 } else { threads },
         grid_m: step.grid_m,
@@ -332,7 +337,9 @@ fn bench_estimate(
         estimate_points_per_s_single_thread: points as f64 / c1,
         estimate_points_per_cpu_s: points as f64 / fastest_cpu,
         peak_rss_bytes: peak_rss_bytes(),
-        largest_tile_points: largest,
+        largest_tile_points: first.largest,
+        minor_faults_per_point: first.kernel.minor_faults.map_or(f64::NAN, |f| f as f64 / points as f64),
+        system_cpu_share: first.kernel.system_share(),
         more,
     };
     if json {
@@ -341,7 +348,8 @@ fn bench_estimate(
         outln!(
             "estimate_tile, {grid_cm} cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  \
-             peak RSS {:.0} MiB (largest tile {} point copies)",
+             peak RSS {:.0} MiB (largest tile {} point copies)\n  \
+             single-thread pass: {:.3} minor page faults per point, {:.1} % of its CPU in the kernel",
             result.points_in_tiles,
             result.tiles,
             result.point_copies,
@@ -349,6 +357,8 @@ fn bench_estimate(
             result.estimate_points_per_cpu_s / 1e6,
             result.peak_rss_bytes as f64 / (1 << 20) as f64,
             result.largest_tile_points,
+            result.minor_faults_per_point,
+            result.system_cpu_share * 100.0,
         );
         if let Some(more) = &result.more {
             outln!(
@@ -638,6 +648,93 @@ fn reset_peak_rss() {
 fn thread_cpu_s() -> Option<f64> {
     let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
     s.split_whitespace().next()?.parse::<u64>().ok().map(|ns| ns as f64 * 1e-9)
+}
+
+/// What one pass of `bench estimate` measured, summed over its tiles.
+#[derive(Clone, Copy, Debug)]
+struct EstimatePass {
+    /// `estimate_tile`'s wall seconds, summed over tiles (core-seconds).
+    compute_s: f64,
+    /// The whole pass's wall seconds, chunk reads included.
+    wall_s: f64,
+    points: u64,
+    copies: u64,
+    /// The most point copies in one tile.
+    largest: u64,
+    /// `estimate_tile`'s thread CPU seconds, summed over tiles (NaN where unavailable).
+    cpu_s: f64,
+    kernel: ThreadKernelUse,
+}
+
+impl Default for EstimatePass {
+    fn default() -> Self {
+        let kernel = ThreadKernelUse::ZERO;
+        Self { compute_s: 0.0, wall_s: 0.0, points: 0, copies: 0, largest: 0, cpu_s: 0.0, kernel }
+    }
+}
+
+impl EstimatePass {
+    fn plus(self, tile: Self) -> Self {
+        Self {
+            compute_s: self.compute_s + tile.compute_s,
+            wall_s: self.wall_s + tile.wall_s,
+            points: self.points + tile.points,
+            copies: self.copies + tile.copies,
+            largest: self.largest.max(tile.largest),
+            cpu_s: self.cpu_s + tile.cpu_s,
+            kernel: self.kernel.plus(tile.kernel),
+        }
+    }
+}
+
+/// A thread's minor page faults and its user and kernel CPU in clock ticks
+/// (`/proc/thread-self/stat`; `None` where that is missing), read before and after a task.
+#[derive(Clone, Copy, Debug)]
+struct ThreadKernelUse {
+    minor_faults: Option<u64>,
+    user_ticks: Option<u64>,
+    system_ticks: Option<u64>,
+}
+
+impl ThreadKernelUse {
+    const ZERO: Self = Self { minor_faults: Some(0), user_ticks: Some(0), system_ticks: Some(0) };
+    const UNKNOWN: Self = Self { minor_faults: None, user_ticks: None, system_ticks: None };
+
+    fn now() -> Self {
+        let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else { return Self::UNKNOWN };
+        // The command name (field 2) is in parentheses and may hold spaces: count from after it.
+        let Some(rest) = stat.rfind(')').map(|i| &stat[i + 1..]) else { return Self::UNKNOWN };
+        let fields: Vec<&str> = rest.split_whitespace().collect();
+        // After the name: state is field 3, so field n sits at index n − 3.
+        let field = |n: usize| fields.get(n - 3).and_then(|v| v.parse::<u64>().ok());
+        Self { minor_faults: field(10), user_ticks: field(14), system_ticks: field(15) }
+    }
+
+    fn since(before: Self) -> Self {
+        let after = Self::now();
+        let delta = |a: Option<u64>, b: Option<u64>| Some(a?.saturating_sub(b?));
+        Self {
+            minor_faults: delta(after.minor_faults, before.minor_faults),
+            user_ticks: delta(after.user_ticks, before.user_ticks),
+            system_ticks: delta(after.system_ticks, before.system_ticks),
+        }
+    }
+
+    fn plus(self, other: Self) -> Self {
+        let sum = |a: Option<u64>, b: Option<u64>| Some(a? + b?);
+        Self {
+            minor_faults: sum(self.minor_faults, other.minor_faults),
+            user_ticks: sum(self.user_ticks, other.user_ticks),
+            system_ticks: sum(self.system_ticks, other.system_ticks),
+        }
+    }
+
+    fn system_share(&self) -> f64 {
+        match (self.user_ticks, self.system_ticks) {
+            (Some(u), Some(s)) if u + s > 0 => s as f64 / (u + s) as f64,
+            _ => f64::NAN,
+        }
+    }
 }
 
 fn peak_rss_bytes() -> u64 {
