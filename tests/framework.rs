@@ -559,15 +559,26 @@ fn http_get(port: u16, path: &str) -> Option<String> {
     Some(answer)
 }
 
-/// glibc keeps freed memory in every malloc arena it opens (up to eight per core): the binary
-/// executes itself again with `MALLOC_ARENA_MAX` set to one arena per core, and keeps a limit the
-/// user set. Read off a running `precimap serve`'s environment once it answers.
+/// glibc keeps freed memory in every malloc arena it opens (up to eight per core) and trims the
+/// heap between tasks: the binary executes itself again with one arena per core and fixed mmap
+/// and trim thresholds (`evaluate`: a low mmap threshold alone), keeping a threshold the user set.
+/// An arena limit the user set means no restart: every setting is theirs. Read off a running
+/// `precimap serve`'s environment once it answers.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 #[test]
-fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
+fn the_binary_tunes_glibc_malloc_unless_told_otherwise() {
+    const VARIABLES: [&str; 3] = ["MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"];
     let dir = tempfile::tempdir().unwrap();
     let cores = std::thread::available_parallelism().unwrap().get().to_string();
-    for (preset, expected) in [(None, cores.as_str()), (Some("3"), "3")] {
+    let never_trim = (usize::MAX / 2).to_string();
+    let defaults = [cores.as_str(), "33554432", never_trim.as_str()];
+    let user_arenas = ["3", "", ""];
+    let user_trim = [cores.as_str(), "33554432", "1048576"];
+    for (preset, expected) in [
+        (None, defaults),
+        (Some(("MALLOC_ARENA_MAX", "3")), user_arenas),
+        (Some(("MALLOC_TRIM_THRESHOLD_", "1048576")), user_trim),
+    ] {
         let port = free_port();
         let log_path = dir.path().join(format!("serve-{port}.log"));
         let log = || std::fs::read_to_string(&log_path).unwrap_or_default();
@@ -577,21 +588,25 @@ fn the_binary_limits_glibc_malloc_arenas_unless_told_otherwise() {
             .arg(format!("sqlite://{}/jobs-{port}.db", dir.path().display()))
             .arg("--store")
             .arg(format!("file://{}", dir.path().join("store").display()))
-            .env_remove("MALLOC_ARENA_MAX")
             .stdout(std::process::Stdio::null())
             .stderr(std::fs::File::create(&log_path).unwrap());
-        if let Some(value) = preset {
-            command.env("MALLOC_ARENA_MAX", value);
+        for variable in VARIABLES {
+            command.env_remove(variable);
+        }
+        if let Some((variable, value)) = preset {
+            command.env(variable, value);
         }
         let mut server = Worker { child: command.spawn().unwrap() };
         server.wait_until_serving(port, log);
         let environ = std::fs::read(format!("/proc/{}/environ", server.child.id())).unwrap();
         drop(server);
-        let limits: Vec<String> = environ
-            .split(|&b| b == 0)
-            .filter_map(|v| std::str::from_utf8(v).ok()?.strip_prefix("MALLOC_ARENA_MAX=").map(str::to_string))
-            .collect();
-        assert_eq!(limits, [expected], "preset {preset:?}; precimap serve said: {}", log());
+        let entries: Vec<&str> = environ.split(|&b| b == 0).filter_map(|v| std::str::from_utf8(v).ok()).collect();
+        for (variable, expected) in VARIABLES.into_iter().zip(expected) {
+            let values: Vec<&str> =
+                entries.iter().filter_map(|e| e.strip_prefix(variable)?.strip_prefix('=')).collect();
+            let expected: &[&str] = if expected.is_empty() { &[] } else { &[expected] };
+            assert_eq!(values, expected, "{variable}, preset {preset:?}; precimap serve said: {}", log());
+        }
     }
 }
 

@@ -146,7 +146,7 @@ fn main() {
     // Parsed before the process executes itself again (`limit_malloc_arenas`), which needs the
     // subcommand; the new image parses the same arguments again.
     let cli = Cli::parse();
-    limit_malloc_arenas(fixes_mmap_threshold(&cli));
+    tune_glibc_malloc(MallocTuning::of(&cli));
     if let Err(e) = real_main(cli) {
         eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
@@ -156,19 +156,12 @@ fn main() {
 /// glibc gives a thread that meets contention an arena of its own, up to eight per core, and keeps
 /// what is freed in each: without a limit ~40 % of `bench estimate`'s peak RSS on medium was such
 /// kept memory, and one arena per core cost no speed (ARCHITECTURE, "Allocator arenas"). glibc reads
-/// the limit once, at its first allocation, so the process executes itself again (same pid,
-/// arguments and streams) with the limit set. A limit already set, or a failed exec, leaves
-/// glibc's default.
-///
-/// With `fixed_mmap_threshold` (`evaluate`) the process also gets a fixed mmap threshold of
-/// [`EVALUATE_MMAP_THRESHOLD`]: glibc's own rises to the size of the largest block freed (up to
-/// 32 MiB), so a strip's arrays (tens of MB) come from the heap after the first strip, and the
-/// heap keeps them when they are freed; the latent map is then read on top of every strip's
-/// arrays (ARCHITECTURE, "`evaluate` in less memory").
-/// Estimation keeps glibc's threshold: it reuses such memory from tile to tile, and fresh
-/// mappings would fault in again every time.
+/// its settings once, at its first allocation, so the process executes itself again (same pid,
+/// arguments and streams) with that limit and the command's [`MallocTuning`] in its environment,
+/// keeping any of the tuning's variables the user set. A limit already set (by the user, who then
+/// chooses every setting, or by this restart), or a failed exec, leaves the process as it is.
 #[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(unused_variables))]
-fn limit_malloc_arenas(fixed_mmap_threshold: bool) {
+fn tune_glibc_malloc(tuning: MallocTuning) {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         use std::os::unix::process::CommandExt as _;
@@ -182,27 +175,67 @@ fn limit_malloc_arenas(fixed_mmap_threshold: bool) {
         if let Some(name) = args.next() {
             command.arg0(name);
         }
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        const MALLOC_MMAP_THRESHOLD: &str = "MALLOC_MMAP_THRESHOLD_";
-        if fixed_mmap_threshold && std::env::var_os(MALLOC_MMAP_THRESHOLD).is_none() {
-            command.env(MALLOC_MMAP_THRESHOLD, EVALUATE_MMAP_THRESHOLD.to_string());
+        for &(variable, value) in tuning.environment() {
+            if std::env::var_os(variable).is_none() {
+                command.env(variable, value.to_string());
+            }
         }
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         // `exec` returns only when it failed; then carry on as we are.
         let error = command.args(args).env(MALLOC_ARENA_MAX, cores.to_string()).exec();
         eprintln!(
-            "warning: could not restart with {MALLOC_ARENA_MAX}={cores} ({error}); continuing with glibc's default"
+            "warning: could not restart with {MALLOC_ARENA_MAX}={cores} ({error}); continuing with glibc's defaults"
         );
     }
 }
 
-/// Blocks from this size up are mapped on their own and returned when freed, in `evaluate`
-/// ([`limit_malloc_arenas`]). On large s1 (stop 33): peak 2.52 → 1.64 GB, time unchanged.
-#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
+/// How glibc's allocator treats large blocks, per command.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum MallocTuning {
+    /// `evaluate`: blocks from [`EVALUATE_MMAP_THRESHOLD`] up are mapped on their own and returned
+    /// when freed. glibc's own threshold rises to the size of the largest block freed (up to
+    /// 32 MiB), so a strip's arrays (tens of MB) would come from the heap after the first strip,
+    /// and the heap would keep them; the latent map is then read on top of every strip's arrays
+    /// (ARCHITECTURE, "`evaluate` in less memory"). On large s1 (stop 33): peak 2.52 → 1.64 GB,
+    /// time unchanged.
+    ReturnLargeBlocks,
+    /// Everything else (the tasks): freed memory stays in the heap for the next task. With
+    /// glibc's defaults the heap is trimmed whenever 128 KiB–64 MiB lie free at its top, and the
+    /// next tile faults every page of it in again, zeroed by the kernel: on large s1 (stop 38)
+    /// 27 % of a 2 cm pass's CPU was the kernel's, 6 % with this tuning, and the pass ran
+    /// 1.36× the points per CPU-second at a 3 % higher peak (ARCHITECTURE, "Allocator
+    /// arenas").
+    KeepFreedMemory,
+}
+
+/// Blocks from this size up are mapped on their own and returned when freed, in `evaluate`.
 const EVALUATE_MMAP_THRESHOLD: usize = 1 << 20;
 
-/// Whether the command runs with [`EVALUATE_MMAP_THRESHOLD`] (`evaluate` alone).
-fn fixes_mmap_threshold(cli: &Cli) -> bool {
-    matches!(cli.command, Command::Evaluate { .. })
+/// glibc's largest mmap threshold on 64-bit (half its 64 MiB arena heap; a larger value is
+/// ignored): blocks above it are always mapped on their own.
+const TASK_MMAP_THRESHOLD: usize = 32 << 20;
+
+/// Free memory at the heap's top up to this size stays mapped: in effect, never trim.
+const TASK_TRIM_THRESHOLD: usize = usize::MAX / 2;
+
+impl MallocTuning {
+    fn of(cli: &Cli) -> Self {
+        match cli.command {
+            Command::Evaluate { .. } => Self::ReturnLargeBlocks,
+            _ => Self::KeepFreedMemory,
+        }
+    }
+
+    /// glibc's variables for this tuning. Setting either threshold turns off glibc's moving
+    /// ones, so the tasks set both: the mmap threshold alone would stay at 128 KiB.
+    fn environment(self) -> &'static [(&'static str, usize)] {
+        const MMAP: &str = "MALLOC_MMAP_THRESHOLD_";
+        const TRIM: &str = "MALLOC_TRIM_THRESHOLD_";
+        match self {
+            Self::ReturnLargeBlocks => &[(MMAP, EVALUATE_MMAP_THRESHOLD)],
+            Self::KeepFreedMemory => &[(MMAP, TASK_MMAP_THRESHOLD), (TRIM, TASK_TRIM_THRESHOLD)],
+        }
+    }
 }
 
 /// The error and its causes joined by ": ", leaving out a cause whose text the message already
@@ -320,20 +353,19 @@ fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Re
 
 #[cfg(test)]
 mod tests {
-    use super::{fixes_mmap_threshold, Cli};
+    use super::{Cli, MallocTuning};
     use clap::Parser;
 
     #[test]
     fn the_subcommand_is_found_past_global_options() {
-        let fixes = |a: &[&str]| {
-            Cli::try_parse_from(std::iter::once("precimap").chain(a.iter().copied()))
-                .ok()
-                .map(|c| fixes_mmap_threshold(&c))
+        let tuning = |a: &[&str]| {
+            Cli::try_parse_from(std::iter::once("precimap").chain(a.iter().copied())).ok().map(|c| MallocTuning::of(&c))
         };
-        assert_eq!(fixes(&["evaluate", "--truth", "t", "--result", "r"]), Some(true));
-        assert_eq!(fixes(&["--threads", "2", "evaluate", "--truth", "t", "--result", "r"]), Some(true));
-        assert_eq!(fixes(&["--threads=2", "run", "m.json", "--out", "o"]), Some(false));
-        assert_eq!(fixes(&["--help"]), None);
-        assert_eq!(fixes(&[]), None);
+        let evaluate = Some(MallocTuning::ReturnLargeBlocks);
+        assert_eq!(tuning(&["evaluate", "--truth", "t", "--result", "r"]), evaluate);
+        assert_eq!(tuning(&["--threads", "2", "evaluate", "--truth", "t", "--result", "r"]), evaluate);
+        assert_eq!(tuning(&["--threads=2", "run", "m.json", "--out", "o"]), Some(MallocTuning::KeepFreedMemory));
+        assert_eq!(tuning(&["--help"]), None);
+        assert_eq!(tuning(&[]), None);
     }
 }
