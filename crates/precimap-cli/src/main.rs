@@ -143,7 +143,7 @@ pub(crate) fn write_stdout_line(args: std::fmt::Arguments<'_>) {
 }
 
 fn main() {
-    // Parsed before the process executes itself again (`limit_malloc_arenas`), which needs the
+    // Parsed before the process executes itself again (`tune_glibc_malloc`), which needs the
     // subcommand; the new image parses the same arguments again.
     let cli = Cli::parse();
     tune_glibc_malloc(MallocTuning::of(&cli));
@@ -209,13 +209,16 @@ enum MallocTuning {
 }
 
 /// Blocks from this size up are mapped on their own and returned when freed, in `evaluate`.
+#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
 const EVALUATE_MMAP_THRESHOLD: usize = 1 << 20;
 
 /// glibc's largest mmap threshold on 64-bit (half its 64 MiB arena heap; a larger value is
 /// ignored): blocks above it are always mapped on their own.
+#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
 const TASK_MMAP_THRESHOLD: usize = 32 << 20;
 
 /// Free memory at the heap's top up to this size stays mapped: in effect, never trim.
+#[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
 const TASK_TRIM_THRESHOLD: usize = usize::MAX / 2;
 
 impl MallocTuning {
@@ -228,6 +231,7 @@ impl MallocTuning {
 
     /// glibc's variables for this tuning. Setting either threshold turns off glibc's moving
     /// ones, so the tasks set both: the mmap threshold alone would stay at 128 KiB.
+    #[cfg_attr(not(all(target_os = "linux", target_env = "gnu")), allow(dead_code))]
     fn environment(self) -> &'static [(&'static str, usize)] {
         const MMAP: &str = "MALLOC_MMAP_THRESHOLD_";
         const TRIM: &str = "MALLOC_TRIM_THRESHOLD_";
