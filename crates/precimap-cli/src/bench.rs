@@ -338,8 +338,8 @@ fn bench_estimate(
         estimate_points_per_cpu_s: points as f64 / fastest_cpu,
         peak_rss_bytes: peak_rss_bytes(),
         largest_tile_points: first.largest,
-        minor_faults_per_point: first.kernel.minor_faults.map_or(f64::NAN, |f| f as f64 / points as f64),
-        system_cpu_share: first.kernel.system_share(),
+        minor_faults_per_point: first.kernel.map_or(f64::NAN, |k| k.minor_faults as f64 / points as f64),
+        system_cpu_share: first.kernel.map_or(f64::NAN, |k| k.system_share()),
         more,
     };
     if json {
@@ -626,16 +626,22 @@ fn bench_preprocess(
 /// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`, clock
 /// ticks of 1/100 s); 0 elsewhere.
 fn cpu_seconds() -> f64 {
-    std::fs::read_to_string("/proc/self/stat")
-        .ok()
-        .and_then(|s| {
-            // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-            let rest = &s[s.rfind(')')? + 2..];
-            let f: Vec<&str> = rest.split_whitespace().collect();
-            let ticks = f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?;
-            Some(ticks as f64 / 100.0)
-        })
-        .unwrap_or(0.0)
+    // utime and stime, in clock ticks of 10 ms (USER_HZ is 100 on Linux).
+    proc_stat_fields("/proc/self/stat", [14, 15]).map_or(0.0, |[user, system]| (user + system) as f64 / 100.0)
+}
+
+/// The numeric fields `numbers` (1-based, as in `proc(5)`) of a `/proc/…/stat` file; `None`
+/// where it is missing or shorter.
+fn proc_stat_fields<const N: usize>(path: &str, numbers: [usize; N]) -> Option<[u64; N]> {
+    let stat = std::fs::read_to_string(path).ok()?;
+    // The command name (field 2) is in parentheses and may hold spaces: count from after it,
+    // where field 3 (the state) comes first.
+    let fields: Vec<&str> = stat.get(stat.rfind(')')? + 1..)?.split_whitespace().collect();
+    let mut out = [0; N];
+    for (value, n) in out.iter_mut().zip(numbers) {
+        *value = fields.get(n.checked_sub(3)?)?.parse().ok()?;
+    }
+    Some(out)
 }
 
 /// Resets the kernel's peak-RSS mark so it covers only what follows (Linux; a no-op elsewhere).
@@ -663,12 +669,13 @@ struct EstimatePass {
     largest: u64,
     /// `estimate_tile`'s thread CPU seconds, summed over tiles (NaN where unavailable).
     cpu_s: f64,
-    kernel: ThreadKernelUse,
+    /// `None` where the kernel's figures cannot be read.
+    kernel: Option<ThreadKernelUse>,
 }
 
 impl Default for EstimatePass {
     fn default() -> Self {
-        let kernel = ThreadKernelUse::ZERO;
+        let kernel = Some(ThreadKernelUse::default());
         Self { compute_s: 0.0, wall_s: 0.0, points: 0, copies: 0, largest: 0, cpu_s: 0.0, kernel }
     }
 }
@@ -682,57 +689,50 @@ impl EstimatePass {
             copies: self.copies + tile.copies,
             largest: self.largest.max(tile.largest),
             cpu_s: self.cpu_s + tile.cpu_s,
-            kernel: self.kernel.plus(tile.kernel),
+            kernel: self.kernel.zip(tile.kernel).map(|(a, b)| a.plus(b)),
         }
     }
 }
 
 /// A thread's minor page faults and its user and kernel CPU in clock ticks
-/// (`/proc/thread-self/stat`; `None` where that is missing), read before and after a task.
-#[derive(Clone, Copy, Debug)]
+/// (`/proc/thread-self/stat`), read before and after a task.
+#[derive(Clone, Copy, Debug, Default)]
 struct ThreadKernelUse {
-    minor_faults: Option<u64>,
-    user_ticks: Option<u64>,
-    system_ticks: Option<u64>,
+    minor_faults: u64,
+    user_ticks: u64,
+    system_ticks: u64,
 }
 
 impl ThreadKernelUse {
-    const ZERO: Self = Self { minor_faults: Some(0), user_ticks: Some(0), system_ticks: Some(0) };
-    const UNKNOWN: Self = Self { minor_faults: None, user_ticks: None, system_ticks: None };
-
-    fn now() -> Self {
-        let Ok(stat) = std::fs::read_to_string("/proc/thread-self/stat") else { return Self::UNKNOWN };
-        // The command name (field 2) is in parentheses and may hold spaces: count from after it.
-        let Some(rest) = stat.rfind(')').map(|i| &stat[i + 1..]) else { return Self::UNKNOWN };
-        let fields: Vec<&str> = rest.split_whitespace().collect();
-        // After the name: state is field 3, so field n sits at index n − 3.
-        let field = |n: usize| fields.get(n - 3).and_then(|v| v.parse::<u64>().ok());
-        Self { minor_faults: field(10), user_ticks: field(14), system_ticks: field(15) }
+    /// `None` where there is no such file.
+    fn now() -> Option<Self> {
+        // minflt, utime and stime.
+        let [minor_faults, user_ticks, system_ticks] = proc_stat_fields("/proc/thread-self/stat", [10, 14, 15])?;
+        Some(Self { minor_faults, user_ticks, system_ticks })
     }
 
-    fn since(before: Self) -> Self {
-        let after = Self::now();
-        let delta = |a: Option<u64>, b: Option<u64>| Some(a?.saturating_sub(b?));
-        Self {
-            minor_faults: delta(after.minor_faults, before.minor_faults),
-            user_ticks: delta(after.user_ticks, before.user_ticks),
-            system_ticks: delta(after.system_ticks, before.system_ticks),
-        }
+    /// What the thread used since `before` was read.
+    fn since(before: Option<Self>) -> Option<Self> {
+        let (before, after) = (before?, Self::now()?);
+        Some(Self {
+            minor_faults: after.minor_faults.saturating_sub(before.minor_faults),
+            user_ticks: after.user_ticks.saturating_sub(before.user_ticks),
+            system_ticks: after.system_ticks.saturating_sub(before.system_ticks),
+        })
     }
 
     fn plus(self, other: Self) -> Self {
-        let sum = |a: Option<u64>, b: Option<u64>| Some(a? + b?);
         Self {
-            minor_faults: sum(self.minor_faults, other.minor_faults),
-            user_ticks: sum(self.user_ticks, other.user_ticks),
-            system_ticks: sum(self.system_ticks, other.system_ticks),
+            minor_faults: self.minor_faults + other.minor_faults,
+            user_ticks: self.user_ticks + other.user_ticks,
+            system_ticks: self.system_ticks + other.system_ticks,
         }
     }
 
     fn system_share(&self) -> f64 {
-        match (self.user_ticks, self.system_ticks) {
-            (Some(u), Some(s)) if u + s > 0 => s as f64 / (u + s) as f64,
-            _ => f64::NAN,
+        match self.user_ticks + self.system_ticks {
+            0 => f64::NAN,
+            all => self.system_ticks as f64 / all as f64,
         }
     }
 }

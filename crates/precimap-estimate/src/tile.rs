@@ -760,6 +760,10 @@ struct CentreBox<'a> {
 }
 
 impl CentreBox<'_> {
+    /// How far outside an edge (in barycentric coordinates) a centre still counts as inside:
+    /// both walks take the same centres.
+    const SLACK: f64 = -1e-9;
+
     /// How many centres [`Self::for_each`] visits.
     #[inline]
     fn len(&self) -> usize {
@@ -773,14 +777,13 @@ impl CentreBox<'_> {
     /// one without a branch.
     #[inline]
     fn for_each(&self, mut visit: impl FnMut(usize, f64, bool)) {
-        const SLACK: f64 = -1e-9;
         let (g, plane) = (self.grid, self.plane);
         for j in self.j[0]..=self.j[1] {
             let dv = (j as f64 - self.ys) * g.size;
             let row = g.offset + j as usize * g.nu as usize;
             for i in self.i[0]..=self.i[1] {
                 let (l1, l2) = plane.barycentric((i as f64 - self.xs) * g.size, dv);
-                let inside = (l1 >= SLACK) & (l2 >= SLACK) & (1.0 - l1 - l2 >= SLACK);
+                let inside = (l1 >= Self::SLACK) & (l2 >= Self::SLACK) & (1.0 - l1 - l2 >= Self::SLACK);
                 visit(row + i as usize, plane.height(l1, l2), inside);
             }
         }
@@ -795,7 +798,6 @@ impl CentreBox<'_> {
     /// per-centre test.
     #[inline]
     fn for_each_inside(&self, mut visit: impl FnMut(usize, f64)) {
-        const SLACK: f64 = -1e-9;
         let (g, plane) = (self.grid, self.plane);
         let (d1, d2) = (plane.d1, plane.d2);
         // Per column: the change of l1, l2 and 1 − l1 − l2.
@@ -812,12 +814,12 @@ impl CentreBox<'_> {
             let (mut lo, mut hi) = (0.0f64, last);
             for c in 0..3 {
                 // first + k·step ≥ SLACK
-                let bound = (SLACK - first[c]) * inverse[c];
+                let bound = (Self::SLACK - first[c]) * inverse[c];
                 if steps[c] > 0.0 {
                     lo = lo.max(bound);
                 } else if steps[c] < 0.0 {
                     hi = hi.min(bound);
-                } else if first[c] < SLACK {
+                } else if first[c] < Self::SLACK {
                     hi = -1.0;
                 }
             }
@@ -1063,8 +1065,8 @@ fn raster_latent<S: LatentSink>(
             let r = &rasters[id as usize];
             let cell = r.cell(u, v);
             let h = cell.and_then(|cell| latent_height(r, &pixels, cell)).unwrap_or(f64::NAN);
-            if S::RECORDS && !h.is_nan() {
-                let (std_m, contributions) = raster_std(r, &pixels, u, v);
+            if let (true, Some(cell)) = (S::RECORDS && !h.is_nan(), cell) {
+                let (std_m, contributions) = raster_std(r, &pixels, cell);
                 sink.add(&LatentSample {
                     position: lifted(p, m.w, h - own),
                     normal: m.w,
@@ -1083,13 +1085,12 @@ fn raster_latent<S: LatentSink>(
         .collect()
 }
 
-/// Standard deviation of the strips' heights in the pixel nearest to `(u, v)` (one that
-/// [`latent_height`] interpolated from, so it has contributions), and that pixel's count of
-/// surface contributions.
-fn raster_std(r: &PixelGrid, pixels: &[Pixel], u: f64, v: f64) -> (f64, u32) {
-    let i = (floor((u - r.u0) / r.size) as usize).min(r.nu as usize - 1);
-    let j = (floor((v - r.v0) / r.size) as usize).min(r.nv as usize - 1);
-    let p = &pixels[r.offset + j * r.nu as usize + i];
+/// Standard deviation of the strips' heights in the pixel holding the point of `cell` (the one
+/// of its four centres nearest to the point, which [`latent_height`] interpolated from, so it has
+/// contributions), and that pixel's count of surface contributions.
+fn raster_std(r: &PixelGrid, pixels: &[Pixel], cell: Cell) -> (f64, u32) {
+    let Cell { at, tu, tv } = cell;
+    let p = &pixels[at + (tu >= 0.5) as usize + (tv >= 0.5) as usize * r.nu as usize];
     let n = p.count as f64;
     let mean = p.sum as f64 / n;
     ((p.sum2 as f64 / n - mean * mean).max(0.0).sqrt(), p.count)
@@ -2153,8 +2154,8 @@ mod tests {
     fn centre_box_matches_barycentric_reference() {
         let mut seed = 11u64;
         let mut rand = |scale: f64| uniform(&mut seed) * scale;
-        let (nu, nv) = (16i64, 14i64);
         let grid = PixelGrid { u0: 3.2, v0: -1.7, size: 0.05, inv: 1.0 / 0.05, nu: 16, nv: 14, offset: 1000 };
+        let (nu, nv) = (grid.nu as i64, grid.nv as i64);
         // Pixel coordinates (centre (i, j) at (i, j)) to the plane's metres.
         let metres = |x: f64, y: f64| [grid.u0 + (x + 0.5) * grid.size, grid.v0 + (y + 0.5) * grid.size];
         for _ in 0..2000 {
@@ -2167,7 +2168,7 @@ mod tests {
             };
             // By the per-centre test and by scanline spans.
             let (mut got, mut spans) = (std::collections::BTreeMap::new(), std::collections::BTreeMap::new());
-            let pixel = |at: usize| ((at - grid.offset) % 16, (at - grid.offset) / 16);
+            let pixel = |at: usize| ((at - grid.offset) % nu as usize, (at - grid.offset) / nu as usize);
             if let Some(plane) = PlaneTriangle::new([corner(0), corner(1), corner(2)]) {
                 if let Some(centres) = grid.centres_under(&plane) {
                     let mut visited = 0;
