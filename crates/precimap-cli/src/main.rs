@@ -40,6 +40,13 @@ enum Command {
         /// Write LAZ instead of LAS.
         #[arg(long)]
         laz: bool,
+        /// Measurements per scanner revolution instead of the scale's (small 240, i.e. 1.5°;
+        /// real mobile-mapping heads take ~3000); must divide 60000.
+        #[arg(long)]
+        points_per_revolution: Option<u32>,
+        /// Scanner revolutions per second instead of the scale's (small 40, medium 100).
+        #[arg(long)]
+        revolutions_per_s: Option<f64>,
     },
     /// Adjust a campaign: corrected strips, trajectories and report.json in OUT. Runs through the
     /// job framework on the embedded default (SQLite + local store + in-process executors).
@@ -265,7 +272,16 @@ fn real_main(cli: Cli) -> Result<()> {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting up the thread pool")?;
     }
     match cli.command {
-        Command::Simulate { scale, seed, out, laz } => simulate(scale, seed, &out, laz).map(|_| ()),
+        Command::Simulate { scale, seed, out, laz, points_per_revolution, revolutions_per_s } => {
+            let mut config = precimap_sim::SimConfig::for_scale(scale, seed);
+            if let Some(n) = points_per_revolution {
+                config.scanner.points_per_revolution = n;
+            }
+            if let Some(r) = revolutions_per_s {
+                config.scanner.revolutions_per_s = r;
+            }
+            simulate(&config, &out, laz)
+        }
         Command::Run { manifest, out, keep_work, in_process, assignments } => {
             if in_process {
                 run(&manifest, &out, keep_work, assignments).map(|_| ())
@@ -296,7 +312,7 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::Demo { scale, seed, out } => {
             let campaign = out.join("campaign");
             let result = out.join("result");
-            simulate(scale, seed, &campaign, false)?;
+            simulate(&precimap_sim::SimConfig::for_scale(scale, seed), &campaign, false)?;
             service::run_framework(&campaign.join("manifest.json"), &result, false)?;
             evaluate(&campaign.join("truth"), &result, false)?;
             eprintln!(
@@ -314,12 +330,11 @@ fn real_main(cli: Cli) -> Result<()> {
     }
 }
 
-fn simulate(scale: precimap_sim::Scale, seed: u64, out: &std::path::Path, laz: bool) -> Result<()> {
-    let config = precimap_sim::SimConfig::for_scale(scale, seed);
+fn simulate(config: &precimap_sim::SimConfig, out: &std::path::Path, laz: bool) -> Result<()> {
     let started = std::time::Instant::now();
-    eprintln!("simulating a {scale:?} campaign (seed {seed}) into {}", out.display());
+    eprintln!("simulating a {:?} campaign (seed {}) into {}", config.scale, config.seed, out.display());
     let summary =
-        precimap_sim::simulate(&config, out, laz).with_context(|| format!("simulating into {}", out.display()))?;
+        precimap_sim::simulate(config, out, laz).with_context(|| format!("simulating into {}", out.display()))?;
     eprintln!(
         "  {} points in {} strips of {} trajectories ({:.1} s)",
         summary.points,

@@ -329,6 +329,12 @@ impl SimConfig {
         }
         if s.points_per_revolution < 8 {
             out.push("scanner.points_per_revolution must be at least 8".into());
+        } else if 60_000 % s.points_per_revolution != 0 {
+            out.push(format!(
+                "scanner.points_per_revolution ({}) must divide 60000: LAS stores scan angles in 0.006° units, so \
+                 only then is every measurement's angle exact (e.g. 240, 600, 1200, 1500, 2000, 3000)",
+                s.points_per_revolution
+            ));
         }
         if !(s.min_range_m >= 0.0 && s.min_range_m < s.max_range_m) {
             out.push("scanner.min_range_m must be in [0, max_range_m)".into());
@@ -464,7 +470,6 @@ mod tests {
         for scale in Scale::ALL {
             let c = SimConfig::for_scale(scale, 1);
             assert!(c.problems().is_empty(), "{scale}: {:?}", c.problems());
-            assert_eq!(60_000 % c.scanner.points_per_revolution, 0, "{scale}: scan angles not exact in LAS units");
             let json = serde_json::to_string(&c).unwrap();
             assert_eq!(serde_json::from_str::<SimConfig>(&json).unwrap(), c);
         }
@@ -473,5 +478,14 @@ mod tests {
         c.town.block_m = 10.0;
         let p = c.problems();
         assert!(p.iter().any(|m| m.contains("passes")) && p.iter().any(|m| m.contains("block_m")), "{p:?}");
+        // `simulate --points-per-revolution`: real scanners' 0.3° and 0.12° steps are exact in
+        // LAS's 0.006° units, 1,100 measurements per revolution are not.
+        let mut c = SimConfig::for_scale(Scale::Small, 1);
+        for (n, exact) in [(1_200, true), (3_000, true), (1_100, false)] {
+            c.scanner.points_per_revolution = n;
+            let p = c.problems();
+            assert_eq!(p.is_empty(), exact, "{n}: {p:?}");
+            assert!(exact || p[0].contains("must divide 60000"), "{p:?}");
+        }
     }
 }
