@@ -109,18 +109,21 @@ impl ErrorStats {
     }
 }
 
-/// Per (group, strip): number of samples and sum of signed errors. Groups are tiles
+/// Per (group, strip): number of samples, sum of signed errors and sum of the true unit normals
+/// (zero where the samples came without one, [`GroupStripMeans::add`]). Groups are tiles
 /// ([`TileStripMeans`]) or (tile, true surface) pairs ([`SurfaceStripMeans`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GroupStripMeans<K: Eq + std::hash::Hash> {
-    cells: FxHashMap<(K, u32), (u64, f64)>,
+    cells: FxHashMap<(K, u32), (u64, f64, [f64; 3])>,
 }
 
 /// Strip means per 15 m tile.
 pub type TileStripMeans = GroupStripMeans<TileKey>;
 /// Strip means per (tile, true surface id): strips compared only where they measured the same
 /// surface, so a shift shared by all strips cancels even where strips see differently oriented
-/// surfaces (e.g. the two faces of a building corner).
+/// surfaces (e.g. the two faces of a building corner) — though not on a surface that itself
+/// faces several ways (a pole's sides, a car), where [`GroupStripMeans::spread_of_without_shift`]
+/// removes it.
 pub type SurfaceStripMeans = GroupStripMeans<(TileKey, u32)>;
 /// Strip means per (surface class, tile, true surface id): the same-surface spread of one class's
 /// points alone (curbs, poles, cars: the thin and two-sided structures where the latent map's
@@ -139,16 +142,24 @@ impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
     }
 
     pub fn add(&mut self, tile: K, strip: u32, e: f64) {
-        let c = self.cells.entry((tile, strip)).or_insert((0, 0.0));
+        self.add_oriented(tile, strip, e, [0.0; 3]);
+    }
+
+    /// [`Self::add`] with the sample's true unit normal, for
+    /// [`Self::spread_of_without_shift`].
+    pub fn add_oriented(&mut self, group: K, strip: u32, e: f64, normal: [f64; 3]) {
+        let c = self.cells.entry((group, strip)).or_insert((0, 0.0, [0.0; 3]));
         c.0 += 1;
         c.1 += e;
+        (0..3).for_each(|a| c.2[a] += normal[a]);
     }
 
     pub fn merge(&mut self, other: Self) {
-        for (k, (n, s)) in other.cells {
-            let c = self.cells.entry(k).or_insert((0, 0.0));
+        for (k, (n, s, sn)) in other.cells {
+            let c = self.cells.entry(k).or_insert((0, 0.0, [0.0; 3]));
             c.0 += n;
             c.1 += s;
+            (0..3).for_each(|a| c.2[a] += sn[a]);
         }
     }
 
@@ -162,10 +173,19 @@ impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
 
     /// [`Self::spread`] over the groups `keep` accepts only (e.g. the groups of one surface class).
     pub fn spread_of(&self, min_points: usize, keep: impl Fn(&K) -> bool) -> (f64, usize) {
+        self.spread_of_without_shift(min_points, keep, [0.0; 3])
+    }
+
+    /// [`Self::spread_of`] after removing the translation `d` from every sample (`e − d·n`, with
+    /// the normals of [`Self::add_oriented`]): where a group's surface faces several ways (a
+    /// pole seen from both sides), a shift shared by all strips moves their means apart,
+    /// and this takes it out again. `d` = 0 gives [`Self::spread_of`] bit for bit.
+    pub fn spread_of_without_shift(&self, min_points: usize, keep: impl Fn(&K) -> bool, d: [f64; 3]) -> (f64, usize) {
         let mut tiles: BTreeMap<K, Vec<(u32, f64)>> = BTreeMap::new();
-        for (&(tile, strip), &(n, sum)) in &self.cells {
+        for (&(tile, strip), &(n, sum, sn)) in &self.cells {
             if n >= min_points as u64 && n > 0 && keep(&tile) {
-                tiles.entry(tile).or_default().push((strip, sum / n as f64));
+                let shared = d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2];
+                tiles.entry(tile).or_default().push((strip, (sum - shared) / n as f64));
             }
         }
         let (mut sum_sq, mut pairs) = (0.0, 0usize);
@@ -195,7 +215,7 @@ impl GroupStripMeans<TileKey> {
     /// deformation shared by all passes rather than a misalignment between them.
     pub fn worst_tiles(&self, min_points: usize, count: usize) -> Vec<TileOffsets> {
         let mut tiles: BTreeMap<TileKey, Vec<(u32, f64)>> = BTreeMap::new();
-        for (&(tile, strip), &(n, sum)) in &self.cells {
+        for (&(tile, strip), &(n, sum, _)) in &self.cells {
             if n >= min_points as u64 && n > 0 {
                 tiles.entry(tile).or_default().push((strip, sum / n as f64));
             }
@@ -354,7 +374,7 @@ impl ShiftFreeMeans {
     fn spread_with(&self, mut sum: impl FnMut(TileKey, f64, [f64; 3]) -> f64, min_points: usize) -> (f64, usize) {
         let mut acc = TileStripMeans::new();
         for (&(tile, strip), &(n, e, sn)) in &self.pairs {
-            let c = acc.cells.entry((tile, strip)).or_insert((0, 0.0));
+            let c = acc.cells.entry((tile, strip)).or_insert((0, 0.0, [0.0; 3]));
             c.0 += n;
             c.1 += sum(tile, e, sn);
         }
@@ -459,6 +479,28 @@ mod tests {
         let (surface_spread, pairs) = surfaces.spread(200);
         assert!(close(tile_spread, 0.05), "{tile_spread}");
         assert!(close(surface_spread, 0.0) && pairs == 4, "{surface_spread} {pairs}");
+    }
+
+    /// A pole seen from opposite sides: both strips are shifted alike by 0.05 m along x, strip 0
+    /// sees the face with normal +x and strip 1 the face with normal −x. On the pole as one
+    /// surface the shared shift shows as ±0.05 m; with the shift removed the strips agree, while
+    /// a real disagreement (strip 1 off by another 4 mm along its normal) is kept.
+    #[test]
+    fn shared_shift_on_a_two_sided_surface_cancels_once_removed() {
+        let d = [0.05, 0.0, 0.0];
+        for (extra, expected) in [(0.0, 0.0), (0.004, 0.002)] {
+            let mut pole = SurfaceStripMeans::new();
+            for (strip, normal, off) in [(0u32, [1.0, 0.0, 0.0], 0.0), (1, [-1.0, 0.0, 0.0], extra)] {
+                let e = d[0] * normal[0] + off;
+                for _ in 0..300 {
+                    pole.add_oriented((T0, 7), strip, e, normal);
+                }
+            }
+            let (with_shift, pairs) = pole.spread_of(200, |_| true);
+            let (without, _) = pole.spread_of_without_shift(200, |_| true, d);
+            assert!(pairs == 2 && with_shift > 0.045, "{with_shift} {pairs}");
+            assert!((without - expected).abs() < 1e-9, "{extra}: {without}");
+        }
     }
 
     /// A class's spread counts that class's groups only: the road agrees, the curb does not.
