@@ -275,16 +275,18 @@ fn bench_estimate(
                     let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
                     let chunks = tasks::load_tile(&work, **tile, &ids)?;
                     let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
+                    // The kernel's figures are read outside the timed span: their reads of
+                    // /proc would count as the task's CPU.
+                    let kernel = ThreadKernelUse::now();
                     let t = Instant::now();
                     let cpu = thread_cpu_s();
-                    let kernel = ThreadKernelUse::now();
                     let est = precimap_estimate::estimate_tile(**tile, &chunks, &corrections, params, step)?;
-                    let kernel = ThreadKernelUse::since(kernel);
                     let cpu_s = match (cpu, thread_cpu_s()) {
                         (Some(a), Some(b)) => b - a,
                         _ => f64::NAN,
                     };
                     let compute_s = t.elapsed().as_secs_f64();
+                    let kernel = ThreadKernelUse::since(kernel);
                     let points = est.stats.points;
                     Ok(EstimatePass { compute_s, wall_s: 0.0, points, copies, largest: copies, cpu_s, kernel })
                 })

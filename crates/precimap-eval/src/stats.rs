@@ -181,11 +181,21 @@ impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
     /// pole seen from both sides), a shift shared by all strips moves their means apart,
     /// and this takes it out again. `d` = 0 gives [`Self::spread_of`] bit for bit.
     pub fn spread_of_without_shift(&self, min_points: usize, keep: impl Fn(&K) -> bool, d: [f64; 3]) -> (f64, usize) {
+        self.spread_with(min_points, keep, |_, sum, sn| sum - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]))
+    }
+
+    /// The spread of the groups `keep` accepts, with each (group, strip) pair's error sum
+    /// replaced by `sum(group, Σe, Σn)` before it is divided by the count.
+    fn spread_with(
+        &self,
+        min_points: usize,
+        keep: impl Fn(&K) -> bool,
+        mut sum: impl FnMut(K, f64, [f64; 3]) -> f64,
+    ) -> (f64, usize) {
         let mut tiles: BTreeMap<K, Vec<(u32, f64)>> = BTreeMap::new();
-        for (&(tile, strip), &(n, sum, sn)) in &self.cells {
+        for (&(tile, strip), &(n, e, sn)) in &self.cells {
             if n >= min_points as u64 && n > 0 && keep(&tile) {
-                let shared = d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2];
-                tiles.entry(tile).or_default().push((strip, (sum - shared) / n as f64));
+                tiles.entry(tile).or_default().push((strip, sum(tile, e, sn) / n as f64));
             }
         }
         let (mut sum_sq, mut pairs) = (0.0, 0usize);
@@ -244,7 +254,7 @@ impl GroupStripMeans<TileKey> {
 /// strips agree; these figures tell how much of the spread such a shift explains.
 #[derive(Clone, Debug, Default)]
 pub struct ShiftFreeMeans {
-    pairs: FxHashMap<(TileKey, u32), (u64, f64, [f64; 3])>,
+    pairs: TileStripMeans,
     tiles: FxHashMap<TileKey, ([[f64; 3]; 3], [f64; 3])>,
     /// Per tile Σ of the trajectory position error at each surface point's time, and the count.
     datum: FxHashMap<TileKey, ([f64; 3], u64)>,
@@ -257,12 +267,9 @@ impl ShiftFreeMeans {
 
     /// `normal` must be a unit vector.
     pub fn add(&mut self, tile: TileKey, strip: u32, e: f64, normal: [f64; 3]) {
-        let p = self.pairs.entry((tile, strip)).or_insert((0, 0.0, [0.0; 3]));
-        p.0 += 1;
-        p.1 += e;
+        self.pairs.add_oriented(tile, strip, e, normal);
         let t = self.tiles.entry(tile).or_insert(([[0.0; 3]; 3], [0.0; 3]));
         for a in 0..3 {
-            p.2[a] += normal[a];
             t.1[a] += normal[a] * e;
             for b in 0..3 {
                 t.0[a][b] += normal[a] * normal[b];
@@ -284,12 +291,7 @@ impl ShiftFreeMeans {
             (0..3).for_each(|a| d.0[a] += s[a]);
             d.1 += n;
         }
-        for (k, (n, e, sn)) in other.pairs {
-            let p = self.pairs.entry(k).or_insert((0, 0.0, [0.0; 3]));
-            p.0 += n;
-            p.1 += e;
-            (0..3).for_each(|a| p.2[a] += sn[a]);
-        }
+        self.pairs.merge(other.pairs);
         for (k, (nn, ne)) in other.tiles {
             let t = self.tiles.entry(k).or_insert(([[0.0; 3]; 3], [0.0; 3]));
             for a in 0..3 {
@@ -371,14 +373,8 @@ impl ShiftFreeMeans {
     }
 
     /// The spread with each (tile, strip) pair's error sum replaced by `sum(tile, Σe, Σn)`.
-    fn spread_with(&self, mut sum: impl FnMut(TileKey, f64, [f64; 3]) -> f64, min_points: usize) -> (f64, usize) {
-        let mut acc = TileStripMeans::new();
-        for (&(tile, strip), &(n, e, sn)) in &self.pairs {
-            let c = acc.cells.entry((tile, strip)).or_insert((0, 0.0, [0.0; 3]));
-            c.0 += n;
-            c.1 += sum(tile, e, sn);
-        }
-        acc.spread(min_points)
+    fn spread_with(&self, sum: impl FnMut(TileKey, f64, [f64; 3]) -> f64, min_points: usize) -> (f64, usize) {
+        self.pairs.spread_with(min_points, |_| true, sum)
     }
 }
 
