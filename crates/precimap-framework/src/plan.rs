@@ -350,6 +350,11 @@ pub struct PlanState {
     /// When the current iteration's map stage was enqueued (database clock, ms).
     #[serde(default)]
     pub iteration_enqueued_at_ms: Option<i64>,
+    /// Wall seconds of the Anderson stages that made the next iteration's start: reported in
+    /// that iteration's seconds, as the in-process driver does, so that the iterations' seconds
+    /// add up to the estimation's.
+    #[serde(default)]
+    pub acceleration_s: f64,
     /// Task seconds summed over every finished task (the executors' work, however many shared it).
     #[serde(default)]
     pub task_s: f64,
@@ -427,6 +432,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         latent_map: Vec::new(),
         pending_seconds: 0.0,
         iteration_enqueued_at_ms: None,
+        acceleration_s: 0.0,
         task_s: 0.0,
         iterations: Vec::new(),
         converged: false,
@@ -851,7 +857,7 @@ fn after_solve(
     let wall = match (state.iteration_enqueued_at_ms.take(), span) {
         (Some(enqueued_at_ms), Some(span)) => StageSpan { enqueued_at_ms, ..span }.seconds(),
         _ => seconds,
-    };
+    } + std::mem::take(&mut state.acceleration_s);
     let (max_change, max_change_at) = precimap_pipeline::report::ChangeLocation::largest(
         state
             .trajectories
@@ -933,7 +939,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
     }
     let coefficients = anderson::coefficients(&total);
     state.task_s += seconds;
-    state.estimate_s += wall_seconds(finished, seconds);
+    state.acceleration_s += wall_seconds(finished, seconds);
     let tasks = state
         .trajectories
         .iter()
@@ -968,7 +974,7 @@ fn after_combine(state: &mut PlanState, tasks: &[FinishedTask], finished: &Finis
     }
     state.corrections = accelerated;
     state.task_s += seconds;
-    state.estimate_s += wall_seconds(finished, seconds);
+    state.acceleration_s += wall_seconds(finished, seconds);
     Ok(estimate_stage(state))
 }
 

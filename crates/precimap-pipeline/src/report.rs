@@ -86,6 +86,8 @@ pub struct IterationReport {
     /// absent when it started from the last iteration's result.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub anderson_coefficients: Vec<f64>,
+    /// Wall-clock seconds, including the Anderson combination this iteration started from: the
+    /// iterations' seconds add up to the estimation's.
     pub seconds: f64,
 }
 

@@ -247,6 +247,8 @@ pub fn run_campaign(
     let mut anderson = AndersonHistory::default();
     // The coefficients that made the next iteration's start (its report names them).
     let mut anderson_coefficients = Vec::new();
+    // The time that combination took, reported with the iteration it started.
+    let mut acceleration_s = 0.0;
     loop {
         let iteration_started = Instant::now();
         let step = &effective_step(&campaign.params, step_index, robust_sigma);
@@ -277,7 +279,7 @@ pub fn run_campaign(
         solutions = sol;
         histogram = stats.histogram.clone();
         robust_sigma = histogram.robust_sigma_m();
-        let seconds = iteration_started.elapsed().as_secs_f64();
+        let seconds = iteration_started.elapsed().as_secs_f64() + std::mem::take(&mut acceleration_s);
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         report.max_correction_change_at = max_change_at;
         report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
@@ -289,9 +291,11 @@ pub fn run_campaign(
             AfterIteration::Step(next) => {
                 if mix {
                     // As the framework's `accelerate` and `combine` stages compute it.
+                    let started = Instant::now();
                     let accelerated = anderson.accelerate().map_err(PipelineError::Anderson)?;
                     corrections = accelerated.corrections;
                     anderson_coefficients = accelerated.coefficients;
+                    acceleration_s = started.elapsed().as_secs_f64();
                 }
                 step_index = next;
             }
