@@ -129,19 +129,29 @@ pub struct Parameters {
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
     /// by orders of magnitude. 3 cm was measured better on every metric (see ARCHITECTURE.md).
     pub sigma_distance_m: f64,
-    /// σ of the prior on the total position correction (GNSS/IMU position accuracy).
+    /// σ of the prior on the total position correction, per anchor. Not the GNSS/IMU accuracy
+    /// itself: the prior holds every anchor independently, so over a stretch of `n` anchors it
+    /// holds their mean to σ/√n, while the real error is correlated over hundreds of metres.
+    /// 1 m since stop 40 (0.3 m before; ARCHITECTURE.md, "A looser attitude model").
     pub sigma_prior_position_m: f64,
-    /// σ of the prior on the total attitude correction (GNSS/IMU attitude accuracy).
+    /// σ of the prior on the total attitude correction, per anchor (as for the position, an
+    /// independent prior per anchor holds a stretch's mean far tighter than its σ reads). Kept
+    /// at 0.02° at stop 40: 0.05° made small and medium agree better still, but at a real
+    /// scanner's 0.3° step one stretch of street then swung by centimetres (ARCHITECTURE.md, "A
+    /// looser attitude model").
     pub sigma_prior_rotation_deg: f64,
     /// σ of the change in position correction between neighbouring anchors.
     pub sigma_smooth_position_m: f64,
-    /// σ of the change in attitude correction between neighbouring anchors.
+    /// σ of the change in attitude correction between neighbouring anchors. 0.004° since stop 40
+    /// (0.001° before): attitude errors with periods from ~5 s change by up to ~0.0016° per
+    /// 0.5 m at 8 m/s, and the stiffer term made strips disagree where the attitude had to bend.
     pub sigma_smooth_rotation_deg: f64,
     /// σ of the second difference of the position correction over three neighbouring anchors
     /// (curvature). GNSS/IMU errors bend over hundreds of metres; a kink within metres is an
     /// artefact. 0 disables the term.
     pub sigma_curvature_position_m: f64,
-    /// σ of the second difference of the attitude correction; 0 disables the term.
+    /// σ of the second difference of the attitude correction; 0 disables the term. 0.0003°
+    /// since stop 40 (0.0001° before), with the smoothness above.
     pub sigma_curvature_rotation_deg: f64,
     /// An anchor's own observations are trusted only in directions carrying at least this share
     /// of its strongest direction's information (rotations compared as displacements at 10 m).
@@ -194,11 +204,11 @@ pub struct Parameters {
     /// campaign (bilinear between nodes this far apart) is solved with the latent map moving
     /// along, and added to every trajectory at its anchors. It moves the shift every pass at a
     /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
-    /// 15 m since stop 12 (30 m before): on medium the spread without the campaign's shift falls
-    /// 2.90 → 1.28 mm. With the default schedule's settling (stop 13), 10 m nodes gain 1–2 % on
-    /// medium and lose 1–2 % on small seed 1 for 2.25× the nodes. The field's sparse solve takes
-    /// a street network of ~290 km² at 15 m (`MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
-    /// ARCHITECTURE.md, "The common-mode field's sparse solve").
+    /// 7.5 m since stop 40 (15 m since stop 12, 30 m before): with the looser attitude model and
+    /// Anderson, medium seed 1's latent map lies 4.27 mm from the truth without the campaign's
+    /// shift at 7.5 m against 5.52 mm at 15 m and 4.48 mm at 5 m. The field's sparse solve takes
+    /// a street network of ~70 km² at 7.5 m (~290 km² at 15 m: `MAX_FIELD_FACTOR_ENTRIES` in
+    /// `precimap-estimate`; ARCHITECTURE.md, "The common-mode field's sparse solve").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step
     /// that no field on the same nodes represents (the field re-solves the rest itself, so
@@ -222,10 +232,11 @@ pub struct Parameters {
     /// starts from the combination of the last `anderson_depth` + 1 results that best cancels
     /// their steps (`precimap_estimate::anderson`). The fixed point does not move. Measured with
     /// depth 5 (stop 29): the 48-step schedule converges in 19 / 20 / 25 iterations instead of
-    /// 26 / 29 / 44 on small seeds 1, 2 and medium seed 1, to the same figures (≤ 0.01 mm). Off
-    /// (0) by default: within the default 18 iterations it moves the small seeds' latent maps
-    /// 2–3 % toward their fixed point, which lies farther from the truth than iteration 18 does
-    /// (ARCHITECTURE.md, "Anderson acceleration over the settling steps").
+    /// 26 / 29 / 44 on small seeds 1, 2 and medium seed 1, to the same figures (≤ 0.01 mm). On
+    /// (5) by default since stop 40: with the looser attitude model it changes small seeds 1 and
+    /// 2's figures by 1.3 % or less either way, and iteration 18's largest change falls 2.8–3.8×
+    /// (ARCHITECTURE.md, "Anderson acceleration over the settling steps" and "A looser attitude
+    /// model"). 0 turns it off.
     pub anderson_depth: usize,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,
@@ -249,22 +260,22 @@ impl Default for Parameters {
             normal_group_angle_deg: 30.0,
             segment_surfaces: true,
             sigma_distance_m: 0.03,
-            sigma_prior_position_m: 0.3,
+            sigma_prior_position_m: 1.0,
             sigma_prior_rotation_deg: 0.02,
             sigma_smooth_position_m: 0.005,
-            sigma_smooth_rotation_deg: 0.001,
+            sigma_smooth_rotation_deg: 0.004,
             sigma_curvature_position_m: 0.0001,
-            sigma_curvature_rotation_deg: 0.0001,
+            sigma_curvature_rotation_deg: 0.0003,
             weak_information_ratio: 0.01,
             point_latent_below_grid_m: 0.03,
             latent_pixel_share: 0.7,
             threshold_floor_sigmas: 4.0,
             cover_agreement_thresholds: 0.0,
             momentum: 0.85,
-            common_mode_field_m: 15.0,
+            common_mode_field_m: 7.5,
             field_free_momentum: false,
             consistent_gradient: true,
-            anderson_depth: 0,
+            anderson_depth: 5,
             schedule: default_schedule(),
             convergence_tolerance_m: 1e-4,
             latent_map_grid_m: 0.1,

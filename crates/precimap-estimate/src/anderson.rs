@@ -506,8 +506,8 @@ mod tests {
         let translation_only = IterationStep { rotation: false, ..settle };
         assert!(!h.record(&params, &translation_only, false, vec![7], || vec![8]));
         assert_eq!(h.entries.len(), 1);
-        // Off by default.
-        let off = Parameters::default();
+        // Depth 0 turns it off.
+        let off = Parameters { anderson_depth: 0, ..Default::default() };
         let mut h = AndersonHistory::<u32>::default();
         assert!(!h.record(&off, &settle, false, vec![1], || vec![2]));
         assert!(!h.record(&off, &settle, false, vec![2], || vec![3]));
