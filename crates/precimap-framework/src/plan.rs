@@ -347,14 +347,11 @@ pub struct PlanState {
     #[serde(default)]
     pub latent_map: Vec<(String, String)>,
     pub pending_seconds: f64,
-    /// When the current iteration's map stage was enqueued (database clock, ms).
+    /// When the current iteration's first stage was enqueued (database clock, ms): its map stage,
+    /// or the Anderson stages that made its start, so that their time counts in the iteration
+    /// they start and the iterations' seconds add up to the estimation's.
     #[serde(default)]
     pub iteration_enqueued_at_ms: Option<i64>,
-    /// Wall seconds of the Anderson stages that made the next iteration's start: reported in
-    /// that iteration's seconds, as the in-process driver does, so that the iterations' seconds
-    /// add up to the estimation's.
-    #[serde(default)]
-    pub acceleration_s: f64,
     /// Task seconds summed over every finished task (the executors' work, however many shared it).
     #[serde(default)]
     pub task_s: f64,
@@ -432,7 +429,6 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         latent_map: Vec::new(),
         pending_seconds: 0.0,
         iteration_enqueued_at_ms: None,
-        acceleration_s: 0.0,
         task_s: 0.0,
         iterations: Vec::new(),
         converged: false,
@@ -505,7 +501,8 @@ impl StagePlanner for CampaignPlanner {
                 }
             }
             STAGE_ESTIMATE => {
-                state.iteration_enqueued_at_ms = finished.span_ms.map(|s| s.enqueued_at_ms);
+                state.iteration_enqueued_at_ms =
+                    state.iteration_enqueued_at_ms.or(finished.span_ms.map(|s| s.enqueued_at_ms));
                 after_estimate(&mut state, &finished.tasks)?
             }
             STAGE_FIELD => after_field(&mut state, &finished.tasks)?,
@@ -515,7 +512,7 @@ impl StagePlanner for CampaignPlanner {
                 next
             }
             STAGE_ACCELERATE => after_accelerate(&mut state, &finished.tasks, finished)?,
-            STAGE_COMBINE => after_combine(&mut state, &finished.tasks, finished)?,
+            STAGE_COMBINE => after_combine(&mut state, &finished.tasks)?,
             STAGE_EXPORT => {
                 let task_s = seconds_of::<ExportResult>(&finished.tasks, |r| r.seconds)?;
                 state.task_s += task_s;
@@ -857,7 +854,7 @@ fn after_solve(
     let wall = match (state.iteration_enqueued_at_ms.take(), span) {
         (Some(enqueued_at_ms), Some(span)) => StageSpan { enqueued_at_ms, ..span }.seconds(),
         _ => seconds,
-    } + std::mem::take(&mut state.acceleration_s);
+    };
     let (max_change, max_change_at) = precimap_pipeline::report::ChangeLocation::largest(
         state
             .trajectories
@@ -939,7 +936,8 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
     }
     let coefficients = anderson::coefficients(&total);
     state.task_s += seconds;
-    state.acceleration_s += wall_seconds(finished, seconds);
+    // The next iteration starts here.
+    state.iteration_enqueued_at_ms = finished.span_ms.map(|s| s.enqueued_at_ms);
     let tasks = state
         .trajectories
         .iter()
@@ -959,7 +957,7 @@ fn after_accelerate(state: &mut PlanState, tasks: &[FinishedTask], finished: &Fi
 }
 
 /// The combinations become the next iteration's corrections.
-fn after_combine(state: &mut PlanState, tasks: &[FinishedTask], finished: &FinishedStage) -> Result<Next, String> {
+fn after_combine(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, String> {
     let (combined, seconds) = by_trajectory(state, tasks, |r: &CombineResult| (r.trajectory, r.seconds))?;
     let mut accelerated = Vec::with_capacity(combined.len());
     for (t, c) in combined.iter().enumerate() {
@@ -974,7 +972,6 @@ fn after_combine(state: &mut PlanState, tasks: &[FinishedTask], finished: &Finis
     }
     state.corrections = accelerated;
     state.task_s += seconds;
-    state.acceleration_s += wall_seconds(finished, seconds);
     Ok(estimate_stage(state))
 }
 

@@ -247,10 +247,10 @@ pub fn run_campaign(
     let mut anderson = AndersonHistory::default();
     // The coefficients that made the next iteration's start (its report names them).
     let mut anderson_coefficients = Vec::new();
-    // The time that combination took, reported with the iteration it started.
-    let mut acceleration_s = 0.0;
+    // An iteration's clock starts where the previous one's stopped, so that the Anderson
+    // combination between them counts in the iteration it starts (as in the framework).
+    let mut iteration_started = Instant::now();
     loop {
-        let iteration_started = Instant::now();
         let step = &effective_step(&campaign.params, step_index, robust_sigma);
         let last = step_index + 1 == schedule.len();
         let before =
@@ -279,7 +279,8 @@ pub fn run_campaign(
         solutions = sol;
         histogram = stats.histogram.clone();
         robust_sigma = histogram.robust_sigma_m();
-        let seconds = iteration_started.elapsed().as_secs_f64() + std::mem::take(&mut acceleration_s);
+        let seconds = iteration_started.elapsed().as_secs_f64();
+        iteration_started = Instant::now();
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         report.max_correction_change_at = max_change_at;
         report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
@@ -291,11 +292,9 @@ pub fn run_campaign(
             AfterIteration::Step(next) => {
                 if mix {
                     // As the framework's `accelerate` and `combine` stages compute it.
-                    let started = Instant::now();
                     let accelerated = anderson.accelerate().map_err(PipelineError::Anderson)?;
                     corrections = accelerated.corrections;
                     anderson_coefficients = accelerated.coefficients;
-                    acceleration_s = started.elapsed().as_secs_f64();
                 }
                 step_index = next;
             }
