@@ -31,7 +31,10 @@ pub use stats::{
     signed_normal_error, strip_offset_spread, AbsHistogram, ClassSurfaceStripMeans, ErrorStats, GroupStripMeans,
     ShiftFreeMeans, SurfaceStripMeans, TileStripMeans,
 };
-pub use trajectory::{position_error_at, position_error_from, trajectory_errors, TrajectoryErrors};
+pub use trajectory::{
+    largest_frame_errors, position_error_at, position_error_from, trajectory_errors, FrameSums, LargestError,
+    TrajectoryErrors, FRAME_COMPONENTS,
+};
 
 use precimap_core::{TileKey, Trajectory};
 use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, resolve_uri, FormatError, ManifestError};
@@ -112,6 +115,51 @@ pub struct TrajectoryEvaluation {
     pub samples_outside_truth: u64,
     pub position_rms_m: Metric,
     pub rotation_rms_deg: Metric,
+    /// Position error in the true trajectory's frame without the datum (`datum_error_m`, the
+    /// mean over every trajectory), RMS weighted by arc length.
+    pub error_without_datum_rms_m: FrameMetric,
+    /// Where each frame component of that error is largest while the trajectory's strips have
+    /// points, in the input and in the result.
+    pub largest_error_without_datum_before: FrameLargest,
+    pub largest_error_without_datum_after: FrameLargest,
+}
+
+/// A position error's RMS per component of the true trajectory's frame
+/// ([`FRAME_COMPONENTS`]), before and after estimation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FrameMetric {
+    pub along_track: Metric,
+    pub across_track: Metric,
+    pub vertical: Metric,
+}
+
+impl FrameMetric {
+    fn new(before: [f64; 3], after: [f64; 3]) -> Self {
+        Self {
+            along_track: metric(before[0], after[0]),
+            across_track: metric(before[1], after[1]),
+            vertical: metric(before[2], after[2]),
+        }
+    }
+
+    fn components(&self) -> [&Metric; 3] {
+        [&self.along_track, &self.across_track, &self.vertical]
+    }
+}
+
+/// The largest error per frame component ([`largest_frame_errors`]); `None` where the
+/// trajectory never moves inside the truth's time span.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FrameLargest {
+    pub along_track: Option<LargestError>,
+    pub across_track: Option<LargestError>,
+    pub vertical: Option<LargestError>,
+}
+
+impl From<[Option<LargestError>; 3]> for FrameLargest {
+    fn from([along_track, across_track, vertical]: [Option<LargestError>; 3]) -> Self {
+        Self { along_track, across_track, vertical }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -170,6 +218,19 @@ pub struct Evaluation {
     pub trajectory_error_rms_m: Metric,
     /// RMS of the attitude error angle of all trajectories at their time stamps.
     pub trajectory_rotation_error_rms_deg: Metric,
+    /// RMS of all trajectories' position error without the datum (`datum_error_m`: the input's
+    /// before, the result's after), per component of each true trajectory's own frame, weighted
+    /// by arc length: the trajectory accuracy a relative adjustment can reach, and where it falls
+    /// short (along-track is observed only through surfaces that change along the street).
+    pub trajectory_error_without_datum_rms_m: FrameMetric,
+    /// Tilt of the least-squares plane through all trajectories' vertical position error over
+    /// the true horizontal position (degrees; NaN where the trajectories lie on one line). A
+    /// campaign tilted as a whole, every pass and the map together, changes no residual: like
+    /// the datum, only the GNSS/IMU prior places it.
+    pub trajectory_tilt_deg: Metric,
+    /// RMS of the vertical position error about that plane (weighted by arc length): the
+    /// vertical accuracy the strips' agreement decides.
+    pub trajectory_vertical_error_without_tilt_rms_m: Metric,
     /// The last iteration's `points_used` (report.json) over the number of surface points.
     pub surface_points_used_share: Option<f64>,
     /// The last iteration's `points_used` from report.json, if present.
@@ -311,12 +372,40 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         .iter()
         .map(|t| (trajectory_errors(&t.input, &t.truth), trajectory_errors(&t.result, &t.truth)))
         .collect();
+    let (datum_before, datum_after) = datums(&trajectories);
+    // Where a trajectory's strips have points: beyond them its corrections are held, not
+    // estimated, and the largest errors would always sit at its two ends.
+    let scanned: Vec<Option<(f64, f64)>> = trajectory_jobs
+        .iter()
+        .map(|(id, _)| {
+            manifest
+                .strips
+                .iter()
+                .zip(&strips)
+                .filter(|(s, _)| s.trajectory == *id)
+                .filter_map(|(_, o)| o.time_span)
+                .fold(None, |span: Option<(f64, f64)>, (first, last)| {
+                    Some(span.map_or((first, last), |(a, b)| (a.min(first), b.max(last))))
+                })
+        })
+        .collect();
+    let largest: Vec<[FrameLargest; 2]> = loaded
+        .par_iter()
+        .zip(&scanned)
+        .map(|(t, span)| {
+            let within = span.unwrap_or((f64::NEG_INFINITY, f64::NEG_INFINITY));
+            [
+                largest_frame_errors(&t.input, &t.truth, datum_before, within).into(),
+                largest_frame_errors(&t.result, &t.truth, datum_after, within).into(),
+            ]
+        })
+        .collect();
     // The trajectories (input, truth and result: 0.4 GB on the large campaign) are done with:
     // freed before the latent map is read, not held through its peak.
     drop(strip_trajectory);
     drop(loaded);
     let report = read_report(&result_dir.join("report.json"))?;
-    let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, report);
+    let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, &largest, report);
     // The map keeps the result's datum: it is matched to the truth without the campaign's shift.
     let latent_map = match read_latent_maps(result_dir)? {
         Some(map) => {
@@ -359,6 +448,8 @@ struct StripOutcome {
     /// so the latter also gives the whole campaign's same-surface spread.
     classes: [BTreeMap<u8, ShiftFreeMeans>; 2],
     class_surfaces: [ClassSurfaceStripMeans; 2],
+    /// The first and last GPS time of the strip's points; `None` without points.
+    time_span: Option<(f64, f64)>,
 }
 
 fn result_strip_path(result_dir: &Path, id: &str) -> Result<PathBuf, EvalError> {
@@ -425,6 +516,9 @@ fn evaluate_strip(
         shift_free_after: ShiftFreeMeans::new(),
         classes: Default::default(),
         class_surfaces: Default::default(),
+        time_span: before.gps_time.iter().fold(None, |span: Option<(f64, f64)>, &t| {
+            Some(span.map_or((t, t), |(first, last)| (first.min(t), last.max(t))))
+        }),
     };
     // Per-point id files next to the result (optional), each checked against the point count.
     let per_point_ids =
@@ -538,11 +632,23 @@ fn metric(before: f64, after: f64) -> Metric {
     Metric { before, after }
 }
 
+/// The datum errors (mean position error per arc length of every trajectory together) of the
+/// inputs and of the results.
+fn datums(trajectories: &[(TrajectoryErrors, TrajectoryErrors)]) -> ([f64; 3], [f64; 3]) {
+    let (mut before, mut after) = (TrajectoryErrors::default(), TrajectoryErrors::default());
+    for (b, a) in trajectories {
+        before.merge(b);
+        after.merge(a);
+    }
+    (before.mean_position_error_m(), after.mean_position_error_m())
+}
+
 fn assemble(
     strip_jobs: &[(String, PathBuf)],
     strips: Vec<StripOutcome>,
     trajectory_jobs: &[(String, PathBuf)],
     trajectories: Vec<(TrajectoryErrors, TrajectoryErrors)>,
+    largest: &[[FrameLargest; 2]],
     points_used: Option<u64>,
 ) -> Evaluation {
     let (mut before, mut after) = (ErrorStats::new(), ErrorStats::new());
@@ -642,11 +748,13 @@ fn assemble(
         })
         .collect();
 
+    let (datum_before, datum_after) = datums(&trajectories);
     let (mut traj_before, mut traj_after) = (TrajectoryErrors::default(), TrajectoryErrors::default());
     let per_trajectory = trajectory_jobs
         .iter()
         .zip(&trajectories)
-        .map(|((id, _), (b, a))| {
+        .zip(largest)
+        .map(|(((id, _), (b, a)), [largest_before, largest_after])| {
             traj_before.merge(b);
             traj_after.merge(a);
             TrajectoryEvaluation {
@@ -656,11 +764,15 @@ fn assemble(
                 samples_outside_truth: b.outside_truth + a.outside_truth,
                 position_rms_m: metric(b.position_rms_m(), a.position_rms_m()),
                 rotation_rms_deg: metric(b.rotation_rms_deg(), a.rotation_rms_deg()),
+                error_without_datum_rms_m: FrameMetric::new(
+                    b.frame.rms_without(datum_before, b.length_m),
+                    a.frame.rms_without(datum_after, a.length_m),
+                ),
+                largest_error_without_datum_before: *largest_before,
+                largest_error_without_datum_after: *largest_after,
             }
         })
         .collect();
-
-    let (datum_before, datum_after) = (traj_before.mean_position_error_m(), traj_after.mean_position_error_m());
     let surface_points = before.count();
     let segmentation = (!segment_tallies.is_empty() && segment_tallies.len() == strip_jobs.len())
         .then(|| SegmentEvaluation::from_tallies(&segment_tallies));
@@ -706,6 +818,18 @@ fn assemble(
         surface_error_p95_abs_m: metric(before.abs_quantile(0.95), after.abs_quantile(0.95)),
         trajectory_error_rms_m: metric(traj_before.position_rms_m(), traj_after.position_rms_m()),
         trajectory_rotation_error_rms_deg: metric(traj_before.rotation_rms_deg(), traj_after.rotation_rms_deg()),
+        trajectory_error_without_datum_rms_m: FrameMetric::new(
+            traj_before.frame.rms_without(datum_before, traj_before.length_m),
+            traj_after.frame.rms_without(datum_after, traj_after.length_m),
+        ),
+        trajectory_tilt_deg: metric(
+            traj_before.tilt.plane().map_or(f64::NAN, |p| p.0),
+            traj_after.tilt.plane().map_or(f64::NAN, |p| p.0),
+        ),
+        trajectory_vertical_error_without_tilt_rms_m: metric(
+            traj_before.tilt.plane().map_or(f64::NAN, |p| p.1),
+            traj_after.tilt.plane().map_or(f64::NAN, |p| p.1),
+        ),
         surface_points_used_share: points_used.filter(|_| surface_points > 0).map(|u| u as f64 / surface_points as f64),
         points_used_last_iteration: points_used,
         tile_strip_pairs: pairs,
@@ -744,6 +868,11 @@ impl Evaluation {
         row("surface |error| 95th percentile", &self.surface_error_p95_abs_m, 1e3, "mm");
         row("trajectory position error RMS", &self.trajectory_error_rms_m, 1e3, "mm");
         row("trajectory attitude error RMS", &self.trajectory_rotation_error_rms_deg, 1e3, "mdeg");
+        for (name, m) in FRAME_COMPONENTS.iter().zip(self.trajectory_error_without_datum_rms_m.components()) {
+            row(&format!("  {name} w/o the datum"), m, 1e3, "mm");
+        }
+        row("  the campaign's tilt", &self.trajectory_tilt_deg, 1e3, "mdeg");
+        row("  vertical w/o the tilt", &self.trajectory_vertical_error_without_tilt_rms_m, 1e3, "mm");
         for (name, c) in &self.per_class {
             row(&format!("  {name} error RMS ({} points)", c.points), &c.rms_m, 1e3, "mm");
         }
@@ -774,6 +903,18 @@ impl Evaluation {
             mm(self.campaign_shift_m.before),
             mm(self.campaign_shift_m.after)
         );
+        let largest: Vec<String> = self
+            .per_trajectory
+            .iter()
+            .filter_map(|t| {
+                t.largest_error_without_datum_after
+                    .along_track
+                    .map(|l| format!("{} {:+.1} at {:.0} m", t.id, l.error_m * 1e3, l.arc_m))
+            })
+            .collect();
+        if !largest.is_empty() {
+            let _ = writeln!(out, "largest along-track error w/o the datum, after (mm): {}", largest.join(", "));
+        }
         let _ = writeln!(
             out,
             "{} strips, {} points, {} surface points, {} tile-strip pairs, {} trajectory samples",

@@ -2,7 +2,7 @@
 //! stamps.
 
 use precimap_core::geom::so3_log;
-use precimap_core::{Trajectory, Vec3};
+use precimap_core::{Mat3, Trajectory, Vec3};
 
 /// Sums of squared errors of one trajectory against the truth.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -20,6 +20,235 @@ pub struct TrajectoryErrors {
     pub position_sum_by_length: [f64; 3],
     /// Σ Δs over compared samples, m.
     pub length_m: f64,
+    /// The same errors in the true trajectory's own frame, weighted by Δs like the datum.
+    pub frame: FrameSums,
+    /// The vertical error over the true horizontal position, weighted by Δs.
+    pub tilt: TiltSums,
+}
+
+/// Length-weighted sums for the least-squares plane `e_z ≈ c₀ + c₁ Δx + c₂ Δy` through the
+/// vertical position error over the true horizontal position (Δ from the first sample added).
+/// Tilting a whole campaign, every pass and the map together, changes no residual: like the
+/// datum, only the GNSS/IMU prior places it, so the vertical error about this plane is what the
+/// strips' agreement decides.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TiltSums {
+    origin: Option<[f64; 2]>,
+    normal: [[f64; 3]; 3],
+    rhs: [f64; 3],
+    square: f64,
+    weight: f64,
+}
+
+impl TiltSums {
+    fn add(&mut self, position: Vec3, vertical_error: f64, weight: f64) {
+        let origin = *self.origin.get_or_insert([position.x, position.y]);
+        let v = [1.0, position.x - origin[0], position.y - origin[1]];
+        for r in 0..3 {
+            self.rhs[r] += weight * v[r] * vertical_error;
+            for c in 0..3 {
+                self.normal[r][c] += weight * v[r] * v[c];
+            }
+        }
+        self.square += weight * vertical_error * vertical_error;
+        self.weight += weight;
+    }
+
+    /// The same sums about `origin`: `v' = T v` with `T` adding the origins' difference.
+    fn about(&self, origin: [f64; 2]) -> Self {
+        let Some(mine) = self.origin else { return *self };
+        let (dx, dy) = (mine[0] - origin[0], mine[1] - origin[1]);
+        let t = nalgebra::Matrix3::new(1.0, 0.0, 0.0, dx, 1.0, 0.0, dy, 0.0, 1.0);
+        let normal = t * nalgebra::Matrix3::from_fn(|r, c| self.normal[r][c]) * t.transpose();
+        let rhs = t * nalgebra::Vector3::from(self.rhs);
+        Self {
+            origin: Some(origin),
+            normal: std::array::from_fn(|r| std::array::from_fn(|c| normal[(r, c)])),
+            rhs: rhs.into(),
+            ..*self
+        }
+    }
+
+    pub fn merge(&mut self, other: &Self) {
+        let Some(mine) = self.origin else {
+            *self = *other;
+            return;
+        };
+        let other = other.about(mine);
+        for r in 0..3 {
+            self.rhs[r] += other.rhs[r];
+            for c in 0..3 {
+                self.normal[r][c] += other.normal[r][c];
+            }
+        }
+        self.square += other.square;
+        self.weight += other.weight;
+    }
+
+    /// The plane's tilt (degrees) and the RMS of the vertical error about it (metres); `None`
+    /// where the samples cannot fix a plane (one straight line, or none).
+    pub fn plane(&self) -> Option<(f64, f64)> {
+        let normal = nalgebra::Matrix3::from_fn(|r, c| self.normal[r][c]);
+        let rhs = nalgebra::Vector3::from(self.rhs);
+        // A straight drive leaves the normal equations singular up to rounding (relative to the
+        // diagonal, whose entries differ in units).
+        let diagonal = normal.diagonal().product();
+        if diagonal.is_nan() || normal.determinant().abs() <= 1e-9 * diagonal {
+            return None;
+        }
+        let c = normal.cholesky()?.solve(&rhs);
+        let residual = (self.square - rhs.dot(&c)).max(0.0) / self.weight;
+        Some((c[1].hypot(c[2]).atan().to_degrees(), residual.sqrt()))
+    }
+}
+
+/// A position error's components in the true trajectory's own frame, in this order: along the
+/// direction of travel, across it (horizontal, to the left) and vertical. Strip adjustment
+/// observes them differently: across-track and vertical through every surface a pass sees,
+/// along-track only through surfaces that change along the street (poles, façade relief, cars),
+/// so a weakly observed stretch shows up in one component and is lost in a 3D RMS.
+pub const FRAME_COMPONENTS: [&str; 3] = ["along-track", "across-track", "vertical"];
+
+/// Length-weighted sums from which each frame component's RMS of `e − d` follows for any datum
+/// `d` (the mean error of every trajectory together, known only once all are compared): per
+/// component `i` with unit vector `bᵢ`, Σ Δs (bᵢ·e)², Σ Δs (bᵢ·e) bᵢ and Σ Δs bᵢ bᵢᵀ.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameSums {
+    square: [f64; 3],
+    cross: [[f64; 3]; 3],
+    outer: [[[f64; 3]; 3]; 3],
+}
+
+impl FrameSums {
+    fn add(&mut self, basis: &[Vec3; 3], error: Vec3, weight: f64) {
+        for (i, b) in basis.iter().enumerate() {
+            let along = b.dot(&error);
+            self.square[i] += weight * along * along;
+            for r in 0..3 {
+                self.cross[i][r] += weight * along * b[r];
+                for c in 0..3 {
+                    self.outer[i][r][c] += weight * b[r] * b[c];
+                }
+            }
+        }
+    }
+
+    pub fn merge(&mut self, other: &Self) {
+        for i in 0..3 {
+            self.square[i] += other.square[i];
+            for r in 0..3 {
+                self.cross[i][r] += other.cross[i][r];
+                for c in 0..3 {
+                    self.outer[i][r][c] += other.outer[i][r][c];
+                }
+            }
+        }
+    }
+
+    /// Per component (`FRAME_COMPONENTS`), the RMS of `e − datum` weighted by arc length over
+    /// `length_m`; NaN without length.
+    pub fn rms_without(&self, datum: [f64; 3], length_m: f64) -> [f64; 3] {
+        std::array::from_fn(|i| {
+            let mut sum = self.square[i];
+            for r in 0..3 {
+                sum -= 2.0 * datum[r] * self.cross[i][r];
+                for c in 0..3 {
+                    sum += datum[r] * self.outer[i][r][c] * datum[c];
+                }
+            }
+            // Cancellation can leave a tiny negative sum where the error is the datum alone.
+            (sum.max(0.0) / length_m).sqrt()
+        })
+    }
+}
+
+/// The frame (`FRAME_COMPONENTS`) of a true step `step`; `None` where the vehicle does not move
+/// horizontally (below 0.1 mm per sample: standing, and such samples weigh nothing anyway).
+fn travel_frame(step: Vec3) -> Option<[Vec3; 3]> {
+    let horizontal = Vec3::new(step.x, step.y, 0.0);
+    let length = horizontal.norm();
+    (length > 1e-4).then(|| {
+        let along = horizontal / length;
+        [along, Vec3::new(-along.y, along.x, 0.0), Vec3::new(0.0, 0.0, 1.0)]
+    })
+}
+
+/// Where a trajectory's frame component of `e − datum` is largest in magnitude.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct LargestError {
+    /// Signed, metres.
+    pub error_m: f64,
+    /// GPS time of the sample.
+    pub time_s: f64,
+    /// True arc length from the trajectory's first compared sample, metres.
+    pub arc_m: f64,
+}
+
+/// The largest error of each frame component (`FRAME_COMPONENTS`) of `eval` against `truth` once
+/// `datum` is removed, over the samples with GPS times in `within` (first, last); `None` where
+/// the trajectory never moves there inside the truth's time span.
+pub fn largest_frame_errors(
+    eval: &Trajectory,
+    truth: &Trajectory,
+    datum: [f64; 3],
+    within: (f64, f64),
+) -> [Option<LargestError>; 3] {
+    let datum = Vec3::from(datum);
+    let mut largest: [Option<LargestError>; 3] = [None; 3];
+    compared_samples(eval, truth, |sample| {
+        let Some(basis) = sample.frame.filter(|_| (within.0..=within.1).contains(&sample.time)) else { return };
+        for (slot, b) in largest.iter_mut().zip(&basis) {
+            let error_m = b.dot(&(sample.error - datum));
+            if slot.is_none_or(|l| error_m.abs() > l.error_m.abs()) {
+                *slot = Some(LargestError { error_m, time_s: sample.time, arc_m: sample.arc_m });
+            }
+        }
+    });
+    largest
+}
+
+/// One sample of `eval` inside the truth's time span.
+struct ComparedSample<'a> {
+    time: f64,
+    true_position: Vec3,
+    error: Vec3,
+    rotation: &'a Mat3,
+    true_rotation: Mat3,
+    /// True arc length since the previous compared sample (0 for the first).
+    step_m: f64,
+    arc_m: f64,
+    /// The frame of the last true step that moved (`travel_frame`).
+    frame: Option<[Vec3; 3]>,
+}
+
+/// Calls `visit` for every sample of `eval` inside the truth's time span, in order; returns the
+/// number of samples outside it.
+fn compared_samples(eval: &Trajectory, truth: &Trajectory, mut visit: impl FnMut(ComparedSample<'_>)) -> u64 {
+    let mut outside = 0;
+    let mut last_true_position: Option<Vec3> = None;
+    let mut frame = None;
+    let mut arc_m = 0.0;
+    for ((&t, c), r) in eval.times().iter().zip(eval.positions()).zip(eval.rotations()) {
+        let Some(pose) = truth.pose_at(t) else {
+            outside += 1;
+            continue;
+        };
+        let step = last_true_position.replace(pose.position).map_or(Vec3::zeros(), |last| pose.position - last);
+        frame = travel_frame(step).or(frame);
+        let step_m = step.norm();
+        arc_m += step_m;
+        visit(ComparedSample {
+            time: t,
+            true_position: pose.position,
+            error: c - pose.position,
+            rotation: r,
+            true_rotation: pose.rotation,
+            step_m,
+            arc_m,
+            frame,
+        });
+    }
+    outside
 }
 
 impl TrajectoryErrors {
@@ -30,6 +259,8 @@ impl TrajectoryErrors {
         self.rotation_sum_sq_deg += other.rotation_sum_sq_deg;
         (0..3).for_each(|a| self.position_sum_by_length[a] += other.position_sum_by_length[a]);
         self.length_m += other.length_m;
+        self.frame.merge(&other.frame);
+        self.tilt.merge(&other.tilt);
     }
 
     /// Mean position error per arc length (x, y, z metres): the absolute datum error. For the
@@ -65,22 +296,20 @@ pub fn position_error_from(eval: &Trajectory, truth_position: Vec3, t: f64, hint
 /// Compares every sample of `eval` with `truth` interpolated at the same time.
 pub fn trajectory_errors(eval: &Trajectory, truth: &Trajectory) -> TrajectoryErrors {
     let mut out = TrajectoryErrors::default();
-    let mut last_true_position = None;
-    for ((&t, c), r) in eval.times().iter().zip(eval.positions()).zip(eval.rotations()) {
-        let Some(pose) = truth.pose_at(t) else {
-            out.outside_truth += 1;
-            continue;
-        };
+    out.outside_truth = compared_samples(eval, truth, |sample| {
         out.samples += 1;
-        let error = c - pose.position;
-        out.position_sum_sq += error.norm_squared();
-        if let Some(last) = last_true_position.replace(pose.position) {
-            let step = (pose.position - last).norm();
-            (0..3).for_each(|a| out.position_sum_by_length[a] += error[a] * step);
-            out.length_m += step;
+        out.position_sum_sq += sample.error.norm_squared();
+        if sample.step_m > 0.0 {
+            (0..3).for_each(|a| out.position_sum_by_length[a] += sample.error[a] * sample.step_m);
+            out.length_m += sample.step_m;
+            if let Some(basis) = &sample.frame {
+                out.frame.add(basis, sample.error, sample.step_m);
+            }
+            out.tilt.add(sample.true_position, sample.error.z, sample.step_m);
         }
-        out.rotation_sum_sq_deg += so3_log(&(pose.rotation.transpose() * r)).norm().to_degrees().powi(2);
-    }
+        out.rotation_sum_sq_deg +=
+            so3_log(&(sample.true_rotation.transpose() * sample.rotation)).norm().to_degrees().powi(2);
+    });
     out
 }
 
@@ -144,5 +373,103 @@ mod tests {
         total.merge(&trajectory_errors(&truth, &truth));
         assert_eq!(total.samples, 150);
         assert!((total.position_rms_m() - (50.0 * 1e-4 / 150.0f64).sqrt()).abs() < 1e-9);
+    }
+
+    const ALL: (f64, f64) = (f64::NEG_INFINITY, f64::INFINITY);
+
+    #[test]
+    fn errors_split_into_the_travel_frame_without_a_datum() {
+        let truth = line(100.0, 200, Vec3::zeros(), 0.0);
+        // Drives along +x: +x is along-track, +y across (to the left), +z vertical.
+        let e = trajectory_errors(&line(100.0, 200, Vec3::new(0.03, -0.02, 0.04), 0.0), &truth);
+        let rms = e.frame.rms_without([0.0; 3], e.length_m);
+        assert!(
+            (rms[0] - 0.03).abs() < 1e-9 && (rms[1] - 0.02).abs() < 1e-9 && (rms[2] - 0.04).abs() < 1e-9,
+            "{rms:?}"
+        );
+        // A constant error is all datum.
+        let without = e.frame.rms_without(e.mean_position_error_m(), e.length_m);
+        assert!(without.iter().all(|v| *v < 1e-7), "{without:?}");
+        // Part of it: what is left per component.
+        let partly = e.frame.rms_without([0.01, 0.0, 0.04], e.length_m);
+        assert!((partly[0] - 0.02).abs() < 1e-9 && (partly[1] - 0.02).abs() < 1e-9 && partly[2] < 1e-7, "{partly:?}");
+        // Driving along +y, an x error lies across the track, to the right.
+        let north = |shift: Vec3| {
+            let times: Vec<f64> = (0..100).map(|i| 100.0 + i as f64 * 0.005).collect();
+            let positions = (0..100).map(|i| Vec3::new(549_800.0, 5_803_400.0 + 0.05 * i as f64, 50.0) + shift);
+            Trajectory::new(times, positions.collect(), vec![[0.0, 0.0, 90.0]; 100]).unwrap()
+        };
+        let e = trajectory_errors(&north(Vec3::new(0.03, 0.0, 0.0)), &north(Vec3::zeros()));
+        let largest = largest_frame_errors(&north(Vec3::new(0.03, 0.0, 0.0)), &north(Vec3::zeros()), [0.0; 3], ALL);
+        let rms = e.frame.rms_without([0.0; 3], e.length_m);
+        assert!(rms[0] < 1e-9 && (rms[1] - 0.03).abs() < 1e-9 && rms[2] < 1e-9, "{rms:?}");
+        assert!((largest[1].unwrap().error_m + 0.03).abs() < 1e-9, "{largest:?}");
+    }
+
+    #[test]
+    fn the_largest_along_track_error_is_found_where_it_is() {
+        // A bump of 70 mm along the track, centred 5 m into a 10 m drive (t = 100.5 s).
+        let truth = line(100.0, 200, Vec3::zeros(), 0.0);
+        let times: Vec<f64> = (0..200).map(|i| 100.0 + i as f64 * 0.005).collect();
+        let bump = |t: f64| 0.07 * (-((t - 100.5) / 0.1).powi(2)).exp();
+        let positions =
+            times.iter().zip(truth.positions()).map(|(&t, p)| p + Vec3::new(bump(t) + 0.01, 0.002, 0.0)).collect();
+        let eval = Trajectory::new(times, positions, vec![[0.0, 0.0, 0.0]; 200]).unwrap();
+        let [along, across, vertical] = largest_frame_errors(&eval, &truth, [0.01, 0.0, 0.0], ALL);
+        // Outside the scanned span it is not looked for.
+        let before_it = largest_frame_errors(&eval, &truth, [0.01, 0.0, 0.0], (100.0, 100.4))[0].unwrap();
+        assert!(before_it.time_s <= 100.4 && before_it.error_m < 0.07 * 0.5, "{before_it:?}");
+        let along = along.unwrap();
+        assert!((along.error_m - 0.07).abs() < 1e-9 && (along.time_s - 100.5).abs() < 1e-9, "{along:?}");
+        assert!((along.arc_m - 5.0).abs() < 1e-6, "{along:?}");
+        assert!((across.unwrap().error_m - 0.002).abs() < 1e-9 && vertical.unwrap().error_m.abs() < 1e-9);
+        // A trajectory that never moves has no frame.
+        let standing = Trajectory::new(vec![1.0, 2.0], vec![Vec3::zeros(); 2], vec![[0.0; 3]; 2]).unwrap();
+        assert_eq!(largest_frame_errors(&standing, &standing, [0.0; 3], ALL), [None; 3]);
+        let e = trajectory_errors(&standing, &standing);
+        assert!(e.frame.rms_without([0.0; 3], e.length_m).iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn a_campaign_tilted_as_a_whole_is_found_across_trajectories() {
+        // Two straight legs at right angles (each alone cannot fix a plane), with a vertical
+        // error of 20 mm plus 1 mm per metre eastwards: a tilt of atan(0.001) = 57.3 mdeg.
+        let leg = |t0: f64, start: Vec3, dir: Vec3, tilted: bool| {
+            let times: Vec<f64> = (0..200).map(|i| t0 + i as f64 * 0.005).collect();
+            let positions = (0..200)
+                .map(|i| {
+                    let p = start + dir * (0.05 * i as f64);
+                    if tilted {
+                        p + Vec3::new(0.0, 0.0, 0.02 + 0.001 * (p.x - 549_800.0))
+                    } else {
+                        p
+                    }
+                })
+                .collect();
+            Trajectory::new(times, positions, vec![[0.0; 3]; 200]).unwrap()
+        };
+        let east = Vec3::new(549_800.0, 5_803_400.0, 50.0);
+        let north = Vec3::new(549_810.0, 5_803_400.0, 50.0);
+        let (x, y) = (Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0));
+        let first = trajectory_errors(&leg(100.0, east, x, true), &leg(100.0, east, x, false));
+        let second = trajectory_errors(&leg(200.0, north, y, true), &leg(200.0, north, y, false));
+        assert_eq!(first.tilt.plane(), None, "one straight leg fixes no plane");
+        let mut both = TrajectoryErrors::default();
+        both.merge(&first);
+        both.merge(&second);
+        let (tilt_deg, rms) = both.tilt.plane().unwrap();
+        assert!((tilt_deg - 0.001f64.atan().to_degrees()).abs() < 1e-9, "{tilt_deg}");
+        assert!(rms < 1e-6, "{rms}");
+        // Without the tilt the vertical error is what lies off the plane: 10 mm on the second leg.
+        let bumped = |t0: f64| {
+            let l = leg(t0, north, y, true);
+            let positions = l.positions().iter().map(|p| p + Vec3::new(0.0, 0.0, 0.01)).collect();
+            Trajectory::new(l.times().to_vec(), positions, vec![[0.0; 3]; 200]).unwrap()
+        };
+        let mut off = TrajectoryErrors::default();
+        off.merge(&first);
+        off.merge(&trajectory_errors(&bumped(200.0), &leg(200.0, north, y, false)));
+        let (_, rms) = off.tilt.plane().unwrap();
+        assert!(rms > 0.001 && rms < 0.01, "{rms}");
     }
 }
