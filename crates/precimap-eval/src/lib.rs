@@ -148,7 +148,7 @@ impl FrameMetric {
 }
 
 /// The largest error per frame component ([`largest_frame_errors`]); `None` where the
-/// trajectory never moves inside the truth's time span.
+/// trajectory never moves while its strips have points inside the truth's time span.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct FrameLargest {
     pub along_track: Option<LargestError>,
@@ -225,8 +225,9 @@ pub struct Evaluation {
     pub trajectory_error_without_datum_rms_m: FrameMetric,
     /// Tilt of the least-squares plane through all trajectories' vertical position error over
     /// the true horizontal position (degrees; NaN where the trajectories lie on one line). A
-    /// campaign tilted as a whole, every pass and the map together, changes no residual: like
-    /// the datum, only the GNSS/IMU prior places it.
+    /// campaign tilted as a whole, every pass and the map together, changes no residual, so the
+    /// strips' agreement cannot fix it; the GNSS/IMU prior should (stop 41 measured it following
+    /// the attitude prior, and 3–6× larger at a 0.3° scanner step than at 1.5°).
     pub trajectory_tilt_deg: Metric,
     /// RMS of the vertical position error about that plane (weighted by arc length): the
     /// vertical accuracy the strips' agreement decides.

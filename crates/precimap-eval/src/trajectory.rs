@@ -28,9 +28,9 @@ pub struct TrajectoryErrors {
 
 /// Length-weighted sums for the least-squares plane `e_z ≈ c₀ + c₁ Δx + c₂ Δy` through the
 /// vertical position error over the true horizontal position (Δ from the first sample added).
-/// Tilting a whole campaign, every pass and the map together, changes no residual: like the
-/// datum, only the GNSS/IMU prior places it, so the vertical error about this plane is what the
-/// strips' agreement decides.
+/// Tilting a whole campaign, every pass and the map together, changes no residual, so the
+/// strips' agreement cannot fix it (the GNSS/IMU prior should, as it places the datum); the
+/// vertical error about this plane is what the agreement decides.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TiltSums {
     origin: Option<[f64; 2]>,
