@@ -227,7 +227,7 @@ pub struct Evaluation {
     /// the true horizontal position (degrees; NaN where the trajectories lie on one line). A
     /// campaign tilted as a whole, every pass and the map together, changes no residual, so the
     /// strips' agreement cannot fix it; the GNSS/IMU prior should (stop 41 measured it following
-    /// the attitude prior, and 3–6× larger at a 0.3° scanner step than at 1.5°).
+    /// the attitude prior, and 5–6× larger at a 0.3° scanner step than at 1.5°).
     pub trajectory_tilt_deg: Metric,
     /// RMS of the vertical position error about that plane (weighted by arc length): the
     /// vertical accuracy the strips' agreement decides.
