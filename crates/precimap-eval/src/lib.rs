@@ -32,7 +32,7 @@ pub use stats::{
     ShiftFreeMeans, SurfaceStripMeans, TileStripMeans,
 };
 pub use trajectory::{
-    largest_frame_errors, position_error_at, position_error_from, trajectory_errors, FrameSums, LargestError,
+    largest_frame_errors, position_error_at, position_error_from, trajectory_errors, FrameSums, LargestError, TiltSums,
     TrajectoryErrors, FRAME_COMPONENTS,
 };
 
@@ -373,7 +373,7 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         .iter()
         .map(|t| (trajectory_errors(&t.input, &t.truth), trajectory_errors(&t.result, &t.truth)))
         .collect();
-    let (datum_before, datum_after) = datums(&trajectories);
+    let [datum_before, datum_after] = totals(&trajectories).map(|t| t.mean_position_error_m());
     // Where a trajectory's strips have points: beyond them its corrections are held, not
     // estimated, and the largest errors would always sit at its two ends.
     let scanned: Vec<Option<(f64, f64)>> = trajectory_jobs
@@ -394,11 +394,10 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         .par_iter()
         .zip(&scanned)
         .map(|(t, span)| {
-            let within = span.unwrap_or((f64::NEG_INFINITY, f64::NEG_INFINITY));
-            [
-                largest_frame_errors(&t.input, &t.truth, datum_before, within).into(),
-                largest_frame_errors(&t.result, &t.truth, datum_after, within).into(),
-            ]
+            // A trajectory without strip points has nothing scanned to look in.
+            let largest =
+                |eval, datum| span.map_or([None; 3], |within| largest_frame_errors(eval, &t.truth, datum, within));
+            [largest(&t.input, datum_before).into(), largest(&t.result, datum_after).into()]
         })
         .collect();
     // The trajectories (input, truth and result: 0.4 GB on the large campaign) are done with:
@@ -517,9 +516,7 @@ fn evaluate_strip(
         shift_free_after: ShiftFreeMeans::new(),
         classes: Default::default(),
         class_surfaces: Default::default(),
-        time_span: before.gps_time.iter().fold(None, |span: Option<(f64, f64)>, &t| {
-            Some(span.map_or((t, t), |(first, last)| (first.min(t), last.max(t))))
-        }),
+        time_span: before.gps_time_span(),
     };
     // Per-point id files next to the result (optional), each checked against the point count.
     let per_point_ids =
@@ -633,15 +630,14 @@ fn metric(before: f64, after: f64) -> Metric {
     Metric { before, after }
 }
 
-/// The datum errors (mean position error per arc length of every trajectory together) of the
-/// inputs and of the results.
-fn datums(trajectories: &[(TrajectoryErrors, TrajectoryErrors)]) -> ([f64; 3], [f64; 3]) {
-    let (mut before, mut after) = (TrajectoryErrors::default(), TrajectoryErrors::default());
+/// Every trajectory's errors together, of the inputs and of the results.
+fn totals(trajectories: &[(TrajectoryErrors, TrajectoryErrors)]) -> [TrajectoryErrors; 2] {
+    let mut total = [TrajectoryErrors::default(); 2];
     for (b, a) in trajectories {
-        before.merge(b);
-        after.merge(a);
+        total[0].merge(b);
+        total[1].merge(a);
     }
-    (before.mean_position_error_m(), after.mean_position_error_m())
+    total
 }
 
 fn assemble(
@@ -749,29 +745,25 @@ fn assemble(
         })
         .collect();
 
-    let (datum_before, datum_after) = datums(&trajectories);
-    let (mut traj_before, mut traj_after) = (TrajectoryErrors::default(), TrajectoryErrors::default());
+    let [traj_before, traj_after] = totals(&trajectories);
+    let (datum_before, datum_after) = (traj_before.mean_position_error_m(), traj_after.mean_position_error_m());
     let per_trajectory = trajectory_jobs
         .iter()
         .zip(&trajectories)
         .zip(largest)
-        .map(|(((id, _), (b, a)), [largest_before, largest_after])| {
-            traj_before.merge(b);
-            traj_after.merge(a);
-            TrajectoryEvaluation {
-                id: id.clone(),
-                samples_before: b.samples,
-                samples_after: a.samples,
-                samples_outside_truth: b.outside_truth + a.outside_truth,
-                position_rms_m: metric(b.position_rms_m(), a.position_rms_m()),
-                rotation_rms_deg: metric(b.rotation_rms_deg(), a.rotation_rms_deg()),
-                error_without_datum_rms_m: FrameMetric::new(
-                    b.frame.rms_without(datum_before, b.length_m),
-                    a.frame.rms_without(datum_after, a.length_m),
-                ),
-                largest_error_without_datum_before: *largest_before,
-                largest_error_without_datum_after: *largest_after,
-            }
+        .map(|(((id, _), (b, a)), [largest_before, largest_after])| TrajectoryEvaluation {
+            id: id.clone(),
+            samples_before: b.samples,
+            samples_after: a.samples,
+            samples_outside_truth: b.outside_truth + a.outside_truth,
+            position_rms_m: metric(b.position_rms_m(), a.position_rms_m()),
+            rotation_rms_deg: metric(b.rotation_rms_deg(), a.rotation_rms_deg()),
+            error_without_datum_rms_m: FrameMetric::new(
+                b.frame.rms_without(datum_before, b.length_m),
+                a.frame.rms_without(datum_after, a.length_m),
+            ),
+            largest_error_without_datum_before: *largest_before,
+            largest_error_without_datum_after: *largest_after,
         })
         .collect();
     let surface_points = before.count();

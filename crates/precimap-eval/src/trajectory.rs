@@ -37,7 +37,6 @@ pub struct TiltSums {
     normal: [[f64; 3]; 3],
     rhs: [f64; 3],
     square: f64,
-    weight: f64,
 }
 
 impl TiltSums {
@@ -51,7 +50,6 @@ impl TiltSums {
             }
         }
         self.square += weight * vertical_error * vertical_error;
-        self.weight += weight;
     }
 
     /// The same sums about `origin`: `v' = T v` with `T` adding the origins' difference.
@@ -82,7 +80,6 @@ impl TiltSums {
             }
         }
         self.square += other.square;
-        self.weight += other.weight;
     }
 
     /// The plane's tilt (degrees) and the RMS of the vertical error about it (metres); `None`
@@ -97,7 +94,8 @@ impl TiltSums {
             return None;
         }
         let c = normal.cholesky()?.solve(&rhs);
-        let residual = (self.square - rhs.dot(&c)).max(0.0) / self.weight;
+        // normal[0][0] = Σ Δs, the weight of the samples.
+        let residual = (self.square - rhs.dot(&c)).max(0.0) / self.normal[0][0];
         Some((c[1].hypot(c[2]).atan().to_degrees(), residual.sqrt()))
     }
 }

@@ -60,6 +60,13 @@ impl StripPoints {
         self.x.is_empty()
     }
 
+    /// The first and last GPS time of the points; `None` without points.
+    pub fn gps_time_span(&self) -> Option<(f64, f64)> {
+        self.gps_time
+            .iter()
+            .fold(None, |span, &t| Some(span.map_or((t, t), |(first, last): (f64, f64)| (first.min(t), last.max(t)))))
+    }
+
     fn with_capacity(n: usize) -> Self {
         Self {
             x: Vec::with_capacity(n),

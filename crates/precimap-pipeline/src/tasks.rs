@@ -103,9 +103,8 @@ fn prepare_strip_chunks_observed(
 ) -> Result<PreparedStrip, PipelineError> {
     let points = precimap_formats::read_strip(&entry.path)?;
     phase_done(PreparePhase::Decode);
-    let (t_first, t_last) = time_range(&points.gps_time);
     let (start, end) = traj.data.time_span();
-    if t_first < start || t_last > end {
+    if let Some((t_first, t_last)) = points.gps_time_span().filter(|&(first, last)| first < start || last > end) {
         return Err(PipelineError::Input {
             what: format!("strip {} ({})", entry.id, entry.path.display()),
             message: format!(
@@ -137,10 +136,6 @@ fn prepare_strip_chunks_observed(
         path: entry.path.clone(),
         source,
     })
-}
-
-fn time_range(times: &[f64]) -> (f64, f64) {
-    times.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| (a.min(t), b.max(t)))
 }
 
 /// Reads the chunks of one tile (strips in the given order).
