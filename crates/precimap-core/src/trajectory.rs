@@ -193,9 +193,9 @@ impl Trajectory {
         &self.arc
     }
 
-    /// Horizontal position at each of the arc lengths `first·spacing, (first+1)·spacing, …`
-    /// (`count` of them; where anchors sit), linearly interpolated and clamped to the ends.
-    pub fn horizontal_positions_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 2]> {
+    /// Position at each of the arc lengths `first·spacing, (first+1)·spacing, …` (`count` of
+    /// them; where anchors sit), linearly interpolated and clamped to the ends.
+    pub fn positions_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 3]> {
         let mut out = Vec::with_capacity(count);
         let mut i = 0usize;
         let last = self.arc.len() - 1;
@@ -211,7 +211,7 @@ impl Trajectory {
                 let lambda = if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 };
                 self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda
             };
-            out.push([p.x, p.y]);
+            out.push([p.x, p.y, p.z]);
         }
         out
     }

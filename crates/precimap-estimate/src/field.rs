@@ -296,7 +296,7 @@ impl FieldAccumulator {
 /// `corrections` (same order) and the current corrections.
 #[derive(Debug)]
 pub struct FieldTrajectory<'a> {
-    pub positions: &'a [[f64; 2]],
+    pub positions: &'a [[f64; 3]],
     pub corrections: &'a TrajectoryCorrections,
 }
 
@@ -308,6 +308,62 @@ pub struct FieldSolution {
     pub values: Vec<[f64; 3]>,
     /// Data observations summed over all tiles.
     pub observations: u64,
+    /// The campaign's rigid motion on top of the field (`Parameters::campaign_motion`).
+    #[serde(default)]
+    pub motion: Option<CampaignMotion>,
+}
+
+/// A rotation of the whole campaign about `origin`, to first order: every anchor's rotation gains
+/// `rotation`, its translation `rotation × (p − origin)` (`p` its position). With the field's constant part (a translation) it makes every rigid
+/// motion of the campaign, which the strips' agreement cannot see.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CampaignMotion {
+    pub origin: [f64; 3],
+    /// Rotation vector (radians).
+    pub rotation: [f64; 3],
+}
+
+impl CampaignMotion {
+    /// `∂(ω × d)/∂ω = −[d]×`.
+    fn lever(d: [f64; 3]) -> [[f64; 3]; 3] {
+        [[0.0, d[2], -d[1]], [-d[2], 0.0, d[0]], [d[1], -d[0], 0.0]]
+    }
+
+    /// The correction the motion adds at position `p`.
+    pub fn at(&self, p: [f64; 3]) -> [f64; 6] {
+        let m = Self::lever(std::array::from_fn(|a| p[a] - self.origin[a]));
+        let w = self.rotation;
+        std::array::from_fn(|a| if a < 3 { m[a][0] * w[0] + m[a][1] * w[1] + m[a][2] * w[2] } else { w[a - 3] })
+    }
+}
+
+/// The motion's part of the field's normal equations: its coupling to every field unknown
+/// (`∂²/∂field ∂ω`, three columns), its own block and right-hand side.
+struct MotionTerms {
+    origin: [f64; 3],
+    coupling: Vec<[f64; 3]>,
+    own: nalgebra::Matrix3<f64>,
+    rhs: nalgebra::Vector3<f64>,
+}
+
+impl MotionTerms {
+    /// A translation term: residual `Σ row·field + ω × d + value` of weight `w`.
+    fn add(&mut self, row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], w: f64) {
+        let m = CampaignMotion::lever(d);
+        for &(node, phi) in row {
+            for (c, mc) in m.iter().enumerate() {
+                for j in 0..3 {
+                    self.coupling[3 * node + c][j] += w * phi * mc[j];
+                }
+            }
+        }
+        for i in 0..3 {
+            for j in 0..3 {
+                self.own[(i, j)] += w * (0..3).map(|a| m[a][i] * m[a][j]).sum::<f64>();
+            }
+            self.rhs[i] -= w * (0..3).map(|a| m[a][i] * value[a]).sum::<f64>();
+        }
+    }
 }
 
 impl FieldSolution {
@@ -324,20 +380,31 @@ impl FieldSolution {
         out
     }
 
-    /// `corrections` with the field added to every anchor's translation.
-    pub fn apply(&self, positions: &[[f64; 2]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
+    /// `corrections` with the field added to every anchor's translation (and the campaign's
+    /// motion, when solved, to every anchor's correction).
+    pub fn apply(&self, positions: &[[f64; 3]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
         let mut out = corrections.clone();
         for (v, p) in out.values.iter_mut().zip(positions) {
             let c = self.at(p[0], p[1]);
             for a in 0..3 {
                 v[a] += c[a];
             }
+            if let Some(motion) = &self.motion {
+                for (value, m) in v.iter_mut().zip(motion.at(*p)) {
+                    *value += m;
+                }
+            }
         }
         out
     }
 
+    /// The campaign's rotation (degrees; zero when not solved).
+    pub fn rotation_deg(&self) -> [f64; 3] {
+        self.motion.map_or([0.0; 3], |m| m.rotation.map(f64::to_degrees))
+    }
+
     /// Largest translation the field applies at any of `positions`.
-    pub fn max_at(&self, positions: &[[f64; 2]]) -> f64 {
+    pub fn max_at(&self, positions: &[[f64; 3]]) -> f64 {
         positions
             .iter()
             .map(|p| {
@@ -434,6 +501,7 @@ pub fn remove_field_share(
         nodes: index.keys().copied().collect(),
         values: (0..nodes).map(|i| [per_axis[0][i], per_axis[1][i], per_axis[2][i]]).collect(),
         observations: 0,
+        motion: None,
     };
     Ok(trajectories.iter().zip(previous).map(|(tr, before)| fit.apply(tr.positions, before)).collect())
 }
@@ -536,7 +604,25 @@ fn solve_field_within<'a>(
         s if s > 0.0 => 1.0 / (s * s),
         _ => 0.0,
     };
-    let mut add_term = |row: &[(usize, f64)], value: [f64; 3], weight: f64| {
+    // The campaign's rotation, solved with the field (`Parameters::campaign_motion`).
+    let mut motion = params.campaign_motion.then(|| {
+        let (sum, count) = trajectories
+            .iter()
+            .flat_map(|tr| tr.positions)
+            .fold(([0.0f64; 3], 0usize), |(s, n), p| ([s[0] + p[0], s[1] + p[1], s[2] + p[2]], n + 1));
+        MotionTerms {
+            origin: sum.map(|v| v / count.max(1) as f64),
+            coupling: vec![[0.0; 3]; dim],
+            own: nalgebra::Matrix3::zeros(),
+            rhs: nalgebra::Vector3::zeros(),
+        }
+    });
+    let origin = motion.as_ref().map_or([0.0; 3], |m| m.origin);
+    let prior_rotation = match params.sigma_prior_rotation_deg.to_radians() {
+        s if s > 0.0 => 1.0 / (s * s),
+        _ => 0.0,
+    };
+    let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64| {
         for &(a, ra) in row {
             for c in 0..3 {
                 rhs[3 * a + c] -= weight * ra * value[c];
@@ -550,22 +636,26 @@ fn solve_field_within<'a>(
                 }
             }
         }
+        if let Some(m) = motion.as_mut() {
+            m.add(row, d, value, weight);
+        }
     };
-    let row_at = |p: &[f64; 2]| -> Vec<(usize, f64)> {
+    let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
         bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
     };
     for tr in trajectories {
         let values = &tr.corrections.values;
         let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
+        let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
         for (k, row) in rows.iter().enumerate() {
-            add_term(row, [values[k][0], values[k][1], values[k][2]], prior);
+            add_term(row, d[k], [values[k][0], values[k][1], values[k][2]], prior);
             if k + 1 < rows.len() {
                 let mut diff = rows[k + 1].clone();
                 for &(a, ra) in row {
                     accumulate(&mut diff, a, -ra);
                 }
-                let d = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
-                add_term(&diff, d, smooth);
+                let dv = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
+                add_term(&diff, std::array::from_fn(|a| d[k + 1][a] - d[k][a]), dv, smooth);
             }
             if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
                 let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
@@ -574,8 +664,19 @@ fn solve_field_within<'a>(
                         accumulate(&mut second, a, f * ra);
                     }
                 }
-                let d = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
-                add_term(&second, d, curvature);
+                let dv = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
+                let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
+                add_term(&second, dd, dv, curvature);
+            }
+        }
+    }
+    // The rotation prior sees the motion's rotation directly: it holds the campaign's mean
+    // attitude correction.
+    if let Some(m) = motion.as_mut() {
+        for v in trajectories.iter().flat_map(|tr| &tr.corrections.values) {
+            for i in 0..3 {
+                m.own[(i, i)] += prior_rotation;
+                m.rhs[i] -= prior_rotation * v[3 + i];
             }
         }
     }
@@ -584,15 +685,40 @@ fn solve_field_within<'a>(
     for i in 0..dim {
         h.add(i, i, prior * 1e-2);
     }
-    let solution = h
+    let factor = h
         .factorise_at(max_factor_entries, &unknown_positions(&index, 3))
-        .map_err(|e| FieldError::from_sparse(e, nodes))?
-        .solve(&rhs);
+        .map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let mut solution = factor.solve(&rhs);
+    // The rotation by the Schur complement of the field's block: the field's factor solves the
+    // three coupling columns, then the 3×3 system gives the rotation and the field follows.
+    let motion = match motion {
+        Some(m) => {
+            let columns: Vec<Vec<f64>> =
+                (0..3).map(|j| factor.solve(&m.coupling.iter().map(|c| c[j]).collect::<Vec<_>>())).collect();
+            let mut schur = m.own;
+            let mut reduced = m.rhs;
+            for i in 0..3 {
+                for (k, c) in m.coupling.iter().enumerate() {
+                    reduced[i] -= c[i] * solution[k];
+                    for j in 0..3 {
+                        schur[(i, j)] -= c[i] * columns[j][k];
+                    }
+                }
+            }
+            let rotation = schur.cholesky().ok_or(FieldError::Singular { nodes })?.solve(&reduced);
+            for (k, x) in solution.iter_mut().enumerate() {
+                *x -= (0..3).map(|j| columns[j][k] * rotation[j]).sum::<f64>();
+            }
+            Some(CampaignMotion { origin: m.origin, rotation: [rotation[0], rotation[1], rotation[2]] })
+        }
+        None => None,
+    };
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
         values: (0..nodes).map(|i| [solution[3 * i], solution[3 * i + 1], solution[3 * i + 2]]).collect(),
         observations,
+        motion,
     })
 }
 
@@ -756,8 +882,8 @@ mod tests {
         // Two passes along the same street; their last step is a smooth shared drift (a field)
         // plus a per-anchor zigzag no field on 20 m nodes can represent.
         let spacing = 20.0;
-        let positions: Vec<[f64; 2]> = (0..240).map(|k| [1000.0 + 0.5 * k as f64, 2003.0]).collect();
-        let drift = |p: &[f64; 2]| [0.002 * (p[0] - 1000.0) / 120.0, -0.001, 0.0005];
+        let positions: Vec<[f64; 3]> = (0..240).map(|k| [1000.0 + 0.5 * k as f64, 2003.0, 50.0]).collect();
+        let drift = |p: &[f64; 3]| [0.002 * (p[0] - 1000.0) / 120.0, -0.001, 0.0005];
         let zigzag = |k: usize| if k.is_multiple_of(2) { 1e-4 } else { -1e-4 };
         let previous = TrajectoryCorrections { first_anchor: 0, values: vec![[0.01, 0.02, 0.0, 0.0, 0.0, 0.0]; 240] };
         let mut current = previous.clone();
@@ -799,7 +925,8 @@ mod tests {
         // A straight trajectory whose corrections all carry the same offset: the prior alone
         // decides the field, which then cancels the offset at every anchor.
         let params = Parameters { common_mode_field_m: 20.0, ..Default::default() };
-        let positions: Vec<[f64; 2]> = (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 0.1 * k as f64]).collect();
+        let positions: Vec<[f64; 3]> =
+            (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 0.1 * k as f64, 50.0]).collect();
         let corrections =
             TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 200] };
         let tr = [FieldTrajectory { positions: &positions, corrections: &corrections }];
@@ -813,7 +940,7 @@ mod tests {
         // more than the dense solve took. The sparse one solves it (the prior alone takes the
         // offset out again) unless its limit is lower than the factor needs.
         let fine = Parameters { common_mode_field_m: 0.01, ..Default::default() };
-        let many: Vec<[f64; 2]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047]).collect();
+        let many: Vec<[f64; 3]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047, 50.0]).collect();
         let long = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 800] };
         let tr_long = [FieldTrajectory { positions: &many, corrections: &long }];
         let field = solve_field(std::iter::empty(), &tr_long, &fine).unwrap();
@@ -827,5 +954,105 @@ mod tests {
         assert!(matches!(err, FieldError::TooLarge { nodes: 3200, limit: 10_000, .. }), "{err}");
         let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections }];
         assert!(matches!(solve_field(std::iter::empty(), &short, &params), Err(FieldError::Positions { .. })));
+    }
+
+    /// Two crossing straight trajectories (a T), 200 anchors each, one of them on a 2 % grade.
+    fn crossing() -> Vec<Vec<[f64; 3]>> {
+        vec![
+            (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0, 50.0]).collect(),
+            (0..200).map(|k| [1050.0, 1950.0 + 0.5 * k as f64, 49.0 + 0.01 * k as f64]).collect(),
+        ]
+    }
+
+    /// `solve_field` without data over `positions` with corrections `values`.
+    fn solve_without_data(
+        positions: &[Vec<[f64; 3]>],
+        values: &[TrajectoryCorrections],
+        params: &Parameters,
+    ) -> FieldSolution {
+        let tr: Vec<FieldTrajectory> =
+            positions.iter().zip(values).map(|(p, c)| FieldTrajectory { positions: p, corrections: c }).collect();
+        solve_field(std::iter::empty(), &tr, params).unwrap()
+    }
+
+    #[test]
+    fn the_campaign_motion_takes_a_shared_rigid_motion_out() {
+        // Corrections that are one rigid motion of the whole campaign (a 10 mdeg tilt, a yaw
+        // and a shift) and nothing else. The field alone takes out only the translation; with
+        // the campaign's rotation every anchor's correction returns to zero.
+        let base = Parameters { common_mode_field_m: 20.0, campaign_motion: false, ..Default::default() };
+        let positions = crossing();
+        let tilt = CampaignMotion { origin: [1030.0, 1990.0, 52.0], rotation: [1.7e-4, -1.2e-4, 3e-4] };
+        let corrections: Vec<TrajectoryCorrections> = positions
+            .iter()
+            .map(|p| TrajectoryCorrections {
+                first_anchor: 0,
+                values: p
+                    .iter()
+                    .map(|&q| {
+                        let mut v = tilt.at(q);
+                        v[0] += 0.2;
+                        v[1] -= 0.1;
+                        v[2] += 0.05;
+                        v
+                    })
+                    .collect(),
+            })
+            .collect();
+        let without = solve_without_data(&positions, &corrections, &base);
+        assert_eq!(without.motion, None);
+        let with = solve_without_data(&positions, &corrections, &Parameters { campaign_motion: true, ..base });
+        let motion = with.motion.expect("asked for");
+        for (a, b) in motion.rotation.iter().zip(&tilt.rotation) {
+            assert!((a + b).abs() < 1e-9, "{motion:?}");
+        }
+        for (p, c) in positions.iter().zip(&corrections) {
+            for (x, y) in without.apply(p, c).values.iter().zip(&with.apply(p, c).values) {
+                assert!((x[3] - 1.7e-4).abs() < 1e-15 && (x[4] + 1.2e-4).abs() < 1e-15, "{x:?}");
+                assert!(y[3..].iter().all(|v| v.abs() < 1e-9), "{y:?}");
+                // What is left of the translation is the nodes' own weak prior's share (< 1 %).
+                assert!(y[0].abs() < 2e-3 && y[1].abs() < 1e-3 && y[2].abs() < 5e-4, "{y:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_campaign_motion_moves_points_rigidly_and_holds_the_mean_attitude() {
+        // A point seen from a scan head at an anchor moves, under the motion, as the rotation
+        // about the origin moves it: to first order in the rotation.
+        let motion = CampaignMotion { origin: [1000.0, 2000.0, 40.0], rotation: [2e-4, -1e-4, 3e-4] };
+        let correction = [0.05, -0.02, 0.01, 1e-4, 2e-4, -3e-4];
+        let anchor = [1120.0, 1930.0, 52.0];
+        let head = anchor;
+        let r = [12.0, -7.0, 3.0];
+        let before = precimap_core::corrections::apply(head, r, &correction);
+        let moved: [f64; 6] = std::array::from_fn(|a| correction[a] + motion.at(anchor)[a]);
+        let after = precimap_core::corrections::apply(head, r, &moved);
+        let w = motion.rotation;
+        let d: [f64; 3] = std::array::from_fn(|a| before[a] - motion.origin[a]);
+        let rigid = [
+            before[0] + w[1] * d[2] - w[2] * d[1],
+            before[1] + w[2] * d[0] - w[0] * d[2],
+            before[2] + w[0] * d[1] - w[1] * d[0],
+        ];
+        // |ω| ≈ 3.7e-4 and distances ≈ 140 m: second-order terms ≈ 2e-5 m, and the correction's
+        // own 5 cm shift of the head adds |ω| × 0.05 m.
+        for a in 0..3 {
+            assert!((after[a] - rigid[a]).abs() < 5e-5, "{a}: {} against {}", after[a], rigid[a]);
+        }
+        // Attitude corrections that share a mean and differ between trajectories: the rotation
+        // prior takes the mean out (the translation terms, at σ 1 m, barely hold it) and leaves
+        // the difference.
+        let params = Parameters { common_mode_field_m: 20.0, campaign_motion: true, ..Default::default() };
+        let positions = crossing();
+        let corrections: Vec<TrajectoryCorrections> = (0..2)
+            .map(|t| TrajectoryCorrections {
+                first_anchor: 0,
+                values: vec![[0.0, 0.0, 0.0, 1e-4 + 2e-5 * t as f64, -5e-5, 0.0]; 200],
+            })
+            .collect();
+        let m = solve_without_data(&positions, &corrections, &params).motion.unwrap();
+        assert!((m.rotation[0] + 1.1e-4).abs() < 1e-6 && (m.rotation[1] - 5e-5).abs() < 1e-6, "{m:?}");
+        assert!(m.rotation[2].abs() < 1e-6, "{m:?}");
     }
 }

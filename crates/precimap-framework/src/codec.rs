@@ -9,7 +9,9 @@ use precimap_estimate::{AnchorBlock, FieldEquations};
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
 const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
 const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR01";
-const POSITIONS_MAGIC: &[u8; 8] = b"PMANPOS1";
+const POSITIONS_MAGIC: &[u8; 8] = b"PMANPOS2";
+/// Horizontal positions only (before the campaign's motion needed the anchors' heights).
+const POSITIONS_MAGIC_HORIZONTAL: &[u8; 8] = b"PMANPOS1";
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -209,30 +211,40 @@ pub fn decode_corrections(bytes: &[u8]) -> Result<(TrajectoryCorrections, Option
     Ok((TrajectoryCorrections { first_anchor, values }, (m > 0).then_some(sigma)))
 }
 
-/// Every trajectory's anchor positions (horizontal, metres), in trajectory order.
-pub fn encode_positions(positions: &[Vec<[f64; 2]>]) -> Vec<u8> {
+/// Every trajectory's anchor positions (metres), in trajectory order.
+pub fn encode_positions(positions: &[Vec<[f64; 3]>]) -> Vec<u8> {
     let points: usize = positions.iter().map(Vec::len).sum();
-    let mut out = Vec::with_capacity(12 + positions.len() * 4 + points * 16);
+    let mut out = Vec::with_capacity(12 + positions.len() * 4 + points * 24);
     out.extend_from_slice(POSITIONS_MAGIC);
     out.extend_from_slice(&(positions.len() as u32).to_le_bytes());
     for p in positions {
         out.extend_from_slice(&(p.len() as u32).to_le_bytes());
-        for xy in p {
-            put_f64s(&mut out, xy);
+        for xyz in p {
+            put_f64s(&mut out, xyz);
         }
     }
     out
 }
 
-pub fn decode_positions(bytes: &[u8]) -> Result<Vec<Vec<[f64; 2]>>, CodecError> {
-    let mut r = Reader::new(bytes, POSITIONS_MAGIC, "anchor positions")?;
+/// [`encode_positions`]' objects, and the horizontal ones a campaign's first field task wrote
+/// before stop 42: their anchors all get height 0, so the campaign's motion turns them about
+/// their common height (what a campaign on level ground needs).
+pub fn decode_positions(bytes: &[u8]) -> Result<Vec<Vec<[f64; 3]>>, CodecError> {
+    let horizontal = bytes.starts_with(POSITIONS_MAGIC_HORIZONTAL);
+    let magic = if horizontal { POSITIONS_MAGIC_HORIZONTAL } else { POSITIONS_MAGIC };
+    let mut r = Reader::new(bytes, magic, "anchor positions")?;
     let trajectories = r.count(4)?;
     let mut out = Vec::with_capacity(trajectories);
     for _ in 0..trajectories {
-        let n = r.count(16)?;
+        let n = r.count(if horizontal { 16 } else { 24 })?;
         let mut p = Vec::with_capacity(n);
         for _ in 0..n {
-            p.push(r.f64s::<2>()?);
+            p.push(if horizontal {
+                let [x, y] = r.f64s::<2>()?;
+                [x, y, 0.0]
+            } else {
+                r.f64s::<3>()?
+            });
         }
         out.push(p);
     }
@@ -309,13 +321,25 @@ mod tests {
 
     #[test]
     fn positions_round_trip_bit_exact() {
-        let p = vec![vec![[549_795.25, 5_803_395.125], [-0.0, f64::MIN_POSITIVE]], vec![], vec![[1e300, -1e-300]]];
+        let p = vec![
+            vec![[549_795.25, 5_803_395.125, 57.5], [-0.0, f64::MIN_POSITIVE, -1e-300]],
+            vec![],
+            vec![[1e300, -1e-300, 0.0]],
+        ];
         let bytes = encode_positions(&p);
         let back = decode_positions(&bytes).unwrap();
-        let bits = |v: &[Vec<[f64; 2]>]| -> Vec<u64> { v.iter().flatten().flatten().map(|x| x.to_bits()).collect() };
+        let bits = |v: &[Vec<[f64; 3]>]| -> Vec<u64> { v.iter().flatten().flatten().map(|x| x.to_bits()).collect() };
         assert_eq!(back.iter().map(Vec::len).collect::<Vec<_>>(), vec![2, 0, 1]);
         assert_eq!(bits(&back), bits(&p));
         assert!(decode_positions(&bytes[..bytes.len() - 1]).is_err());
+        // A horizontal object of an earlier version: its anchors at height 0.
+        let mut old = b"PMANPOS1".to_vec();
+        old.extend_from_slice(&1u32.to_le_bytes());
+        old.extend_from_slice(&1u32.to_le_bytes());
+        old.extend_from_slice(&549_795.25f64.to_le_bytes());
+        old.extend_from_slice(&5_803_395.125f64.to_le_bytes());
+        assert_eq!(decode_positions(&old).unwrap(), vec![vec![[549_795.25, 5_803_395.125, 0.0]]]);
+        assert!(decode_positions(&old[..old.len() - 1]).is_err());
         assert!(matches!(
             decode_positions(&encode_field(&FieldEquations::default())),
             Err(CodecError::BadMagic { .. })

@@ -422,7 +422,8 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let max_m = positions.iter().map(|p| field.max_at(p)).fold(0.0, f64::max);
-                Ok::<_, precimap_estimate::field::FieldError>((start, before, max_m, field.nodes.len()))
+                let figures = (max_m, field.rotation_deg(), field.nodes.len());
+                Ok::<_, precimap_estimate::field::FieldError>((start, before, figures))
             })
             .await?
             .map_err(|e| match e {
@@ -433,7 +434,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
                 )),
             })?;
-            let (start, before, max_m, nodes) = solved;
+            let (start, before, (max_m, rotation_deg, nodes)) = solved;
             let mut objects = Vec::with_capacity(start.len() + before.len());
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
                 for (t, c) in trajectories.iter().zip(list) {
@@ -442,7 +443,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 }
             }
             outputs.extend(ctx.put_many(objects).await?);
-            let result = FieldResult { max_m, nodes, seconds: started.elapsed().as_secs_f64() };
+            let result = FieldResult { max_m, rotation_deg, nodes, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::SolveTrajectory {

@@ -258,6 +258,9 @@ pub struct EstimateResult {
 pub struct FieldResult {
     /// Largest translation the field applied to an anchor.
     pub max_m: f64,
+    /// The campaign's rotation solved with the field (degrees; zero without it).
+    #[serde(default)]
+    pub rotation_deg: [f64; 3],
     pub nodes: usize,
     pub seconds: f64,
 }
@@ -329,6 +332,8 @@ pub struct PlanState {
     pub started_from: Vec<Option<String>>,
     #[serde(default)]
     pub pending_field_max_m: f64,
+    #[serde(default)]
+    pub pending_campaign_rotation_deg: [f64; 3],
     /// The settling iterations' corrections objects Anderson acceleration combines.
     #[serde(default)]
     pub anderson: AndersonHistory<Option<String>>,
@@ -421,6 +426,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_blocks: Vec::new(),
         started_from: Vec::new(),
         pending_field_max_m: 0.0,
+        pending_campaign_rotation_deg: [0.0; 3],
         anderson: AndersonHistory::default(),
         pending_anderson_coefficients: Vec::new(),
         anchor_positions: None,
@@ -737,6 +743,7 @@ fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, St
     let r: FieldResult = parse(task)?;
     state.pending_seconds += r.seconds;
     state.pending_field_max_m = r.max_m;
+    state.pending_campaign_rotation_deg = r.rotation_deg;
     let n = state.trajectories.len();
     let mut start = vec![None; n];
     let mut previous = vec![None; n];
@@ -866,6 +873,7 @@ fn after_solve(
     let mut report = iteration_report(state.iteration as usize, &step, &stats, max_change, &changes, wall);
     report.max_correction_change_at = max_change_at;
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
+    report.campaign_rotation_deg = std::mem::take(&mut state.pending_campaign_rotation_deg);
     report.anderson_coefficients = std::mem::take(&mut state.pending_anderson_coefficients);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();

@@ -56,6 +56,11 @@ pub struct IterationReport {
     /// (0 in steps without it).
     #[serde(default)]
     pub common_mode_field_max_m: f64,
+    /// The rotation of the whole campaign solved with the field in this iteration
+    /// (`parameters.campaign_motion`; roll, pitch, yaw axes of the world frame, degrees): zero in
+    /// steps without it.
+    #[serde(default)]
+    pub campaign_rotation_deg: [f64; 3],
     pub grid_m: f64,
     pub threshold_m: f64,
     /// Points in tile cores (each point once).

@@ -39,12 +39,13 @@ pub enum Progress {
 }
 
 /// The campaign's state after preparation: which strips each tile holds and every trajectory's
-/// anchor range (and its anchors' horizontal positions, where the common-mode field acts).
+/// anchor range (and its anchors' positions, where the common-mode field and the campaign's
+/// motion act).
 #[derive(Debug)]
 pub struct Prepared {
     pub tiles: BTreeMap<TileKey, Vec<usize>>,
     pub anchor_ranges: Vec<(u32, u32)>,
-    pub anchor_positions: Vec<Vec<[f64; 2]>>,
+    pub anchor_positions: Vec<Vec<[f64; 3]>>,
     pub strips: Vec<StripReport>,
     pub points_total: u64,
 }
@@ -286,6 +287,7 @@ pub fn run_campaign(
         report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
         report.common_mode_field_max_m =
             field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
+        report.campaign_rotation_deg = field.as_ref().map_or([0.0; 3], FieldSolution::rotation_deg);
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
@@ -468,6 +470,7 @@ pub fn iteration_report(
     IterationReport {
         iteration,
         common_mode_field_max_m: 0.0,
+        campaign_rotation_deg: [0.0; 3],
         grid_m: step.grid_m,
         threshold_m: step.threshold_m,
         points_in_tiles: stats.points,

@@ -175,15 +175,15 @@ pub fn estimate_tile_task(
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
 }
 
-/// The horizontal positions of a trajectory's anchors `first..=last` (where the common-mode
-/// field acts on them).
+/// The positions of a trajectory's anchors `first..=last` (the common-mode field acts at their
+/// horizontal positions, the campaign's rotation about their centre).
 pub fn anchor_positions(
     trajectory: &TrajectoryEntry,
     anchor_spacing_m: f64,
     (first, last): (u32, u32),
-) -> Vec<[f64; 2]> {
+) -> Vec<[f64; 3]> {
     let count = (last.saturating_sub(first) + 1) as usize;
-    trajectory.data.horizontal_positions_along(anchor_spacing_m, first, count)
+    trajectory.data.positions_along(anchor_spacing_m, first, count)
 }
 
 /// `solve_trajectory` over the blocks every tile emitted for one trajectory; the change is
