@@ -23,6 +23,11 @@
 //! observations reach, each coupled only to the nodes near it: its normal equations are solved
 //! by a sparse Cholesky in nested-dissection order, cut straight across the street network at the
 //! nodes' grid positions (`precimap_solve::sparse`), whose factor grows about as n log n.
+//!
+//! With `Parameters::campaign_motion` the same solve also gives one rotation of the whole
+//! campaign ([`CampaignMotion`]): with the field's constant part, the rigid motion no residual
+//! sees, which only the anchors' prior, smoothness and curvature decide. Three unknowns border
+//! the sparse system and are eliminated through its Schur complement.
 
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::floor;
@@ -292,8 +297,9 @@ impl FieldAccumulator {
     }
 }
 
-/// One trajectory as the field sees it: the horizontal position of each anchor of
-/// `corrections` (same order) and the current corrections.
+/// One trajectory as the field sees it: the position of each anchor of `corrections` (same
+/// order; the field acts at the horizontal one, the campaign's rotation about the centre of all
+/// of them) and the current corrections.
 #[derive(Debug)]
 pub struct FieldTrajectory<'a> {
     pub positions: &'a [[f64; 3]],
@@ -314,8 +320,9 @@ pub struct FieldSolution {
 }
 
 /// A rotation of the whole campaign about `origin`, to first order: every anchor's rotation gains
-/// `rotation`, its translation `rotation × (p − origin)` (`p` its position). With the field's constant part (a translation) it makes every rigid
-/// motion of the campaign, which the strips' agreement cannot see.
+/// `rotation`, its translation `rotation × (p − origin)` (`p` its position). With the field's
+/// constant part (a translation) it makes every rigid motion of the campaign, which the strips'
+/// agreement cannot see.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CampaignMotion {
     pub origin: [f64; 3],
