@@ -223,7 +223,7 @@ pub struct Parameters {
     /// Alternation relaxes it only through the prior, by a share per iteration that shrinks as
     /// the data grow, so the campaign kept the tilt its first iterations gave it. Solved with the
     /// field, the prior and smoothness decide it at once. On by default since stop 42: at a real
-    /// scanner's 0.3° step the campaign's tilt falls 4.5–6× and the latent map comes 18–27 %
+    /// scanner's 0.3° step the campaign's tilt falls 4.6–6× and the latent map comes 18–27 %
     /// closer to the truth without the campaign's shift; at 1.5° the figures move by 2 % or less
     /// (ARCHITECTURE.md, "The campaign's rotation").
     pub campaign_motion: bool,

@@ -57,8 +57,8 @@ pub struct IterationReport {
     #[serde(default)]
     pub common_mode_field_max_m: f64,
     /// The rotation of the whole campaign solved with the field in this iteration
-    /// (`parameters.campaign_motion`; roll, pitch, yaw axes of the world frame, degrees): zero in
-    /// steps without it.
+    /// (`parameters.campaign_motion`; a rotation vector about the world frame's x, y and z axes,
+    /// degrees): zero in steps without it.
     #[serde(default)]
     pub campaign_rotation_deg: [f64; 3],
     pub grid_m: f64,
