@@ -30,7 +30,7 @@
 //! the sparse system and are eliminated through its Schur complement.
 
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_core::geom::floor;
+use precimap_core::geom::{floor, skew, Mat3, Vec3};
 use precimap_core::Parameters;
 use precimap_solve::sparse::{SparseError, SymmetricSparse};
 use serde::{Deserialize, Serialize};
@@ -331,16 +331,11 @@ pub struct CampaignMotion {
 }
 
 impl CampaignMotion {
-    /// `∂(ω × d)/∂ω = −[d]×`.
-    fn lever(d: [f64; 3]) -> [[f64; 3]; 3] {
-        [[0.0, d[2], -d[1]], [-d[2], 0.0, d[0]], [d[1], -d[0], 0.0]]
-    }
-
     /// The correction the motion adds at position `p`.
     pub fn at(&self, p: [f64; 3]) -> [f64; 6] {
-        let m = Self::lever(std::array::from_fn(|a| p[a] - self.origin[a]));
-        let w = self.rotation;
-        std::array::from_fn(|a| if a < 3 { m[a][0] * w[0] + m[a][1] * w[1] + m[a][2] * w[2] } else { w[a - 3] })
+        let w = Vec3::from(self.rotation);
+        let t = w.cross(&(Vec3::from(p) - Vec3::from(self.origin)));
+        [t.x, t.y, t.z, w.x, w.y, w.z]
     }
 }
 
@@ -349,27 +344,24 @@ impl CampaignMotion {
 struct MotionTerms {
     origin: [f64; 3],
     coupling: Vec<[f64; 3]>,
-    own: nalgebra::Matrix3<f64>,
-    rhs: nalgebra::Vector3<f64>,
+    own: Mat3,
+    rhs: Vec3,
 }
 
 impl MotionTerms {
     /// A translation term: residual `Σ row·field + ω × d + value` of weight `w`.
     fn add(&mut self, row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], w: f64) {
-        let m = CampaignMotion::lever(d);
+        // `∂(ω × d)/∂ω = −[d]×`.
+        let m = -skew(&Vec3::from(d));
         for &(node, phi) in row {
-            for (c, mc) in m.iter().enumerate() {
+            for c in 0..3 {
                 for j in 0..3 {
-                    self.coupling[3 * node + c][j] += w * phi * mc[j];
+                    self.coupling[3 * node + c][j] += w * phi * m[(c, j)];
                 }
             }
         }
-        for i in 0..3 {
-            for j in 0..3 {
-                self.own[(i, j)] += w * (0..3).map(|a| m[a][i] * m[a][j]).sum::<f64>();
-            }
-            self.rhs[i] -= w * (0..3).map(|a| m[a][i] * value[a]).sum::<f64>();
-        }
+        self.own += w * m.transpose() * m;
+        self.rhs -= w * m.transpose() * Vec3::from(value);
     }
 }
 
@@ -620,8 +612,8 @@ fn solve_field_within<'a>(
         MotionTerms {
             origin: sum.map(|v| v / count.max(1) as f64),
             coupling: vec![[0.0; 3]; dim],
-            own: nalgebra::Matrix3::zeros(),
-            rhs: nalgebra::Vector3::zeros(),
+            own: Mat3::zeros(),
+            rhs: Vec3::zeros(),
         }
     });
     let origin = motion.as_ref().map_or([0.0; 3], |m| m.origin);
