@@ -18,8 +18,11 @@ pub struct IterationStep {
     /// larger cells so that strips decimetres apart still fall into the same cell.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cell_m: Option<f64>,
-    /// Cells are unbounded vertical columns: surfaces are told apart by normal only, so strips
-    /// decimetres apart in height are never split by a horizontal cell boundary.
+    /// Capture cells: columns unbounded along the dominant axis of each point's normal (vertical
+    /// for a road, horizontal for a façade), with surfaces told apart by normal only, so strips
+    /// decimetres apart along a surface's normal are never split by a cell face. Vertical
+    /// columns (until stop 43) split the passes over a façade that lay near a cell face, and
+    /// those groups then never met (ARCHITECTURE.md, "Capture cells along the normal").
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub column_cells: bool,
     /// Momentum ([`Parameters::momentum`]) may carry the previous step into this one. Heavy-ball

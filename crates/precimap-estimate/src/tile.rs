@@ -1,10 +1,10 @@
 //! `estimate_tile`: the map task of one estimation iteration (paper §6.3, DESIGN §2–3).
 //!
 //! 1. Every point of the tile is corrected with the current trajectory corrections.
-//! 2. The latent map is built: points fall into voxel-hashed cells (with segments, outside the
-//!    capture steps, columns along the point's normal axis, so that no cell face cuts across a
-//!    surface); inside a cell, points whose normals agree form a local surface model (LSM:
-//!    plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each
+//! 2. The latent map is built: points fall into voxel-hashed cells (columns along the point's
+//!    normal axis in the capture steps and, with segments, in every step, so that no cell face
+//!    cuts across a surface); inside a cell, points whose normals agree form a local surface
+//!    model (LSM: plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each
 //!    strip's surface (the triangles of its scan image) is rasterised into the LSM pixels, so a
 //!    pixel knows every strip's surface height there even when the points are sparser than the
 //!    pixels (DESIGN §2 "Density matters").
@@ -339,12 +339,14 @@ fn estimate_tile_into<S: LatentSink>(
     let mut vehicle: Vec<[f64; 2]> = Vec::with_capacity(if solves_field { total } else { 0 });
     let mut patch_of = Vec::with_capacity(total);
     let mut patches: Vec<Patch> = Vec::new();
-    // With segments, outside the capture steps, a cell is a column along its points' normal
-    // axis: a cell face across a surface would split the passes that disagree about where the
-    // surface is (by more than its distance to the face) into two cells that never meet, and
-    // that disagreement then persists. Along the normal, plane distance tells surfaces apart.
-    let normal_columns = params.segment_surfaces && !step.column_cells;
-    let vertical_columns = step.column_cells.then_some(2);
+    // A cell is a column along its points' normal axis in the capture steps (column cells) and,
+    // with segments, in every other step: a cell face across a surface would split the passes
+    // that disagree about where the surface is (by more than its distance to the face) into two
+    // cells that never meet, and that disagreement then persists. Along the normal, outside the
+    // capture steps, plane distance tells a segment's parallel surfaces apart (`within_plane`);
+    // the capture steps, decimetres off, group by normal alone.
+    let normal_columns = step.column_cells || params.segment_surfaces;
+    let plane_patches = params.segment_surfaces && !step.column_cells;
     let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
     for (chunk_index, chunk) in chunks.iter().enumerate() {
         let corr = &corrections[chunk.trajectory as usize];
@@ -366,7 +368,7 @@ fn estimate_tile_into<S: LatentSink>(
             }
             position.push(p);
             measurement.push(rr);
-            let unbounded = if normal_columns { Some(dominant_axis(&n)) } else { vertical_columns };
+            let unbounded = normal_columns.then(|| dominant_axis(&n));
             let cell = cell_key(&p, inv_cell, unbounded);
             let key = if params.segment_surfaces {
                 (cell, chunk_index as u32, chunk.segment[k])
@@ -391,7 +393,7 @@ fn estimate_tile_into<S: LatentSink>(
                 let along = dot(n, m.sum_normal);
                 if along > 0.0
                     && along * along * best_norm2 > best_along2 * norm2
-                    && (!normal_columns || m.within_plane(&p, norm2))
+                    && (!plane_patches || m.within_plane(&p, norm2))
                 {
                     (best_along2, best_norm2) = (along * along, norm2);
                     best = id;
@@ -1688,13 +1690,26 @@ mod tests {
         height: impl Fn(f64, f64) -> f64,
         n: [f64; 3],
     ) -> TileChunk {
+        strip_through(tile, strip, shift, per_row, n, |x, y| ([x, 2.0, 3.0], [x, y, height(x, y)]))
+    }
+
+    /// A strip of 40 × `per_row` revolutions of 12 points on a surface of normal `n`: `at(u, v)`
+    /// gives the head and the point for revolution coordinate `u` (0.1 m apart, from 2 m +
+    /// `shift[0]`) and point coordinate `v` (0.5 m apart, from 2 m + `shift[1]`).
+    fn strip_through(
+        tile: TileKey,
+        strip: u32,
+        shift: [f64; 2],
+        per_row: usize,
+        n: [f64; 3],
+        at: impl Fn(f64, f64) -> ([f64; 3], [f64; 3]),
+    ) -> TileChunk {
         let (cols, rows) = (12usize, 40 * per_row);
         let mut c = TileChunk::with_capacity(tile, strip, strip, [0.0, 0.0, 0.0], cols * rows);
         for row in 0..rows {
             for col in 0..cols {
-                let (x, y) = (2.0 + shift[0] + 0.1 * row as f64 / per_row as f64, 2.0 + shift[1] + 0.5 * col as f64);
-                let head = [x, 2.0, 3.0];
-                let p = [x, y, height(x, y)];
+                let (u, v) = (2.0 + shift[0] + 0.1 * row as f64 / per_row as f64, 2.0 + shift[1] + 0.5 * col as f64);
+                let (head, p) = at(u, v);
                 c.t0.push(head.map(|v| v as f32));
                 c.r.push([(p[0] - head[0]) as f32, (p[1] - head[1]) as f32, (p[2] - head[2]) as f32]);
                 c.normal.push(n.map(|v| v as f32));
@@ -1738,6 +1753,35 @@ mod tests {
         let cubes = run(false);
         assert_eq!(cubes.stats.surface_models, 2 * columns.stats.surface_models);
         assert_eq!(cubes.stats.points_used, 0);
+    }
+
+    /// A capture step's cells are columns along the normal too. Two passes 10 cm apart on either
+    /// side of a façade parallel to a 3 m cell face (x = 9 m) meet in one model per cell; in
+    /// vertical columns (until stop 43) they fell into two cells that never met, and small s3
+    /// at a 0.3° step kept one street's passes in two groups 0.3 m apart along the track.
+    #[test]
+    fn capture_passes_either_side_of_a_cell_face_meet_in_one_model() {
+        let tile = TileKey { tx: 0, ty: 0 };
+        let facing_the_street = [-1.0, 0.0, 0.0];
+        let facade = |strip: u32, x: f64| {
+            strip_through(tile, strip, [0.0, 0.0], 1, facing_the_street, |u, v| ([x - 6.0, u, 1.5], [x, u, v]))
+        };
+        let chunks = [facade(0, 8.95), facade(1, 9.05)];
+        let corrections = vec![TrajectoryCorrections::zeros(0, 8); 2];
+        let step =
+            IterationStep { cell_m: Some(3.0), column_cells: true, rotation: false, ..IterationStep::new(0.25, 1.0) };
+        for segment_surfaces in [true, false] {
+            let params = Parameters { segment_surfaces, ..Default::default() };
+            let estimate = estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap();
+            assert!(estimate.stats.points_used > 500, "{segment_surfaces}: {}", estimate.stats.points_used);
+            // They meet in the middle: every residual is ±5 cm, and the pulls across the façade
+            // are opposite.
+            let rms = (estimate.stats.residual_sum2_m2 / estimate.stats.points_used as f64).sqrt();
+            assert!((rms - 0.05).abs() < 1e-3, "{segment_surfaces}: {rms}");
+            let pull = |t: &TrajectoryBlocks| t.blocks.iter().map(|b| b.rhs[0]).sum::<f64>();
+            let (near, far) = (pull(&estimate.blocks[0]), pull(&estimate.blocks[1]));
+            assert!(near * far < 0.0 && near.abs() > 1.0, "{segment_surfaces}: {near} {far}");
+        }
     }
 
     /// A triangle whose corners its pass's segmentation split must not give a latent height:
