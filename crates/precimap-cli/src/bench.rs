@@ -40,6 +40,10 @@ pub enum BenchCommand {
         /// The step's outlier threshold (metres).
         #[arg(long, default_value_t = 0.3, value_name = "METRES")]
         threshold: f64,
+        /// Measure the default schedule's first step instead: a capture step (3 m column cells,
+        /// 25 cm pixels, 1 m threshold, translation only).
+        #[arg(long, conflicts_with_all = ["grid", "threshold"])]
+        capture: bool,
         #[arg(long)]
         json: bool,
     },
@@ -117,8 +121,11 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, json } => {
-            let step = IterationStep::new(grid, threshold);
+        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, capture, json } => {
+            let step = match capture {
+                true => precimap_core::params::default_schedule()[0],
+                false => IterationStep::new(grid, threshold),
+            };
             // The manifest's checks of a schedule step.
             let with_step = precimap_core::Parameters { schedule: vec![step], ..Default::default() };
             if let Some(problem) = with_step.problems().first() {
@@ -205,6 +212,8 @@ struct EstimateBench {
     threads: usize,
     grid_m: f64,
     threshold_m: f64,
+    /// The step's cells are capture columns (`--capture`).
+    column_cells: bool,
     /// estimate_tile compute on one thread.
     estimate_points_per_s_single_thread: f64,
     /// estimate_tile per CPU-second actually spent on a core (thread CPU time, Linux), the
@@ -300,9 +309,12 @@ fn bench_estimate(
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     // In centimetres to a tenth (0.07 × 100 prints as 7.000000000000001).
     let grid_cm = (step.grid_m * 1000.0).round() / 10.0;
+    let kind = if step.column_cells { " capture" } else { "" };
     match one_pass {
-        true => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, once", tiles.len()),
-        false => eprintln!("one {grid_cm} cm iteration over {} tiles on 1 thread, then on {threads}", tiles.len()),
+        true => eprintln!("one {grid_cm} cm{kind} iteration over {} tiles on 1 thread, once", tiles.len()),
+        false => {
+            eprintln!("one {grid_cm} cm{kind} iteration over {} tiles on 1 thread, then on {threads}", tiles.len())
+        }
     }
     let first = pass(&single)?;
     let (c1, points, cpu1) = (first.compute_s, first.points, first.cpu_s);
@@ -336,6 +348,7 @@ fn bench_estimate(
         threads: if one_pass { 1 } else { threads },
         grid_m: step.grid_m,
         threshold_m: step.threshold_m,
+        column_cells: step.column_cells,
         estimate_points_per_s_single_thread: points as f64 / c1,
         estimate_points_per_cpu_s: points as f64 / fastest_cpu,
         peak_rss_bytes: peak_rss_bytes(),
@@ -348,7 +361,7 @@ fn bench_estimate(
         outln!("{}", serde_json::to_string_pretty(&result)?);
     } else {
         outln!(
-            "estimate_tile, {grid_cm} cm grid, {} points in {} tiles ({} copies with border overlap)\n  \
+            "estimate_tile, {grid_cm} cm{kind} grid, {} points in {} tiles ({} copies with border overlap)\n  \
              single thread: {:.2} M points/s\n  per CPU-second on a core: {:.2} M points/s\n  \
              peak RSS {:.0} MiB (largest tile {} point copies)\n  \
              single-thread pass: {:.3} minor page faults per point, {:.1} % of its CPU in the kernel",
