@@ -2,12 +2,12 @@
 //!
 //! 1. Every point of the tile is corrected with the current trajectory corrections.
 //! 2. The latent map is built: points fall into voxel-hashed cells (columns along the point's
-//!    normal axis in the capture steps and, with segments, in every step, so that no cell face
-//!    cuts across a surface); inside a cell, points whose normals agree form a local surface
-//!    model (LSM: plane with normal `w`, origin `o`, and a height raster of pixel size `grid_m`). Each
-//!    strip's surface (the triangles of its scan image) is rasterised into the LSM pixels, so a
-//!    pixel knows every strip's surface height there even when the points are sparser than the
-//!    pixels (DESIGN §2 "Density matters").
+//!    normal axis in the capture steps and, with segments, in every other step, so that no cell
+//!    face cuts across a surface); inside a cell, points whose normals agree form a local
+//!    surface model (LSM: plane with normal `w`, origin `o`, and a height raster of pixel size
+//!    `grid_m`). Each strip's surface (the triangles of its scan image) is rasterised into the
+//!    LSM pixels, so a pixel knows every strip's surface height there even when the points are
+//!    sparser than the pixels (DESIGN §2 "Density matters").
 //!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and sample the
 //!    other passes' triangles for each point instead, at a cost that does not grow with the
 //!    pixel count: at pixel centres that follow the point spacing ([`pixels`], the default,
@@ -344,7 +344,7 @@ fn estimate_tile_into<S: LatentSink>(
     // that disagree about where the surface is (by more than its distance to the face) into two
     // cells that never meet, and that disagreement then persists. Along the normal, outside the
     // capture steps, plane distance tells a segment's parallel surfaces apart (`within_plane`);
-    // the capture steps, decimetres off, group by normal alone.
+    // the capture steps, with the passes still decimetres apart, group by normal alone.
     let normal_columns = step.column_cells || params.segment_surfaces;
     let plane_patches = params.segment_surfaces && !step.column_cells;
     let mut patch_slots: FxHashMap<(u64, u32, u32), CellModels> = FxHashMap::default();
