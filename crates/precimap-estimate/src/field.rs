@@ -605,12 +605,10 @@ fn solve_field_within<'a>(
     };
     // The campaign's rotation, solved with the field (`Parameters::campaign_motion`).
     let mut motion = params.campaign_motion.then(|| {
-        let (sum, count) = trajectories
-            .iter()
-            .flat_map(|tr| tr.positions)
-            .fold(([0.0f64; 3], 0usize), |(s, n), p| ([s[0] + p[0], s[1] + p[1], s[2] + p[2]], n + 1));
+        let count = trajectories.iter().map(|tr| tr.positions.len()).sum::<usize>().max(1);
+        let sum: Vec3 = trajectories.iter().flat_map(|tr| tr.positions).map(|&p| Vec3::from(p)).sum();
         MotionTerms {
-            origin: sum.map(|v| v / count.max(1) as f64),
+            origin: (sum / count as f64).into(),
             coupling: vec![[0.0; 3]; dim],
             own: Mat3::zeros(),
             rhs: Vec3::zeros(),
