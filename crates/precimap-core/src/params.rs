@@ -104,6 +104,15 @@ impl IterationStep {
 pub struct Parameters {
     /// Distance between anchors along the trajectory (paper: 0.5 m).
     pub anchor_spacing_m: f64,
+    /// The exported trajectory's corrections continue this far beyond the first and last anchor
+    /// its strips observe (within the trajectory): the poses recorded before the first scan and
+    /// after the last (the run-up and run-out) take what the smoothness and curvature terms
+    /// predict from the estimated corrections, which carries their trend on, instead of the end
+    /// anchor's correction held. Beyond it the correction is held; 0 holds it from the end
+    /// anchors on. Estimation does not see these anchors. 10 m since stop 44: the simulator's
+    /// run-ups are 4–5 m, and the prediction fades over ~25 m (ARCHITECTURE.md, "The run-up and
+    /// run-out").
+    pub end_extension_m: f64,
     /// Edge of a square map tile (paper: 15 m).
     pub tile_size_m: f64,
     /// Points within this distance of a tile border are also emitted to the neighbour (paper: 0.3 m).
@@ -265,6 +274,7 @@ impl Default for Parameters {
     fn default() -> Self {
         Self {
             anchor_spacing_m: 0.5,
+            end_extension_m: 10.0,
             tile_size_m: 15.0,
             tile_overlap_m: 0.3,
             max_range_m: 100.0,
@@ -339,6 +349,20 @@ pub struct ParameterProblem {
 }
 
 impl Parameters {
+    /// The anchors a trajectory's corrections span: `observed` (the first and last anchor its
+    /// strips' points use) extended by [`Self::end_extension_m`] on either side, but not past the
+    /// trajectory's own anchors `0..=trajectory_last_anchor` (`None`: not known, no extension).
+    pub fn estimated_anchor_range(&self, observed: (u32, u32), trajectory_last_anchor: Option<u32>) -> (u32, u32) {
+        let Some(trajectory_last) = trajectory_last_anchor else { return observed };
+        let extension = (self.end_extension_m / self.anchor_spacing_m).ceil();
+        // Saturating: a huge extension just reaches the trajectory's ends.
+        let extension =
+            if extension.is_finite() && extension > 0.0 { extension.min(u32::MAX as f64) as u32 } else { 0 };
+        let first = observed.0.saturating_sub(extension);
+        let last = observed.1.saturating_add(extension).min(trajectory_last.max(observed.1));
+        (first, last)
+    }
+
     /// Every out-of-range value, each with its field name.
     pub fn problems(&self) -> Vec<ParameterProblem> {
         let mut out = Vec::new();
@@ -378,6 +402,12 @@ impl Parameters {
             out.push(ParameterProblem {
                 field: "sigma_curvature_rotation_deg".into(),
                 problem: "the curvature terms are on or off together: set both positive or both 0".into(),
+            });
+        }
+        if !(self.end_extension_m.is_finite() && self.end_extension_m >= 0.0) {
+            out.push(ParameterProblem {
+                field: "end_extension_m".into(),
+                problem: "must be zero (off) or positive".into(),
             });
         }
         if !(0.0..1.0).contains(&self.weak_information_ratio) {
@@ -500,6 +530,26 @@ fn divides(tile: f64, cell: f64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn estimated_anchor_range_extends_within_the_trajectory() {
+        let p = Parameters::default();
+        // 10 m at 0.5 m: 20 anchors either side.
+        assert_eq!(p.estimated_anchor_range((50, 100), Some(1000)), (30, 120));
+        // Not past the trajectory's first or last anchor.
+        assert_eq!(p.estimated_anchor_range((9, 921), Some(930)), (0, 930));
+        // Unknown extent, or no extension: the observed range.
+        assert_eq!(p.estimated_anchor_range((50, 100), None), (50, 100));
+        let off = Parameters { end_extension_m: 0.0, ..Parameters::default() };
+        assert_eq!(off.estimated_anchor_range((50, 100), Some(1000)), (50, 100));
+        // A partial anchor counts whole; a huge extension reaches the ends without overflow.
+        let odd = Parameters { end_extension_m: 0.7, ..Parameters::default() };
+        assert_eq!(odd.estimated_anchor_range((50, 100), Some(1000)), (48, 102));
+        let huge = Parameters { end_extension_m: 1e300, ..Parameters::default() };
+        assert_eq!(huge.estimated_anchor_range((50, 100), Some(u32::MAX)), (0, u32::MAX));
+        let bad = Parameters { end_extension_m: f64::NAN, ..Parameters::default() };
+        assert!(bad.problems().iter().any(|p| p.field == "end_extension_m"));
+    }
 
     #[test]
     fn defaults_follow_the_paper() {

@@ -27,6 +27,6 @@ pub use prepare::{
     PrepareStats, PreparedStrip, ScanImage, SegmentParams, SegmentStats, StripContext, StripSamples, DROPPED_SEGMENT,
     NO_SEGMENT,
 };
-pub use solve::{solve_trajectory, TrajectorySolution};
+pub use solve::{extend_corrections, solve_trajectory, TrajectorySolution};
 pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
 pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, LatentGather, TileEstimate, UsedPoint};

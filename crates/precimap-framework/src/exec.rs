@@ -22,7 +22,9 @@ use precimap_estimate::anderson::{self, TrajectoryHistory};
 use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
-use precimap_pipeline::tasks::{anchor_positions, export_strip_file, export_trajectory_file, prepare_strip_chunks};
+use precimap_pipeline::tasks::{
+    anchor_positions, corrections_for_export, export_strip_file, export_trajectory_file, prepare_strip_chunks,
+};
 use precimap_pipeline::PipelineError;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -558,9 +560,13 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             };
             Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
         }
-        TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections } => {
+        TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
             let corrections = read_corrections(ctx, &corrections).await?;
             let entry = read_trajectory(ctx, &trajectory).await?;
+            let corrections = match params {
+                Some(params) => corrections_for_export(&entry, &corrections, &params),
+                None => corrections,
+            };
             let name = format!("trajectories/{}.csv", trajectory.id);
             let key = format!("{prefix}/out/{tag}/{name}");
             let (plot_name, plot) =

@@ -199,6 +199,11 @@ pub enum TaskInput {
         trajectory: TrajectoryInput,
         anchor_spacing_m: f64,
         corrections: CorrectionsRef,
+        /// The campaign's parameters, to continue the corrections over the trajectory's run-up
+        /// and run-out (`corrections_for_export`). Absent in tasks queued before they were
+        /// recorded: the end anchors' corrections are held there.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        params: Option<Box<Parameters>>,
     },
     WriteReport {
         prefix: String,
@@ -1027,6 +1032,7 @@ fn export_stage(state: &PlanState) -> Next {
             trajectory: t.clone(),
             anchor_spacing_m: spacing,
             corrections: corrections_or_zero(state, t.index),
+            params: Some(Box::new(state.params.clone())),
         }
         .task(t.id.clone())
     }));

@@ -270,8 +270,9 @@ pub fn export_trajectory_task(
     let entry = &campaign.trajectories[trajectory];
     let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
-    export_trajectory_file(entry, campaign.params.anchor_spacing_m, corrections, &dst)?;
-    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, corrections)])?;
+    let corrections = corrections_for_export(entry, corrections, &campaign.params);
+    export_trajectory_file(entry, campaign.params.anchor_spacing_m, &corrections, &dst)?;
+    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, &corrections)])?;
     Ok(dst)
 }
 
@@ -300,6 +301,25 @@ pub fn write_latent_map_tile(out_dir: &Path, tile: TileKey, points: &[LatentMapP
     Ok(precimap_formats::write_latent_map(&path, points)?)
 }
 
+/// The estimated corrections continued over the trajectory's run-up and run-out (the poses
+/// before its strips' first and after their last point), up to `params.end_extension_m`
+/// ([`precimap_estimate::extend_corrections`]).
+pub fn corrections_for_export(
+    entry: &TrajectoryEntry,
+    corrections: &TrajectoryCorrections,
+    params: &Parameters,
+) -> TrajectoryCorrections {
+    let estimated = (corrections.first_anchor, corrections.last_anchor());
+    let last = trajectory_last_anchor(&entry.data, params.anchor_spacing_m);
+    precimap_estimate::extend_corrections(corrections, params.estimated_anchor_range(estimated, Some(last)), params)
+}
+
+/// The anchor after a trajectory's last pose: the last one its poses interpolate from.
+fn trajectory_last_anchor(trajectory: &precimap_core::Trajectory, anchor_spacing_m: f64) -> u32 {
+    // `as` saturates: a trajectory beyond u32::MAX anchors just ends there.
+    ((trajectory.length_m() / anchor_spacing_m).floor() as u32).saturating_add(1)
+}
+
 /// Writes `entry`'s corrected trajectory CSV to `dst`.
 pub fn export_trajectory_file(
     entry: &TrajectoryEntry,
@@ -323,4 +343,46 @@ pub fn export_trajectory_file(
     }
     precimap_formats::write_trajectory_csv(dst, t.times(), &positions, &rpy)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Arc;
+
+    /// A trajectory's run-up and run-out take the estimated corrections' trend on, as far as
+    /// `end_extension_m` reaches and not past its own ends.
+    #[test]
+    fn exported_corrections_continue_over_the_run_up_and_run_out() {
+        // 100 m straight at 1 m/s: anchors 0..=201.
+        let times: Vec<f64> = (0..=200).map(|k| k as f64 * 0.5).collect();
+        let positions = times.iter().map(|&t| Vec3::new(t, 0.0, 0.0)).collect();
+        let data = precimap_core::Trajectory::new(times.clone(), positions, vec![[0.0; 3]; times.len()]).unwrap();
+        let entry = TrajectoryEntry {
+            id: "t".into(),
+            path: PathBuf::from("t.csv"),
+            data: Arc::new(data),
+            mean_lever_arm: Vec3::zeros(),
+        };
+        // Estimated on anchors 40..=160 with a trend of 1 mm per anchor in x.
+        let corrections = TrajectoryCorrections {
+            first_anchor: 40,
+            values: (40..=160).map(|i| [0.001 * i as f64, 0.0, 0.0, 0.0, 0.0, 0.0]).collect(),
+        };
+        let params = Parameters::default();
+        let exported = corrections_for_export(&entry, &corrections, &params);
+        // 10 m at 0.5 m: 20 anchors either side.
+        assert_eq!((exported.first_anchor, exported.last_anchor()), (20, 180));
+        assert_eq!(&exported.values[20..141], &corrections.values[..]);
+        // The trend carries on (held, they would stay at 0.040 and 0.160).
+        let (run_up, run_out) = (exported.values[0][0], exported.values[160][0]);
+        assert!(run_up < 0.040 - 0.8 * 0.020 && run_up > 0.040 - 1.01 * 0.020, "run-up {run_up}");
+        assert!(run_out > 0.160 + 0.8 * 0.020 && run_out < 0.160 + 1.01 * 0.020, "run-out {run_out}");
+        // Not past the trajectory's own ends; off at 0.
+        let far = Parameters { end_extension_m: 1000.0, ..Parameters::default() };
+        let exported = corrections_for_export(&entry, &corrections, &far);
+        assert_eq!((exported.first_anchor, exported.last_anchor()), (0, 201));
+        let off = Parameters { end_extension_m: 0.0, ..Parameters::default() };
+        assert_eq!(corrections_for_export(&entry, &corrections, &off), corrections);
+    }
 }
