@@ -32,8 +32,8 @@ pub use stats::{
     ShiftFreeMeans, SurfaceStripMeans, TileStripMeans,
 };
 pub use trajectory::{
-    largest_frame_errors, position_error_at, position_error_from, trajectory_errors, FrameSums, LargestError, TiltSums,
-    TrajectoryErrors, FRAME_COMPONENTS,
+    largest_frame_errors, position_error_at, position_error_from, trajectory_errors, unscanned_frame_sums, FrameSums,
+    LargestError, TiltSums, TrajectoryErrors, FRAME_COMPONENTS,
 };
 
 use precimap_core::{TileKey, Trajectory};
@@ -223,6 +223,12 @@ pub struct Evaluation {
     /// by arc length: the trajectory accuracy a relative adjustment can reach, and where it falls
     /// short (along-track is observed only through surfaces that change along the street).
     pub trajectory_error_without_datum_rms_m: FrameMetric,
+    /// The same over the poses outside the time span of their trajectory's strips alone: the
+    /// run-up before the first scan and the run-out after the last, whose corrections are
+    /// predicted from the estimated ones (`end_extension_m`), not estimated. `None` where every
+    /// pose is scanned.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub trajectory_error_without_datum_unscanned_rms_m: Option<FrameMetric>,
     /// Tilt of the least-squares plane through all trajectories' vertical position error over
     /// the true horizontal position (degrees; NaN where the trajectories lie on one line). A
     /// campaign tilted as a whole, every pass and the map together, changes no residual, so the
@@ -374,8 +380,9 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
         .map(|t| (trajectory_errors(&t.input, &t.truth), trajectory_errors(&t.result, &t.truth)))
         .collect();
     let [datum_before, datum_after] = totals(&trajectories).map(|t| t.mean_position_error_m());
-    // Where a trajectory's strips have points: beyond them its corrections are held, not
-    // estimated, and the largest errors would always sit at its two ends.
+    // Where a trajectory's strips have points: beyond them its corrections are predicted (the
+    // estimate continued over the run-up and run-out), not estimated, and the largest errors
+    // would mostly sit at its two ends.
     let scanned: Vec<Option<(f64, f64)>> = trajectory_jobs
         .iter()
         .map(|(id, _)| {
@@ -400,12 +407,33 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
             [largest(&t.input, datum_before).into(), largest(&t.result, datum_after).into()]
         })
         .collect();
+    let mut unscanned = [(FrameSums::default(), 0.0); 2];
+    for [before, after] in loaded
+        .par_iter()
+        .zip(&scanned)
+        .map(|(t, &span)| {
+            [unscanned_frame_sums(&t.input, &t.truth, span), unscanned_frame_sums(&t.result, &t.truth, span)]
+        })
+        .collect::<Vec<_>>()
+    {
+        for (total, (sums, length_m)) in unscanned.iter_mut().zip([before, after]) {
+            total.0.merge(&sums);
+            total.1 += length_m;
+        }
+    }
     // The trajectories (input, truth and result: 0.4 GB on the large campaign) are done with:
     // freed before the latent map is read, not held through its peak.
     drop(strip_trajectory);
     drop(loaded);
     let report = read_report(&result_dir.join("report.json"))?;
     let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, &largest, report);
+    let [(before, before_m), (after, after_m)] = &unscanned;
+    evaluation.trajectory_error_without_datum_unscanned_rms_m = (*before_m > 0.0 && *after_m > 0.0).then(|| {
+        FrameMetric::new(
+            before.rms_without(evaluation.datum_error_m.before, *before_m),
+            after.rms_without(evaluation.datum_error_m.after, *after_m),
+        )
+    });
     // The map keeps the result's datum: it is matched to the truth without the campaign's shift.
     let latent_map = match read_latent_maps(result_dir)? {
         Some(map) => {
@@ -815,6 +843,7 @@ fn assemble(
             traj_before.frame.rms_without(datum_before, traj_before.length_m),
             traj_after.frame.rms_without(datum_after, traj_after.length_m),
         ),
+        trajectory_error_without_datum_unscanned_rms_m: None,
         trajectory_tilt_deg: metric(
             traj_before.tilt.plane().map_or(f64::NAN, |p| p.0),
             traj_after.tilt.plane().map_or(f64::NAN, |p| p.0),
@@ -863,6 +892,12 @@ impl Evaluation {
         row("trajectory attitude error RMS", &self.trajectory_rotation_error_rms_deg, 1e3, "mdeg");
         for (name, m) in FRAME_COMPONENTS.iter().zip(self.trajectory_error_without_datum_rms_m.components()) {
             row(&format!("  {name} w/o the datum"), m, 1e3, "mm");
+        }
+        if let Some(unscanned) = &self.trajectory_error_without_datum_unscanned_rms_m {
+            for (name, m) in FRAME_COMPONENTS.iter().zip(unscanned.components()) {
+                let short = name.trim_end_matches("-track");
+                row(&format!("    {short} in run-up/run-out"), m, 1e3, "mm");
+            }
         }
         row("  the campaign's tilt", &self.trajectory_tilt_deg, 1e3, "mdeg");
         row("  vertical w/o the tilt", &self.trajectory_vertical_error_without_tilt_rms_m, 1e3, "mm");

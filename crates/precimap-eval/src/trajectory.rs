@@ -205,6 +205,24 @@ pub fn largest_frame_errors(
     largest
 }
 
+/// The frame sums ([`FrameSums`], weighted by true arc length) and that length over the samples
+/// of `eval` outside `scanned` (first, last GPS time its strips' points span; `None`: no strip,
+/// every sample): the run-up and run-out, whose corrections are predicted, not estimated.
+pub fn unscanned_frame_sums(eval: &Trajectory, truth: &Trajectory, scanned: Option<(f64, f64)>) -> (FrameSums, f64) {
+    let mut sums = FrameSums::default();
+    let mut length_m = 0.0;
+    compared_samples(eval, truth, |sample| {
+        if scanned.is_some_and(|(first, last)| (first..=last).contains(&sample.time)) || sample.step_m <= 0.0 {
+            return;
+        }
+        length_m += sample.step_m;
+        if let Some(basis) = &sample.frame {
+            sums.add(basis, sample.error, sample.step_m);
+        }
+    });
+    (sums, length_m)
+}
+
 /// One sample of `eval` inside the truth's time span.
 struct ComparedSample<'a> {
     time: f64,
@@ -340,6 +358,29 @@ mod tests {
         let mean = e.mean_position_error_m();
         assert!((mean[0] - 0.03).abs() < 1e-9 && mean[1].abs() < 1e-9 && (mean[2] - 0.04).abs() < 1e-9, "{mean:?}");
         assert!((e.length_m - 199.0 * 0.05).abs() < 1e-6, "{}", e.length_m);
+    }
+
+    /// Only the poses outside the scanned span count, in the frame of travel (+x here).
+    #[test]
+    fn unscanned_sums_hold_the_run_up_and_run_out_alone() {
+        let truth = line(100.0, 1000, Vec3::zeros(), 0.0);
+        // Off by 2 cm along the track in the first second (the run-up), exact after.
+        let times: Vec<f64> = (0..1000).map(|i| 100.0 + i as f64 * 0.005).collect();
+        let positions = times
+            .iter()
+            .map(|&t| Vec3::new(549_800.0 + (t - 100.0) * 10.0 + if t < 101.0 { 0.02 } else { 0.0 }, 5_803_400.0, 50.0))
+            .collect();
+        let rpy = times.iter().map(|t| [0.5, -1.0, 30.0 + (t - 100.0)]).collect();
+        let eval = Trajectory::new(times, positions, rpy).unwrap();
+        let (sums, length_m) = unscanned_frame_sums(&eval, &truth, Some((101.0, 104.0)));
+        // Run-up 100.005–100.995 s and run-out 104.005–104.995 s, 0.05 m per sample.
+        assert!((length_m - 2.0 * 199.0 * 0.05).abs() < 1e-6, "{length_m}");
+        let rms = sums.rms_without([0.0; 3], length_m);
+        assert!((rms[0] - 0.02 / 2f64.sqrt()).abs() < 1e-9 && rms[1] < 1e-9 && rms[2] < 1e-9, "{rms:?}");
+        // Without strips every pose is unscanned.
+        let (all, all_m) = unscanned_frame_sums(&eval, &truth, None);
+        assert!((all_m - 999.0 * 0.05).abs() < 1e-6);
+        assert!((all.rms_without([0.0; 3], all_m)[0] - 0.02 * (199.0f64 / 999.0).sqrt()).abs() < 1e-9);
     }
 
     #[test]
