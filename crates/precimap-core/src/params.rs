@@ -349,17 +349,16 @@ pub struct ParameterProblem {
 }
 
 impl Parameters {
-    /// The anchors a trajectory's corrections span: `observed` (the first and last anchor its
-    /// strips' points use) extended by [`Self::end_extension_m`] on either side, but not past the
-    /// trajectory's own anchors `0..=trajectory_last_anchor` (`None`: not known, no extension).
-    pub fn estimated_anchor_range(&self, observed: (u32, u32), trajectory_last_anchor: Option<u32>) -> (u32, u32) {
-        let Some(trajectory_last) = trajectory_last_anchor else { return observed };
+    /// The anchors a trajectory's exported corrections span: `estimated` (the first and last
+    /// anchor its strips' points use) extended by [`Self::end_extension_m`] on either side, but
+    /// not past the trajectory's own anchors `0..=trajectory_last`.
+    pub fn exported_anchor_range(&self, estimated: (u32, u32), trajectory_last: u32) -> (u32, u32) {
         let extension = (self.end_extension_m / self.anchor_spacing_m).ceil();
         // Saturating: a huge extension just reaches the trajectory's ends.
         let extension =
             if extension.is_finite() && extension > 0.0 { extension.min(u32::MAX as f64) as u32 } else { 0 };
-        let first = observed.0.saturating_sub(extension);
-        let last = observed.1.saturating_add(extension).min(trajectory_last.max(observed.1));
+        let first = estimated.0.saturating_sub(extension);
+        let last = estimated.1.saturating_add(extension).min(trajectory_last.max(estimated.1));
         (first, last)
     }
 
@@ -532,21 +531,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn estimated_anchor_range_extends_within_the_trajectory() {
+    fn exported_anchor_range_extends_within_the_trajectory() {
         let p = Parameters::default();
         // 10 m at 0.5 m: 20 anchors either side.
-        assert_eq!(p.estimated_anchor_range((50, 100), Some(1000)), (30, 120));
+        assert_eq!(p.exported_anchor_range((50, 100), 1000), (30, 120));
         // Not past the trajectory's first or last anchor.
-        assert_eq!(p.estimated_anchor_range((9, 921), Some(930)), (0, 930));
-        // Unknown extent, or no extension: the observed range.
-        assert_eq!(p.estimated_anchor_range((50, 100), None), (50, 100));
+        assert_eq!(p.exported_anchor_range((9, 921), 930), (0, 930));
+        // No extension: the estimated range.
         let off = Parameters { end_extension_m: 0.0, ..Parameters::default() };
-        assert_eq!(off.estimated_anchor_range((50, 100), Some(1000)), (50, 100));
+        assert_eq!(off.exported_anchor_range((50, 100), 1000), (50, 100));
         // A partial anchor counts whole; a huge extension reaches the ends without overflow.
         let odd = Parameters { end_extension_m: 0.7, ..Parameters::default() };
-        assert_eq!(odd.estimated_anchor_range((50, 100), Some(1000)), (48, 102));
+        assert_eq!(odd.exported_anchor_range((50, 100), 1000), (48, 102));
         let huge = Parameters { end_extension_m: 1e300, ..Parameters::default() };
-        assert_eq!(huge.estimated_anchor_range((50, 100), Some(u32::MAX)), (0, u32::MAX));
+        assert_eq!(huge.exported_anchor_range((50, 100), u32::MAX), (0, u32::MAX));
         let bad = Parameters { end_extension_m: f64::NAN, ..Parameters::default() };
         assert!(bad.problems().iter().any(|p| p.field == "end_extension_m"));
     }

@@ -5,7 +5,8 @@
 //! - [`tile::estimate_tile`]: the map task — latent map of one tile and its normal-equation
 //!   blocks per trajectory, and on request the latent map itself ([`latent`]);
 //! - [`solve::solve_trajectory`]: the reduce task — one exact block-tridiagonal Gauss–Newton
-//!   step per trajectory with prior and smoothness.
+//!   step per trajectory with prior and smoothness; [`solve::extend_corrections`] continues the
+//!   result over a trajectory's run-up and run-out for export.
 
 pub mod anderson;
 pub mod blocks;

@@ -273,12 +273,12 @@ pub fn extend_corrections(
     for a in 0..6 {
         let weights = ProfileWeights { smooth: smooth[a], curvature: curvature[a] };
         // The run-up mirrored: its first unknown next to the first estimated anchor.
-        let known = [values.get(1).map(|v| v[a]), Some(values[0][a])];
-        for (k, v) in continue_profile(known, before, &weights).into_iter().enumerate() {
+        let run_up = continue_profile(values.get(1).map(|v| v[a]), values[0][a], before, &weights);
+        for (k, v) in run_up.into_iter().enumerate() {
             head[before - 1 - k][a] = v;
         }
-        let known = [n.checked_sub(2).map(|i| values[i][a]), Some(values[n - 1][a])];
-        for (k, v) in continue_profile(known, after, &weights).into_iter().enumerate() {
+        let run_out = continue_profile(n.checked_sub(2).map(|i| values[i][a]), values[n - 1][a], after, &weights);
+        for (k, v) in run_out.into_iter().enumerate() {
             tail[k][a] = v;
         }
     }
@@ -295,22 +295,21 @@ struct ProfileWeights {
     curvature: f64,
 }
 
-/// The `m` values `y₁…y_m` after the known `[x₋₁, x₀]` (`x₋₁` absent for a single anchor) that
+/// The `m` values `y₁…y_m` after the known `x₋₁` (absent for a single anchor) and `x₀` that
 /// minimise `Σ smooth·(first differences)² + Σ curvature·(second differences)²` over every term
 /// that holds an unknown. The normal matrix is pentadiagonal and positive definite (the chain of
 /// first differences is tied to `x₀`): a banded Cholesky solves it in O(m).
-fn continue_profile(known: [Option<f64>; 2], m: usize, w: &ProfileWeights) -> Vec<f64> {
+fn continue_profile(x_before_end: Option<f64>, x_end: f64, m: usize, w: &ProfileWeights) -> Vec<f64> {
     if m == 0 {
         return Vec::new();
     }
     // Band storage: `band[i] = [A(i,i), A(i,i−1), A(i,i−2)]`.
     let mut band = vec![[0.0f64; 3]; m];
     let mut rhs = vec![0.0f64; m];
-    let x0 = known[1].unwrap_or(0.0);
     // Terms over the full chain x₋₁, x₀, y₁…y_m, index j: 0 = x₋₁, 1 = x₀, j ≥ 2 = y_{j−1}.
-    let value = |j: usize| if j == 0 { known[0] } else { Some(x0) };
+    let known = |j: usize| if j == 0 { x_before_end.unwrap_or(0.0) } else { x_end };
     let mut add_term = |coeffs: &[(usize, f64)], weight: f64| {
-        let constant: f64 = coeffs.iter().filter(|&&(j, _)| j < 2).map(|&(j, c)| c * value(j).unwrap_or(0.0)).sum();
+        let constant: f64 = coeffs.iter().filter(|&&(j, _)| j < 2).map(|&(j, c)| c * known(j)).sum();
         for &(j, cj) in coeffs.iter().filter(|&&(j, _)| j >= 2) {
             let r = j - 2;
             rhs[r] -= weight * cj * constant;
@@ -321,7 +320,7 @@ fn continue_profile(known: [Option<f64>; 2], m: usize, w: &ProfileWeights) -> Ve
     };
     for j in 2..m + 2 {
         add_term(&[(j - 1, -1.0), (j, 1.0)], w.smooth);
-        if w.curvature > 0.0 && (j >= 3 || known[0].is_some()) {
+        if w.curvature > 0.0 && (j >= 3 || x_before_end.is_some()) {
             add_term(&[(j - 2, 1.0), (j - 1, -2.0), (j, 1.0)], w.curvature);
         }
     }

@@ -311,7 +311,7 @@ pub fn corrections_for_export(
 ) -> TrajectoryCorrections {
     let estimated = (corrections.first_anchor, corrections.last_anchor());
     let last = trajectory_last_anchor(&entry.data, params.anchor_spacing_m);
-    precimap_estimate::extend_corrections(corrections, params.estimated_anchor_range(estimated, Some(last)), params)
+    precimap_estimate::extend_corrections(corrections, params.exported_anchor_range(estimated, last), params)
 }
 
 /// The anchor after a trajectory's last pose: the last one its poses interpolate from.
