@@ -1079,3 +1079,44 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
     .task("report".into());
     Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An export task queued before its input carried the parameters still reads (its
+    /// trajectory's ends are then held); one queued now carries them through the queue.
+    #[test]
+    fn export_trajectory_input_reads_with_and_without_parameters() {
+        let queued_before = serde_json::json!({
+            "kind": "export_trajectory",
+            "prefix": "c/1",
+            "trajectory": {"index": 0, "id": "v01", "uri": "trajectories/v01.csv", "mean_lever_arm": [0.0, 0.0, 0.0]},
+            "anchor_spacing_m": 0.5,
+            "corrections": {"trajectory": 0, "anchors": [9, 921], "key": null},
+        });
+        let TaskInput::ExportTrajectory { params, corrections, .. } = serde_json::from_value(queued_before).unwrap()
+        else {
+            panic!("not an export_trajectory input");
+        };
+        assert!(params.is_none());
+        assert_eq!(corrections.anchors, (9, 921));
+        let input = TaskInput::ExportTrajectory {
+            prefix: "c/1".into(),
+            trajectory: TrajectoryInput {
+                index: 0,
+                id: "v01".into(),
+                uri: "trajectories/v01.csv".into(),
+                mean_lever_arm: [0.0; 3],
+            },
+            anchor_spacing_m: 0.5,
+            corrections,
+            params: Some(Box::new(Parameters { end_extension_m: 7.0, ..Parameters::default() })),
+        };
+        let read: TaskInput = serde_json::from_value(serde_json::to_value(&input).unwrap()).unwrap();
+        let TaskInput::ExportTrajectory { params: Some(params), .. } = read else {
+            panic!("the parameters did not come through");
+        };
+        assert_eq!(params.end_extension_m, 7.0);
+    }
+}
