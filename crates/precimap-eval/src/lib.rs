@@ -147,6 +147,10 @@ impl FrameMetric {
     }
 }
 
+/// A trajectory's frame sums over its run-up and run-out, and their length in metres
+/// ([`unscanned_frame_sums`]).
+type UnscannedSums = (FrameSums, f64);
+
 /// The largest error per frame component ([`largest_frame_errors`]); `None` where the
 /// trajectory never moves while its strips have points inside the truth's time span.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -397,27 +401,25 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
                 })
         })
         .collect();
-    let largest: Vec<[FrameLargest; 2]> = loaded
-        .par_iter()
-        .zip(&scanned)
-        .map(|(t, span)| {
-            // A trajectory without strip points has nothing scanned to look in.
-            let largest =
-                |eval, datum| span.map_or([None; 3], |within| largest_frame_errors(eval, &t.truth, datum, within));
-            [largest(&t.input, datum_before).into(), largest(&t.result, datum_after).into()]
-        })
-        .collect();
-    let mut unscanned = [(FrameSums::default(), 0.0); 2];
-    for [before, after] in loaded
+    // Per trajectory, before and after: the largest errors while scanning, and the sums over the
+    // run-up and run-out (one pass over the loaded trajectories).
+    let (largest, unscanned_per_trajectory): (Vec<[FrameLargest; 2]>, Vec<[UnscannedSums; 2]>) = loaded
         .par_iter()
         .zip(&scanned)
         .map(|(t, &span)| {
-            [unscanned_frame_sums(&t.input, &t.truth, span), unscanned_frame_sums(&t.result, &t.truth, span)]
+            // A trajectory without strip points has nothing scanned to look in.
+            let largest =
+                |eval, datum| span.map_or([None; 3], |within| largest_frame_errors(eval, &t.truth, datum, within));
+            (
+                [largest(&t.input, datum_before).into(), largest(&t.result, datum_after).into()],
+                [unscanned_frame_sums(&t.input, &t.truth, span), unscanned_frame_sums(&t.result, &t.truth, span)],
+            )
         })
-        .collect::<Vec<_>>()
-    {
-        for (total, (sums, length_m)) in unscanned.iter_mut().zip([before, after]) {
-            total.0.merge(&sums);
+        .unzip();
+    let mut unscanned: [UnscannedSums; 2] = [(FrameSums::default(), 0.0); 2];
+    for sums in &unscanned_per_trajectory {
+        for (total, (sums, length_m)) in unscanned.iter_mut().zip(sums) {
+            total.0.merge(sums);
             total.1 += length_m;
         }
     }
