@@ -24,7 +24,18 @@ pub struct TrajectoryErrors {
     pub frame: FrameSums,
     /// The vertical error over the true horizontal position, weighted by Δs.
     pub tilt: TiltSums,
+    /// The attitude error as a rotation vector in the world frame (degrees), in the true
+    /// vehicle's axes ([`ATTITUDE_COMPONENTS`]), weighted by Δs like the position's frame.
+    pub attitude: FrameSums,
+    /// Σ ω·Δs over compared samples (deg·m), ω the attitude error in the world frame: with
+    /// `length_m`, the campaign's mean attitude error.
+    pub rotation_sum_by_length: [f64; 3],
 }
+
+/// An attitude error's components about the true vehicle's axes (DESIGN §1: body x forward,
+/// y left, z up), in this order. Relative data see them differently: a heading error moves a
+/// façade at range r along the track by r·δ, a roll error tilts the road across it.
+pub const ATTITUDE_COMPONENTS: [&str; 3] = ["roll", "pitch", "heading"];
 
 /// Length-weighted sums for the least-squares plane `e_z ≈ c₀ + c₁ Δx + c₂ Δy` through the
 /// vertical position error over the true horizontal position (Δ from the first sample added).
@@ -109,7 +120,9 @@ pub const FRAME_COMPONENTS: [&str; 3] = ["along-track", "across-track", "vertica
 
 /// Length-weighted sums from which each frame component's RMS of `e − d` follows for any datum
 /// `d` (the mean error of every trajectory together, known only once all are compared): per
-/// component `i` with unit vector `bᵢ`, Σ Δs (bᵢ·e)², Σ Δs (bᵢ·e) bᵢ and Σ Δs bᵢ bᵢᵀ.
+/// component `i` with unit vector `bᵢ`, Σ Δs (bᵢ·e)², Σ Δs (bᵢ·e) bᵢ and Σ Δs bᵢ bᵢᵀ. The
+/// position error uses the travel frame ([`FRAME_COMPONENTS`]), the attitude error the true
+/// vehicle's axes ([`ATTITUDE_COMPONENTS`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FrameSums {
     square: [f64; 3],
@@ -143,8 +156,8 @@ impl FrameSums {
         }
     }
 
-    /// Per component (`FRAME_COMPONENTS`), the RMS of `e − datum` weighted by arc length over
-    /// `length_m`; NaN without length.
+    /// Per component of the basis the sums were filled in, the RMS of `e − datum` weighted by
+    /// arc length over `length_m`; NaN without length.
     pub fn rms_without(&self, datum: [f64; 3], length_m: f64) -> [f64; 3] {
         std::array::from_fn(|i| {
             let mut sum = self.square[i];
@@ -277,6 +290,15 @@ impl TrajectoryErrors {
         self.length_m += other.length_m;
         self.frame.merge(&other.frame);
         self.tilt.merge(&other.tilt);
+        self.attitude.merge(&other.attitude);
+        (0..3).for_each(|a| self.rotation_sum_by_length[a] += other.rotation_sum_by_length[a]);
+    }
+
+    /// Mean attitude error per arc length (a rotation vector in the world frame, degrees): the
+    /// campaign's rotation as a whole, which, like the datum, moves every pass and the map
+    /// together. NaN without length.
+    pub fn mean_rotation_error_deg(&self) -> [f64; 3] {
+        self.rotation_sum_by_length.map(|v| v / self.length_m)
     }
 
     /// Mean position error per arc length (x, y, z metres): the absolute datum error. For the
@@ -323,8 +345,16 @@ pub fn trajectory_errors(eval: &Trajectory, truth: &Trajectory) -> TrajectoryErr
             }
             out.tilt.add(sample.true_position, sample.error.z, sample.step_m);
         }
-        out.rotation_sum_sq_deg +=
-            so3_log(&(sample.true_rotation.transpose() * sample.rotation)).norm().to_degrees().powi(2);
+        // R = R_true·Exp(ω_body), so R·R_trueᵀ = Exp(R_true·ω_body): the error in the world
+        // frame, whose components along the true body axes are ω_body's.
+        let body = so3_log(&(sample.true_rotation.transpose() * sample.rotation)).map(f64::to_degrees);
+        out.rotation_sum_sq_deg += body.norm_squared();
+        if sample.step_m > 0.0 {
+            let world = sample.true_rotation * body;
+            let axes = [0, 1, 2].map(|c| sample.true_rotation.column(c).into_owned());
+            out.attitude.add(&axes, world, sample.step_m);
+            (0..3).for_each(|a| out.rotation_sum_by_length[a] += world[a] * sample.step_m);
+        }
     });
     out
 }
@@ -443,6 +473,49 @@ mod tests {
         let rms = e.frame.rms_without([0.0; 3], e.length_m);
         assert!(rms[0] < 1e-9 && (rms[1] - 0.03).abs() < 1e-9 && rms[2] < 1e-9, "{rms:?}");
         assert!((largest[1].unwrap().error_m + 0.03).abs() < 1e-9, "{largest:?}");
+    }
+
+    /// A drive of `n` samples at 10 m/s on `heading_deg`, each pose's attitude off by the
+    /// body-frame rotation `error_deg(i)` (roll, pitch, heading about the vehicle's axes).
+    fn drive(heading_deg: f64, n: usize, error_deg: impl Fn(usize) -> [f64; 3]) -> Trajectory {
+        use precimap_core::geom::{rot_from_rpy, rpy_from_rot, so3_exp};
+        let times: Vec<f64> = (0..n).map(|i| 100.0 + i as f64 * 0.005).collect();
+        let (s, c) = heading_deg.to_radians().sin_cos();
+        let positions =
+            (0..n).map(|i| Vec3::new(549_800.0 + 0.05 * i as f64 * c, 5_803_400.0 + 0.05 * i as f64 * s, 50.0));
+        let truth = rot_from_rpy(0.5f64.to_radians(), (-1.0f64).to_radians(), heading_deg.to_radians());
+        let rpy = (0..n)
+            .map(|i| {
+                let r = truth * so3_exp(&Vec3::from(error_deg(i).map(f64::to_radians)));
+                let (roll, pitch, yaw) = rpy_from_rot(&r);
+                [roll, pitch, yaw].map(f64::to_degrees)
+            })
+            .collect();
+        Trajectory::new(times, positions.collect(), rpy).unwrap()
+    }
+
+    #[test]
+    fn attitude_errors_split_into_the_vehicles_axes_without_the_campaigns_rotation() {
+        // Roll 0.01° and heading ±0.02° alternating every 50 samples, on two headings at right
+        // angles (not the axes': a basis transposed by mistake would tell there).
+        let error = |i: usize| [0.01, 0.0, if (i / 50).is_multiple_of(2) { 0.02 } else { -0.02 }];
+        let mut e = trajectory_errors(&drive(30.0, 200, error), &drive(30.0, 200, |_| [0.0; 3]));
+        e.merge(&trajectory_errors(&drive(120.0, 200, error), &drive(120.0, 200, |_| [0.0; 3])));
+        let rms = e.attitude.rms_without([0.0; 3], e.length_m);
+        assert!((rms[0] - 0.01).abs() < 1e-9 && rms[1] < 1e-9 && (rms[2] - 0.02).abs() < 1e-9, "{rms:?}");
+        // The mean rotation in the world frame: the rolls about the two forward axes f₁, f₂
+        // average to 0.005·(f₁ + f₂); the heading's ± over 4 × 50 samples per drive nearly cancels.
+        let (s, c) = 30f64.to_radians().sin_cos();
+        let mean = e.mean_rotation_error_deg();
+        assert!((mean[0] - 0.005 * (c - s)).abs() < 1e-4 && (mean[1] - 0.005 * (s + c)).abs() < 1e-4, "{mean:?}");
+        assert!(mean[2].abs() < 1e-3, "{mean:?}");
+        // Without it each drive keeps its roll less that mean, ±0.005·(f₁ − f₂): 0.005° about
+        // its forward axis (roll) and 0.005° about its left one (pitch).
+        let without = e.attitude.rms_without(mean, e.length_m);
+        assert!((without[0] - 0.005).abs() < 1e-4 && (without[1] - 0.005).abs() < 1e-4, "{without:?}");
+        assert!((without[2] - 0.02).abs() < 1e-3, "{without:?}");
+        // The per-sample angle agrees with the axes where the weights do (constant speed).
+        assert!((e.rotation_rms_deg() - (0.01f64.powi(2) + 0.02f64.powi(2)).sqrt()).abs() < 1e-9);
     }
 
     #[test]
