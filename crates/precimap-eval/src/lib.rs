@@ -254,7 +254,7 @@ pub struct Evaluation {
     pub trajectory_attitude_error_rms_deg: AttitudeMetric,
     /// Mean attitude error of all trajectories per arc length, as a rotation vector in the world
     /// frame (x, y, z degrees): the campaign rotated as a whole, every pass and the map together,
-    /// which changes no residual. Its x and y parts are the campaign's tilt.
+    /// which changes no residual: its x and y parts tilt the campaign, its z part turns it.
     pub mean_attitude_error_deg: VectorMetric,
     /// The same per axis without that mean: the attitude accuracy the strips' agreement decides,
     /// as `trajectory_error_without_datum_rms_m` is for the position.
