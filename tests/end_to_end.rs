@@ -422,3 +422,35 @@ fn segments_command_writes_a_png() {
     let head = std::fs::read(&png).unwrap();
     assert_eq!(&head[1..4], b"PNG");
 }
+
+/// `precimap parameters` prints what a manifest's `parameters` takes: the defaults, and a
+/// manifest's own once they are pasted back with the schedule's last step repeated.
+#[test]
+fn the_printed_parameters_go_back_into_a_manifest() {
+    let dir = tempfile::tempdir().unwrap();
+    let exe = env!("CARGO_BIN_EXE_precimap");
+    let print = |manifest: Option<&Path>| {
+        let mut command = std::process::Command::new(exe);
+        command.arg("parameters");
+        if let Some(m) = manifest {
+            command.arg(m);
+        }
+        let out = command.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let defaults = print(None);
+    let parsed: precimap_core::Parameters = serde_json::from_value(defaults.clone()).unwrap();
+    assert_eq!(parsed, precimap_core::Parameters::default());
+    let mut longer = defaults.clone();
+    let schedule = longer["schedule"].as_array_mut().unwrap();
+    let last = schedule.last().unwrap().clone();
+    schedule.extend([last.clone(), last]);
+    let campaign = simulate_tiny(dir.path(), 1);
+    let manifest = manifest_with(&campaign, "longer", longer.clone());
+    let read = print(Some(&manifest));
+    assert_eq!(read, longer);
+    assert_eq!(read["schedule"].as_array().unwrap().len(), defaults["schedule"].as_array().unwrap().len() + 2);
+    // A manifest without parameters gives the defaults.
+    assert_eq!(print(Some(&campaign.join("manifest.json"))), defaults);
+}

@@ -119,6 +119,10 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Print the estimation parameters a run would use, as the JSON a manifest's `parameters`
+    /// takes: the defaults, or those of MANIFEST (its overrides on the defaults). Copy, edit and
+    /// paste back, e.g. to repeat the schedule's last step so that a campaign runs on.
+    Parameters { manifest: Option<PathBuf> },
     /// Simulate, run and evaluate in one go (the README's first command).
     Demo {
         #[arg(long, default_value = "small")]
@@ -309,6 +313,14 @@ fn real_main(cli: Cli) -> Result<()> {
         Command::Cancel { id, client } => service::cancel(id, &client),
         Command::Delete { id, client } => service::delete(id, &client),
         Command::Evaluate { truth, result, json } => evaluate(&truth, &result, json),
+        Command::Parameters { manifest } => {
+            let parameters = match manifest {
+                Some(path) => precimap_formats::manifest::load_manifest(&path)?.parameters,
+                None => precimap_core::Parameters::default(),
+            };
+            println!("{}", serde_json::to_string_pretty(&parameters)?);
+            Ok(())
+        }
         Command::Demo { scale, seed, out } => {
             let campaign = out.join("campaign");
             let result = out.join("result");
