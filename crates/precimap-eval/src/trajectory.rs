@@ -337,6 +337,11 @@ pub fn trajectory_errors(eval: &Trajectory, truth: &Trajectory) -> TrajectoryErr
     out.outside_truth = compared_samples(eval, truth, |sample| {
         out.samples += 1;
         out.position_sum_sq += sample.error.norm_squared();
+        // R = R_true·Exp(ω_body), so R·R_trueᵀ = Exp(R_true·ω_body): the error in the world
+        // frame, whose components along the true body axes are ω_body's.
+        let body = so3_log(&(sample.true_rotation.transpose() * sample.rotation)).map(f64::to_degrees);
+        out.rotation_sum_sq_deg += body.norm_squared();
+        // The sums weighted by arc length: a standstill weighs nothing.
         if sample.step_m > 0.0 {
             (0..3).for_each(|a| out.position_sum_by_length[a] += sample.error[a] * sample.step_m);
             out.length_m += sample.step_m;
@@ -344,12 +349,6 @@ pub fn trajectory_errors(eval: &Trajectory, truth: &Trajectory) -> TrajectoryErr
                 out.frame.add(basis, sample.error, sample.step_m);
             }
             out.tilt.add(sample.true_position, sample.error.z, sample.step_m);
-        }
-        // R = R_true·Exp(ω_body), so R·R_trueᵀ = Exp(R_true·ω_body): the error in the world
-        // frame, whose components along the true body axes are ω_body's.
-        let body = so3_log(&(sample.true_rotation.transpose() * sample.rotation)).map(f64::to_degrees);
-        out.rotation_sum_sq_deg += body.norm_squared();
-        if sample.step_m > 0.0 {
             let world = sample.true_rotation * body;
             let axes = [0, 1, 2].map(|c| sample.true_rotation.column(c).into_owned());
             out.attitude.add(&axes, world, sample.step_m);
