@@ -10,6 +10,61 @@ use serde::{Deserialize, Serialize};
 /// `[δtx, δty, δtz, δθx, δθy, δθz]`: translation in metres, rotation vector in radians, world frame.
 pub type Correction = [f64; 6];
 
+/// The posterior covariance of one anchor's correction (`[δt; δθ]`, metres and radians, world
+/// frame): the upper triangle of the symmetric 6×6 matrix, row by row (21 values).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnchorCovariance(pub [f64; 21]);
+
+impl AnchorCovariance {
+    /// Index of entry (a, b) of the upper triangle, either order.
+    #[inline]
+    fn index(a: usize, b: usize) -> usize {
+        let (r, c) = if a <= b { (a, b) } else { (b, a) };
+        r * 6 - r * (r + 1) / 2 + c
+    }
+
+    /// From a full symmetric matrix given by `entry(a, b)`; only a ≤ b is read.
+    pub fn from_fn(mut entry: impl FnMut(usize, usize) -> f64) -> Self {
+        let mut out = [0.0; 21];
+        for a in 0..6 {
+            for b in a..6 {
+                out[Self::index(a, b)] = entry(a, b);
+            }
+        }
+        Self(out)
+    }
+
+    /// Standard deviations alone: a covariance without correlations.
+    pub fn from_sigma(sigma: [f64; 6]) -> Self {
+        Self::from_fn(|a, b| if a == b { sigma[a] * sigma[a] } else { 0.0 })
+    }
+
+    #[inline]
+    pub fn get(&self, a: usize, b: usize) -> f64 {
+        self.0[Self::index(a, b)]
+    }
+
+    /// The world frame's standard deviations (`√` of the diagonal, negative rounding clamped).
+    pub fn sigma(&self) -> [f64; 6] {
+        std::array::from_fn(|a| self.get(a, a).max(0.0).sqrt())
+    }
+
+    /// Standard deviations along three unit axes, of the translation (`offset` 0) or of the
+    /// rotation (`offset` 3): `√(eᵀ Σ e)` for each axis `e` (world-frame components).
+    pub fn sigma_along(&self, offset: usize, axes: &[[f64; 3]; 3]) -> [f64; 3] {
+        std::array::from_fn(|k| {
+            let e = axes[k];
+            let mut v = 0.0;
+            for a in 0..3 {
+                for b in 0..3 {
+                    v += e[a] * self.get(offset + a, offset + b) * e[b];
+                }
+            }
+            v.max(0.0).sqrt()
+        })
+    }
+}
+
 /// Corrections of one trajectory for the contiguous anchor range `first_anchor..first_anchor+len`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrajectoryCorrections {
@@ -151,6 +206,37 @@ pub fn apply(t0: [f64; 3], r: [f64; 3], c: &Correction) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_anchor_covariance_is_read_in_any_frame() {
+        // Translation: σ 1 mm in x, 3 mm in y, 2 mm in z, x and y correlated by ρ = 0.5.
+        let mut full = [[0.0; 6]; 6];
+        full[0][0] = 1e-6;
+        full[1][1] = 9e-6;
+        full[2][2] = 4e-6;
+        full[0][1] = 0.5 * 1e-3 * 3e-3;
+        full[1][0] = full[0][1];
+        full[5][5] = 0.25e-8;
+        full[3][5] = 0.7;
+        full[5][3] = 0.7;
+        let c = AnchorCovariance::from_fn(|a, b| full[a][b]);
+        for a in 0..6 {
+            for b in 0..6 {
+                assert_eq!(c.get(a, b), full[a][b], "({a}, {b})");
+            }
+        }
+        let s = c.sigma();
+        assert!((s[0] - 1e-3).abs() < 1e-15 && (s[1] - 3e-3).abs() < 1e-15 && (s[5] - 0.5e-4).abs() < 1e-15);
+        // Along the world axes: the diagonal. Along the diagonal of x and y: (σx² + σy² + 2ρσxσy)/2.
+        let world = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        assert_eq!(c.sigma_along(0, &world), [s[0], s[1], s[2]]);
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let turned = c.sigma_along(0, &[[h, h, 0.0], [-h, h, 0.0], [0.0, 0.0, 1.0]]);
+        let expect = |cross: f64| ((1e-6 + 9e-6 + cross) / 2.0f64).sqrt();
+        assert!((turned[0] - expect(2.0 * full[0][1])).abs() < 1e-15, "{turned:?}");
+        assert!((turned[1] - expect(-2.0 * full[0][1])).abs() < 1e-15, "{turned:?}");
+        assert_eq!(AnchorCovariance::from_sigma(s).sigma(), s);
+    }
 
     #[test]
     fn interpolation_and_clamping() {

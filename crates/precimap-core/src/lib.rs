@@ -14,7 +14,7 @@ pub mod params;
 pub mod tile;
 pub mod trajectory;
 
-pub use corrections::{ChangeHistogram, Correction, TrajectoryCorrections};
+pub use corrections::{AnchorCovariance, ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
 pub use latent::LatentMapPoint;
 pub use params::{IterationStep, Parameters};

@@ -4,7 +4,7 @@
 //! Gauss–Newton system exactly in linear time.
 
 use crate::blocks::{sym_index, AnchorBlock};
-use precimap_core::corrections::{ChangeHistogram, TrajectoryCorrections};
+use precimap_core::corrections::{AnchorCovariance, ChangeHistogram, TrajectoryCorrections};
 use precimap_core::Parameters;
 use precimap_solve::{BlockTridiagonal, Mat6, Vec6};
 use serde::{Deserialize, Serialize};
@@ -24,8 +24,10 @@ pub struct TrajectorySolution {
     /// Anchors with at least one observation.
     pub anchors_observed: u32,
     pub observations: u64,
-    /// Posterior standard deviations per anchor (position m, rotation rad), when requested.
-    pub sigma: Option<Vec<[f64; 6]>>,
+    /// Posterior covariance per anchor (position m, rotation rad, world frame), when requested:
+    /// given the latent map this iteration held fixed, so it says how well the pass fits the
+    /// map, not how far the map itself is from the truth.
+    pub covariance: Option<Vec<AnchorCovariance>>,
 }
 
 /// Nominal range at which a rotation change is expressed as a displacement.
@@ -434,7 +436,7 @@ pub fn solve_trajectory<'a>(
             solve_pairs(&sys, &skip, with_sigma)?
         }
     };
-    let sigma = sigma.map(|cov| cov.iter().map(|c| std::array::from_fn(|a| c[(a, a)].max(0.0).sqrt())).collect());
+    let covariance = sigma.map(|cov| cov.iter().map(|c| AnchorCovariance::from_fn(|a, b| c[(a, b)])).collect());
     let beta = if previous.is_some() { params.momentum } else { 0.0 };
     let values: Vec<[f64; 6]> = current
         .values
@@ -460,7 +462,7 @@ pub fn solve_trajectory<'a>(
         change_histogram: changes.histogram,
         anchors_observed: observed.iter().filter(|&&o| o).count() as u32,
         observations,
-        sigma,
+        covariance,
     })
 }
 

@@ -19,6 +19,7 @@
 mod assignments;
 mod latent;
 mod normals;
+mod precision;
 mod segments;
 mod stats;
 mod trajectory;
@@ -26,6 +27,7 @@ mod trajectory;
 pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
 pub use latent::{evaluate_latent_map, read_latent_maps, LatentClassFigures, LatentMapEvaluation};
 pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
+pub use precision::{AxisValues, FrameValues, SigmaSums, StatedPrecision, TableError};
 pub use segments::{SegmentEvaluation, SegmentTally};
 pub use stats::{
     signed_normal_error, strip_offset_spread, AbsHistogram, ClassSurfaceStripMeans, ErrorStats, GroupStripMeans,
@@ -318,6 +320,10 @@ pub struct Evaluation {
     pub latent_map_error_without_campaign_shift_rms_m: Option<f64>,
     /// `latent_map.error_without_tile_shift_rms_m`: the map's error where one datum holds.
     pub latent_map_error_without_tile_shift_rms_m: Option<f64>,
+    /// The precision the result states (`OUT/corrections/*.csv`, every trajectory's) against the
+    /// errors after: absent when a trajectory has no corrections table.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stated_precision: Option<StatedPrecision>,
 }
 
 /// One tile's strips and their offsets from the tile's mean (metres, strip ids).
@@ -360,6 +366,8 @@ pub enum EvalError {
     Report { path: PathBuf, message: String },
     #[error("the latent map (OUT/latent/*.las) has a point in cell {cells:?}, more than 2³¹ cells of 10 cm from its lowest cell {origin:?}: a map point's coordinates are corrupt; re-export the map with `precimap run`")]
     LatentMapExtent { cells: [i64; 3], origin: [i64; 3] },
+    #[error(transparent)]
+    CorrectionsTable(#[from] TableError),
     #[error("{strips} strips: the latent map's evaluation tells at most {most} strips apart")]
     TooManyStrips { strips: usize, most: usize },
 }
@@ -487,7 +495,33 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
     evaluation.latent_map_error_without_tile_shift_rms_m =
         latent_map.as_ref().map(|l| l.error_without_tile_shift_rms_m);
     evaluation.latent_map = latent_map;
+    evaluation.stated_precision =
+        read_corrections_tables(result_dir, trajectory_jobs.iter().map(|(id, _)| id.as_str()))?.and_then(|sums| {
+            sums.stated(
+                evaluation.trajectory_error_without_datum_rms_m.components().map(|m| m.after),
+                evaluation.trajectory_attitude_error_without_mean_rms_deg.components().map(|m| m.after),
+            )
+        });
     Ok(evaluation)
+}
+
+/// Every trajectory's corrections table (`OUT/corrections/{id}.csv`), summed; `None` unless each
+/// trajectory has one (a partial figure would mislead).
+fn read_corrections_tables<'a>(
+    result_dir: &Path,
+    trajectories: impl Iterator<Item = &'a str>,
+) -> Result<Option<SigmaSums>, EvalError> {
+    let mut sums = SigmaSums::default();
+    for id in trajectories {
+        let path = result_dir.join("corrections").join(format!("{id}.csv"));
+        let text = match std::fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(EvalError::Report { path, message: e.to_string() }),
+        };
+        precision::add_table(&mut sums, &text, &path)?;
+    }
+    Ok(Some(sums))
 }
 
 fn check_id(what: &'static str, id: &str) -> Result<(), EvalError> {
@@ -914,6 +948,7 @@ fn assemble(
         latent_map_error_rms_m: None,
         latent_map_error_without_campaign_shift_rms_m: None,
         latent_map_error_without_tile_shift_rms_m: None,
+        stated_precision: None,
         surface_points,
         points,
         strips: strip_jobs.len(),
@@ -998,6 +1033,19 @@ impl Evaluation {
             mm(self.mean_attitude_error_deg.before),
             mm(self.mean_attitude_error_deg.after)
         );
+        if let Some(p) = &self.stated_precision {
+            let three = |v: [f64; 3]| format!("{:.2} / {:.2} / {:.2}", v[0], v[1], v[2]);
+            let _ = writeln!(
+                out,
+                "stated precision (OUT/corrections, {} anchors): σ along / across / vertical {} mm, roll / pitch / \
+                 heading {} mdeg; error after over σ {} and {}",
+                p.anchors,
+                three(p.position_sigma_rms_m.components().map(|v| v * 1e3)),
+                three(p.attitude_sigma_rms_deg.components().map(|v| v * 1e3)),
+                three(p.position_error_over_sigma.components()),
+                three(p.attitude_error_over_sigma.components())
+            );
+        }
         let largest: Vec<String> = self
             .per_trajectory
             .iter()

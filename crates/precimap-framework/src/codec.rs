@@ -3,12 +3,15 @@
 //! the framework equal the in-process path's), with a magic and version so a reader rejects
 //! anything else with a clear error.
 
-use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_estimate::{AnchorBlock, FieldEquations};
 
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
 const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
-const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR01";
+const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR02";
+/// Posterior standard deviations only (before the exported corrections table needed the whole
+/// covariance to give them in the vehicle's frame).
+const CORRECTIONS_MAGIC_SIGMA: &[u8; 8] = b"PMCORR01";
 const POSITIONS_MAGIC: &[u8; 8] = b"PMANPOS2";
 /// Horizontal positions only (before the campaign's motion needed the anchors' heights).
 const POSITIONS_MAGIC_HORIZONTAL: &[u8; 8] = b"PMANPOS1";
@@ -173,42 +176,50 @@ pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
     Ok(FieldEquations { nodes, pairs, rhs, observations })
 }
 
-/// Corrections with the optional posterior standard deviations of the final iteration.
-pub fn encode_corrections(c: &TrajectoryCorrections, sigma: Option<&[[f64; 6]]>) -> Vec<u8> {
-    let mut out = Vec::with_capacity(20 + c.values.len() * 96);
+/// Corrections with the optional posterior covariances of the final iteration.
+pub fn encode_corrections(c: &TrajectoryCorrections, covariance: Option<&[AnchorCovariance]>) -> Vec<u8> {
+    let covariance = covariance.unwrap_or(&[]);
+    let mut out = Vec::with_capacity(20 + c.values.len() * 48 + covariance.len() * 168);
     out.extend_from_slice(CORRECTIONS_MAGIC);
     out.extend_from_slice(&c.first_anchor.to_le_bytes());
     out.extend_from_slice(&(c.values.len() as u32).to_le_bytes());
     for v in &c.values {
         put_f64s(&mut out, v);
     }
-    let sigma = sigma.unwrap_or(&[]);
-    out.extend_from_slice(&(sigma.len() as u32).to_le_bytes());
-    for s in sigma {
-        put_f64s(&mut out, s);
+    out.extend_from_slice(&(covariance.len() as u32).to_le_bytes());
+    for s in covariance {
+        put_f64s(&mut out, &s.0);
     }
     out
 }
 
+/// Reads what [`encode_corrections`] wrote, and the version before it (standard deviations
+/// alone, read as a covariance without correlations).
 #[allow(clippy::type_complexity)]
-pub fn decode_corrections(bytes: &[u8]) -> Result<(TrajectoryCorrections, Option<Vec<[f64; 6]>>), CodecError> {
-    let mut r = Reader::new(bytes, CORRECTIONS_MAGIC, "trajectory corrections")?;
+pub fn decode_corrections(bytes: &[u8]) -> Result<(TrajectoryCorrections, Option<Vec<AnchorCovariance>>), CodecError> {
+    let sigma_only = bytes.starts_with(CORRECTIONS_MAGIC_SIGMA);
+    let magic = if sigma_only { CORRECTIONS_MAGIC_SIGMA } else { CORRECTIONS_MAGIC };
+    let mut r = Reader::new(bytes, magic, "trajectory corrections")?;
     let first_anchor = r.u32()?;
     let n = r.count(48)?;
     let mut values = Vec::with_capacity(n);
     for _ in 0..n {
         values.push(r.f64s::<6>()?);
     }
-    let m = r.count(48)?;
-    let mut sigma = Vec::with_capacity(m);
+    let m = r.count(if sigma_only { 48 } else { 168 })?;
+    let mut covariance = Vec::with_capacity(m);
     for _ in 0..m {
-        sigma.push(r.f64s::<6>()?);
+        covariance.push(if sigma_only {
+            AnchorCovariance::from_sigma(r.f64s::<6>()?)
+        } else {
+            AnchorCovariance(r.f64s::<21>()?)
+        });
     }
     r.finish()?;
     if values.is_empty() {
         return Err(CodecError::Truncated { what: "trajectory corrections", at: 12, len: bytes.len() });
     }
-    Ok((TrajectoryCorrections { first_anchor, values }, (m > 0).then_some(sigma)))
+    Ok((TrajectoryCorrections { first_anchor, values }, (m > 0).then_some(covariance)))
 }
 
 /// Every trajectory's anchor positions (metres), in trajectory order.
@@ -347,15 +358,28 @@ mod tests {
     }
 
     #[test]
-    fn corrections_round_trip_with_and_without_sigma() {
+    fn corrections_round_trip_with_and_without_covariance() {
         let c = TrajectoryCorrections { first_anchor: 42, values: vec![[0.1, -0.2, 0.3, 1e-5, -2e-5, 3e-5]; 4] };
-        let (back, sigma) = decode_corrections(&encode_corrections(&c, None)).unwrap();
+        let (back, covariance) = decode_corrections(&encode_corrections(&c, None)).unwrap();
         assert_eq!(back, c);
-        assert!(sigma.is_none());
-        let s = vec![[0.001; 6]; 4];
-        let (back, sigma) = decode_corrections(&encode_corrections(&c, Some(&s))).unwrap();
+        assert!(covariance.is_none());
+        let s: Vec<AnchorCovariance> =
+            (0..4).map(|k| AnchorCovariance::from_fn(|a, b| 1e-6 * (k + 1) as f64 / (1 + a + b) as f64)).collect();
+        let (back, covariance) = decode_corrections(&encode_corrections(&c, Some(&s))).unwrap();
         assert_eq!(back, c);
-        assert_eq!(sigma.unwrap(), s);
+        assert_eq!(covariance.unwrap(), s);
         assert!(decode_corrections(&encode_corrections(&c, None)[..20]).is_err());
+        assert!(decode_corrections(&encode_corrections(&c, Some(&s))[..300]).is_err());
+        // The version before: standard deviations alone, read as a covariance without correlations.
+        let mut old = b"PMCORR01".to_vec();
+        old.extend_from_slice(&42u32.to_le_bytes());
+        old.extend_from_slice(&4u32.to_le_bytes());
+        c.values.iter().flatten().for_each(|v| old.extend_from_slice(&v.to_le_bytes()));
+        old.extend_from_slice(&4u32.to_le_bytes());
+        let sigma: [f64; 6] = [1e-3, 2e-3, 3e-3, 1e-5, 2e-5, 3e-5];
+        (0..4).for_each(|_| sigma.iter().for_each(|v| old.extend_from_slice(&v.to_le_bytes())));
+        let (back, covariance) = decode_corrections(&old).unwrap();
+        assert_eq!(back, c);
+        assert_eq!(covariance.unwrap(), vec![AnchorCovariance::from_sigma(sigma); 4]);
     }
 }

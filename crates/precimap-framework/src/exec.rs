@@ -15,7 +15,7 @@ use crate::plan::{
     OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
-use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::trajectory::Trajectory;
 use precimap_core::Vec3;
 use precimap_estimate::anderson::{self, TrajectoryHistory};
@@ -23,7 +23,8 @@ use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
 use precimap_pipeline::tasks::{
-    anchor_positions, corrections_for_export, export_strip_file, export_trajectory_file, prepare_strip_chunks,
+    anchor_positions, corrections_for_export, corrections_table, corrections_table_name, export_strip_file,
+    export_trajectory_file, prepare_strip_chunks,
 };
 use precimap_pipeline::PipelineError;
 use std::collections::VecDeque;
@@ -236,6 +237,18 @@ fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
 async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<TrajectoryCorrections, TaskError> {
     let mut read = read_corrections_many(ctx, std::slice::from_ref(c)).await?;
     Ok(read.pop().expect("one corrections per reference"))
+}
+
+/// One trajectory's corrections with the covariances its solve stored (the last iteration's).
+async fn read_corrections_with_covariance(
+    ctx: &TaskContext,
+    c: &CorrectionsRef,
+) -> Result<(TrajectoryCorrections, Option<Vec<AnchorCovariance>>), TaskError> {
+    let Some(key) = &c.key else {
+        return Ok((TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1), None));
+    };
+    let bytes = ctx.get(key).await?;
+    decode_corrections(&bytes).map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))
 }
 
 /// Several trajectories' corrections, read together (see [`Objects::get_many`]).
@@ -494,7 +507,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 ))
             })?;
             let key = format!("{prefix}/it/{iteration}/corr/{}.{tag}.bin", trajectory.index);
-            ctx.put(&key, encode_corrections(&solution.corrections, solution.sigma.as_deref())).await?;
+            ctx.put(&key, encode_corrections(&solution.corrections, solution.covariance.as_deref())).await?;
             let result = SolveResult {
                 trajectory: trajectory.index,
                 max_change_m: solution.max_change_m,
@@ -561,8 +574,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
         }
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
-            let corrections = read_corrections(ctx, &corrections).await?;
+            let (corrections, covariance) = read_corrections_with_covariance(ctx, &corrections).await?;
             let entry = read_trajectory(ctx, &trajectory).await?;
+            let estimated = (corrections.first_anchor, corrections.last_anchor());
             let corrections = match params {
                 Some(params) => corrections_for_export(&entry, &corrections, &params),
                 None => corrections,
@@ -571,15 +585,21 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let key = format!("{prefix}/out/{tag}/{name}");
             let (plot_name, plot) =
                 precimap_pipeline::qc::trajectory_plot(&trajectory.id, anchor_spacing_m, &corrections);
+            let table_name = corrections_table_name(&trajectory.id);
+            let table =
+                corrections_table(&entry.data, anchor_spacing_m, &corrections, estimated, covariance.as_deref());
             ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
                 .await?;
-            let plot_key = format!("{prefix}/out/{tag}/{plot_name}");
-            ctx.put(&plot_key, plot.into_bytes()).await?;
+            let mut outputs = vec![OutputKey { name, object_key: key }];
+            outputs.extend(
+                ctx.put_many(vec![
+                    (plot_name.clone(), format!("{prefix}/out/{tag}/{plot_name}"), plot.into_bytes()),
+                    (table_name.clone(), format!("{prefix}/out/{tag}/{table_name}"), table.into_bytes()),
+                ])
+                .await?,
+            );
             let result = ExportResult { points: 0, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome {
-                result: to_json(&result)?,
-                outputs: vec![OutputKey { name, object_key: key }, OutputKey { name: plot_name, object_key: plot_key }],
-            })
+            Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map } => {
             let key = format!("{prefix}/out/{tag}/report.json");

@@ -9,7 +9,7 @@ use crate::tasks::{
     anchor_positions, estimate_tile_task, export_strip_task, export_trajectory_task, prepare_strip_task,
     solve_trajectory_task, Gather, LATENT_DIR,
 };
-use precimap_core::corrections::TrajectoryCorrections;
+use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::TileKey;
 use precimap_estimate::anderson::AndersonHistory;
 use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
@@ -318,7 +318,8 @@ pub fn run_campaign(
         Ok(())
     })?;
     for (t, c) in corrections.iter().enumerate() {
-        export_trajectory_task(&campaign, t, c, out)?;
+        // The last iteration solved with its covariances (its corrections are the ones exported).
+        export_trajectory_task(&campaign, t, c, solutions[t].covariance.as_deref(), out)?;
     }
     let export_s = t.elapsed().as_secs_f64();
     if options.assignments {
@@ -436,13 +437,13 @@ pub fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) 
         rs += rot(v).powi(2);
     }
     let (mut sig_p, mut sig_r) = (0.0, 0.0);
-    if let Some(sigma) = &sol.sigma {
-        for s in sigma {
+    if let Some(covariance) = &sol.covariance {
+        for s in covariance.iter().map(AnchorCovariance::sigma) {
             sig_p += (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
             sig_r += (s[3] * s[3] + s[4] * s[4] + s[5] * s[5]).sqrt().to_degrees();
         }
-        sig_p /= sigma.len().max(1) as f64;
-        sig_r /= sigma.len().max(1) as f64;
+        sig_p /= covariance.len().max(1) as f64;
+        sig_r /= covariance.len().max(1) as f64;
     }
     TrajectoryReport {
         id: id.to_string(),

@@ -4,7 +4,7 @@
 
 use crate::campaign::{Campaign, StripEntry, TrajectoryEntry};
 use crate::error::PipelineError;
-use precimap_core::corrections::{apply, TrajectoryCorrections};
+use precimap_core::corrections::{apply, AnchorCovariance, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey, Vec3};
 use precimap_estimate::{
@@ -265,15 +265,129 @@ pub fn export_trajectory_task(
     campaign: &Campaign,
     trajectory: usize,
     corrections: &TrajectoryCorrections,
+    covariance: Option<&[AnchorCovariance]>,
     out_dir: &Path,
 ) -> Result<PathBuf, PipelineError> {
     let entry = &campaign.trajectories[trajectory];
     let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
+    let estimated = (corrections.first_anchor, corrections.last_anchor());
     let corrections = corrections_for_export(entry, corrections, &campaign.params);
     export_trajectory_file(entry, campaign.params.anchor_spacing_m, &corrections, &dst)?;
+    let table = corrections_table(&entry.data, campaign.params.anchor_spacing_m, &corrections, estimated, covariance);
+    write_atomic(&out_dir.join(corrections_table_name(&entry.id)), table.as_bytes())?;
     write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, &corrections)])?;
     Ok(dst)
+}
+
+/// The folder of the per-anchor corrections tables inside a result folder.
+pub const CORRECTIONS_DIR: &str = "corrections";
+
+/// Where a trajectory's corrections table lies inside a result folder.
+pub fn corrections_table_name(trajectory_id: &str) -> String {
+    format!("{CORRECTIONS_DIR}/{trajectory_id}.csv")
+}
+
+/// The columns of a corrections table ([`corrections_table`]).
+pub const CORRECTIONS_TABLE_HEADER: &str = "anchor,arc_m,time,x,y,z,along_m,across_m,vertical_m,roll_deg,pitch_deg,\
+heading_deg,sigma_along_m,sigma_across_m,sigma_vertical_m,sigma_roll_deg,sigma_pitch_deg,sigma_heading_deg,estimated";
+
+/// Where an anchor sits on its trajectory and the frames its correction is given in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AnchorFrame {
+    pub time: f64,
+    pub position: Vec3,
+    /// Along the direction of travel (horizontal), across it (horizontal, to the left) and up:
+    /// the frame `precimap evaluate` splits position errors in.
+    pub track: [[f64; 3]; 3],
+    /// The vehicle's body axes (forward, left, up) in the world frame: roll, pitch and heading
+    /// are rotations about them.
+    pub body: [[f64; 3]; 3],
+}
+
+/// The pose at arc length `s` (clamped to the trajectory's ends) and its frames.
+pub fn anchor_frame(trajectory: &precimap_core::Trajectory, s: f64) -> AnchorFrame {
+    let arc = trajectory.arc_lengths();
+    let last = arc.len() - 1;
+    // The last sample at or before `s`: past a standstill, whose samples share one arc length.
+    let i = arc.partition_point(|&a| a <= s).saturating_sub(1).min(last - 1);
+    let span = arc[i + 1] - arc[i];
+    let lambda = if span > 0.0 { ((s - arc[i]) / span).clamp(0.0, 1.0) } else { 0.0 };
+    let times = trajectory.times();
+    let time = times[i] + (times[i + 1] - times[i]) * lambda;
+    let pose = trajectory.pose_in_segment(i, lambda);
+    let r = pose.rotation;
+    let body = [0, 1, 2].map(|k| [r[(0, k)], r[(1, k)], r[(2, k)]]);
+    let positions = trajectory.positions();
+    let step = positions[i + 1] - positions[i];
+    // Standing still, the vehicle's forward axis gives the direction of travel.
+    let (dx, dy) = if step.x.hypot(step.y) > 1e-9 { (step.x, step.y) } else { (body[0][0], body[0][1]) };
+    let length = dx.hypot(dy);
+    let (ax, ay) = if length > 0.0 { (dx / length, dy / length) } else { (1.0, 0.0) };
+    let track = [[ax, ay, 0.0], [-ay, ax, 0.0], [0.0, 0.0, 1.0]];
+    AnchorFrame { time, position: pose.position, track, body }
+}
+
+/// A trajectory's corrections, one row per anchor of `exported` (the corrections as exported,
+/// run-up and run-out included): where the anchor is (arc length, time, position on the input
+/// trajectory), its translation along the track, across it and up (metres), its rotation about
+/// the vehicle's roll, pitch and heading axes (degrees), and their posterior standard deviations
+/// from `covariance` (one per anchor of the estimated range `estimated`, first to last, in that
+/// order; empty cells where there is none). `estimated` is 1 on the anchors the adjustment
+/// solved for, 0 on those continued past them.
+///
+/// The standard deviations are the last iteration's, with the latent map held fixed: how well
+/// each pass fits the map, not how far the map is from the truth (`precimap evaluate` compares
+/// them with the simulator's errors).
+pub fn corrections_table(
+    trajectory: &precimap_core::Trajectory,
+    anchor_spacing_m: f64,
+    exported: &TrajectoryCorrections,
+    estimated: (u32, u32),
+    covariance: Option<&[AnchorCovariance]>,
+) -> String {
+    use std::fmt::Write;
+    let mut out = String::with_capacity(200 * (exported.values.len() + 1));
+    out.push_str(CORRECTIONS_TABLE_HEADER);
+    out.push('\n');
+    let dot = |a: &[f64; 3], b: &[f64]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    for (k, c) in exported.values.iter().enumerate() {
+        let anchor = exported.first_anchor + k as u32;
+        let s = anchor as f64 * anchor_spacing_m;
+        let frame = anchor_frame(trajectory, s);
+        let translation = frame.track.map(|e| dot(&e, &c[..3]));
+        let rotation = frame.body.map(|e| dot(&e, &c[3..]).to_degrees());
+        let inside = (estimated.0..=estimated.1).contains(&anchor);
+        let p = frame.position;
+        let _ = write!(
+            out,
+            "{anchor},{s:.3},{:.6},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7}",
+            frame.time,
+            p.x,
+            p.y,
+            p.z,
+            translation[0],
+            translation[1],
+            translation[2],
+            rotation[0],
+            rotation[1],
+            rotation[2]
+        );
+        match covariance.filter(|_| inside).and_then(|v| v.get((anchor - estimated.0) as usize)) {
+            Some(cov) => {
+                let position = cov.sigma_along(0, &frame.track);
+                let attitude = cov.sigma_along(3, &frame.body).map(f64::to_degrees);
+                let _ = write!(
+                    out,
+                    ",{:.6},{:.6},{:.6},{:.7},{:.7},{:.7}",
+                    position[0], position[1], position[2], attitude[0], attitude[1], attitude[2]
+                );
+            }
+            None => out.push_str(",,,,,,"),
+        }
+        let _ = writeln!(out, ",{}", u8::from(inside));
+    }
+    out
 }
 
 /// Writes QC plots, given as (path inside a result folder, SVG) like the [`crate::qc`]
@@ -349,6 +463,75 @@ pub fn export_trajectory_file(
 mod tests {
     use super::*;
     use std::sync::Arc;
+
+    /// The corrections table gives each anchor's correction and standard deviations in the
+    /// vehicle's frames: driving north (+y), along-track is world y, across (to the left) is −x;
+    /// roll turns about y, pitch about −x, heading about z.
+    #[test]
+    fn the_corrections_table_is_in_the_vehicles_frame() {
+        let times: Vec<f64> = (0..=200).map(|k| k as f64 * 0.5).collect();
+        let positions = times.iter().map(|&t| Vec3::new(1000.0, 2000.0 + t, 50.0)).collect();
+        let data =
+            precimap_core::Trajectory::new(times.clone(), positions, vec![[0.0, 0.0, 90.0]; times.len()]).unwrap();
+        let estimated = (10, 20);
+        let correction = [0.001, 0.002, 0.003, 1e-4, 2e-4, 3e-4];
+        let exported = TrajectoryCorrections { first_anchor: 5, values: vec![correction; 21] };
+        let sigma = [1e-3, 3e-3, 2e-3, 1e-5, 2e-5, 3e-5];
+        // x and y correlated: the table must rotate the covariance, not only the σ.
+        let covariance: Vec<AnchorCovariance> = (0..11)
+            .map(|_| {
+                AnchorCovariance::from_fn(|a, b| match (a, b) {
+                    (a, b) if a == b => sigma[a] * sigma[a],
+                    (0, 1) => 0.5 * sigma[0] * sigma[1],
+                    _ => 0.0,
+                })
+            })
+            .collect();
+        let table = corrections_table(&data, 0.5, &exported, estimated, Some(&covariance));
+        let rows: Vec<Vec<&str>> = table.lines().map(|l| l.split(',').collect()).collect();
+        assert_eq!(rows[0].join(","), CORRECTIONS_TABLE_HEADER);
+        assert_eq!(rows.len(), 22);
+        let column = |name: &str| rows[0].iter().position(|h| *h == name).unwrap();
+        let value = |row: &[&str], name: &str| row[column(name)].parse::<f64>().unwrap();
+        // Anchor 5 was continued, not estimated: no standard deviation.
+        assert_eq!(rows[1][column("anchor")], "5");
+        assert_eq!(rows[1][column("estimated")], "0");
+        assert_eq!(rows[1][column("sigma_along_m")], "");
+        // Anchor 12: 6 m along, 6 s in.
+        let row = &rows[8];
+        assert_eq!(row[column("anchor")], "12");
+        assert_eq!(row[column("estimated")], "1");
+        assert_eq!((value(row, "arc_m"), value(row, "time")), (6.0, 6.0));
+        assert_eq!((value(row, "x"), value(row, "y"), value(row, "z")), (1000.0, 2006.0, 50.0));
+        // To the printed digits: 1 µm, 0.1 µdeg.
+        let close = |name: &str, expected: f64| {
+            let v = value(row, name);
+            let digit = if name.ends_with("_deg") { 1e-7 } else { 1e-6 };
+            assert!((v - expected).abs() <= 0.5 * digit + 1e-12, "{name}: {v}, expected {expected}");
+        };
+        close("along_m", 0.002);
+        close("across_m", -0.001);
+        close("vertical_m", 0.003);
+        close("roll_deg", 2e-4f64.to_degrees());
+        close("pitch_deg", -1e-4f64.to_degrees());
+        close("heading_deg", 3e-4f64.to_degrees());
+        close("sigma_along_m", 3e-3);
+        close("sigma_across_m", 1e-3);
+        close("sigma_vertical_m", 2e-3);
+        close("sigma_roll_deg", 2e-5f64.to_degrees());
+        close("sigma_pitch_deg", 1e-5f64.to_degrees());
+        close("sigma_heading_deg", 3e-5f64.to_degrees());
+        // Driving north-east, the correlation shows: along (x + y)/√2 holds σx² + σy² + 2ρσxσy.
+        let turned: Vec<Vec3> = times.iter().map(|&t| Vec3::new(1000.0 + t, 2000.0 + t, 50.0)).collect();
+        let data = precimap_core::Trajectory::new(times.clone(), turned, vec![[0.0, 0.0, 45.0]; times.len()]).unwrap();
+        let table = corrections_table(&data, 0.5, &exported, estimated, Some(&covariance));
+        let row: Vec<&str> = table.lines().nth(8).unwrap().split(',').collect();
+        let along = ((1e-6 + 9e-6 + 3e-6) / 2.0f64).sqrt();
+        assert!((value(&row, "sigma_along_m") - along).abs() < 1e-6, "{row:?}");
+        // Without covariances (an earlier iteration's corrections), the σ cells stay empty.
+        let table = corrections_table(&data, 0.5, &exported, estimated, None);
+        assert!(table.lines().skip(1).all(|l| l.contains(",,,,,,")));
+    }
 
     /// A trajectory's run-up and run-out take the estimated corrections' trend on, as far as
     /// `end_extension_m` reaches and not past its own ends.
