@@ -150,8 +150,15 @@ pub struct Parameters {
     /// independent prior per anchor holds a stretch's mean far tighter than its σ reads). Kept
     /// at 0.02° at stop 40: 0.05° made small and medium agree better still, but at a real
     /// scanner's 0.3° step one stretch of street then swung by centimetres (ARCHITECTURE.md, "A
-    /// looser attitude model").
+    /// looser attitude model"). The heading has its own since stop 46
+    /// (`sigma_prior_heading_deg`): this is the tilt's.
     pub sigma_prior_rotation_deg: f64,
+    /// σ of that prior about the vertical (the heading, for a vehicle that is nearly level); 0:
+    /// `sigma_prior_rotation_deg` on all three axes. 0.05° since stop 46: the tilt's 0.02° held
+    /// every pass to its own GNSS/IMU heading, so passes through one place kept different
+    /// headings and the strips disagreed (ARCHITECTURE.md, "The heading's own prior"). The
+    /// tilt keeps 0.02°, which a real scanner's 0.3° step needs.
+    pub sigma_prior_heading_deg: f64,
     /// σ of the change in position correction between neighbouring anchors.
     pub sigma_smooth_position_m: f64,
     /// σ of the change in attitude correction between neighbouring anchors. 0.004° since stop 40
@@ -285,6 +292,7 @@ impl Default for Parameters {
             sigma_distance_m: 0.03,
             sigma_prior_position_m: 1.0,
             sigma_prior_rotation_deg: 0.02,
+            sigma_prior_heading_deg: 0.05,
             sigma_smooth_position_m: 0.005,
             sigma_smooth_rotation_deg: 0.004,
             sigma_curvature_position_m: 0.0001,
@@ -349,6 +357,13 @@ pub struct ParameterProblem {
 }
 
 impl Parameters {
+    /// σ of the attitude prior about the world's x, y and z axes (degrees).
+    pub fn sigma_prior_rotation_axes_deg(&self) -> [f64; 3] {
+        let tilt = self.sigma_prior_rotation_deg;
+        let heading = self.sigma_prior_heading_deg;
+        [tilt, tilt, if heading > 0.0 { heading } else { tilt }]
+    }
+
     /// The anchors a trajectory's exported corrections span: `estimated` (the first and last
     /// anchor its strips' points use) extended by [`Self::end_extension_m`] on either side, but
     /// not past the trajectory's own anchors `0..=trajectory_last`.
@@ -386,6 +401,9 @@ impl Parameters {
         positive!("sigma_distance_m", self.sigma_distance_m);
         positive!("sigma_prior_position_m", self.sigma_prior_position_m);
         positive!("sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
+        if self.sigma_prior_heading_deg != 0.0 {
+            positive!("sigma_prior_heading_deg", self.sigma_prior_heading_deg);
+        }
         positive!("sigma_smooth_position_m", self.sigma_smooth_position_m);
         positive!("sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
         positive!("convergence_tolerance_m", self.convergence_tolerance_m);
@@ -602,6 +620,16 @@ mod tests {
             assert_eq!(bad.problems()[0].field, "common_mode_field_m");
         }
         assert!(Parameters { common_mode_field_m: 0.0, ..Default::default() }.problems().is_empty());
+        // The heading's prior: its own σ, or 0 for the tilt's.
+        for heading in [-0.05, f64::NAN, f64::INFINITY] {
+            let bad = Parameters { sigma_prior_heading_deg: heading, ..Default::default() };
+            assert_eq!(bad.problems()[0].field, "sigma_prior_heading_deg");
+        }
+        let same = Parameters { sigma_prior_rotation_deg: 0.03, sigma_prior_heading_deg: 0.0, ..Default::default() };
+        assert!(same.problems().is_empty());
+        assert_eq!(same.sigma_prior_rotation_axes_deg(), [0.03; 3]);
+        let own = Parameters { sigma_prior_heading_deg: 0.07, ..same };
+        assert_eq!(own.sigma_prior_rotation_axes_deg(), [0.03, 0.03, 0.07]);
     }
 
     #[test]

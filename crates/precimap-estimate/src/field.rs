@@ -615,10 +615,10 @@ fn solve_field_within<'a>(
         }
     });
     let origin = motion.as_ref().map_or([0.0; 3], |m| m.origin);
-    let prior_rotation = match params.sigma_prior_rotation_deg.to_radians() {
+    let prior_rotation = params.sigma_prior_rotation_axes_deg().map(|s| match s.to_radians() {
         s if s > 0.0 => 1.0 / (s * s),
         _ => 0.0,
-    };
+    });
     let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64| {
         for &(a, ra) in row {
             for c in 0..3 {
@@ -672,8 +672,8 @@ fn solve_field_within<'a>(
     if let Some(m) = motion.as_mut() {
         for v in trajectories.iter().flat_map(|tr| &tr.corrections.values) {
             for i in 0..3 {
-                m.own[(i, i)] += prior_rotation;
-                m.rhs[i] -= prior_rotation * v[3 + i];
+                m.own[(i, i)] += prior_rotation[i];
+                m.rhs[i] -= prior_rotation[i] * v[3 + i];
             }
         }
     }

@@ -233,11 +233,11 @@ fn sym_to_mat(s: &[f64; 21]) -> Mat6 {
 /// Weights of the prior and the smoothness as diagonal 6×6 matrices.
 fn weights(params: &Parameters) -> (Vec6, Vec6) {
     let sp = params.sigma_prior_position_m;
-    let sr = params.sigma_prior_rotation_deg.to_radians();
+    let [rx, ry, rz] = params.sigma_prior_rotation_axes_deg().map(f64::to_radians);
     let dp = params.sigma_smooth_position_m;
     let dr = params.sigma_smooth_rotation_deg.to_radians();
     let prior =
-        Vec6::new(1.0 / (sp * sp), 1.0 / (sp * sp), 1.0 / (sp * sp), 1.0 / (sr * sr), 1.0 / (sr * sr), 1.0 / (sr * sr));
+        Vec6::new(1.0 / (sp * sp), 1.0 / (sp * sp), 1.0 / (sp * sp), 1.0 / (rx * rx), 1.0 / (ry * ry), 1.0 / (rz * rz));
     let smooth =
         Vec6::new(1.0 / (dp * dp), 1.0 / (dp * dp), 1.0 / (dp * dp), 1.0 / (dr * dr), 1.0 / (dr * dr), 1.0 / (dr * dr));
     (prior, smooth)
@@ -529,6 +529,27 @@ mod tests {
         }
     }
 
+    /// The attitude prior holds the heading (rotation about the vertical) with its own σ when
+    /// `sigma_prior_heading_deg` is set, the tilt with `sigma_prior_rotation_deg`: one anchor
+    /// without data has exactly the prior's covariance.
+    #[test]
+    fn the_heading_prior_has_its_own_sigma() {
+        let current = TrajectoryCorrections { first_anchor: 7, values: vec![[0.0; 6]] };
+        let sigma = |params: &Parameters| {
+            let solution = solve_trajectory(std::iter::empty(), &current, None, None, params, true, true).unwrap();
+            solution.covariance.unwrap()[0].sigma()
+        };
+        let tilt = 0.02f64.to_radians();
+        for (heading, expected) in [(0.0, tilt), (0.05, 0.05f64.to_radians())] {
+            let params =
+                Parameters { sigma_prior_rotation_deg: 0.02, sigma_prior_heading_deg: heading, ..Default::default() };
+            let s = sigma(&params);
+            for (a, want) in [(0, 1.0), (1, 1.0), (2, 1.0), (3, tilt), (4, tilt), (5, expected)] {
+                assert!((s[a] / want - 1.0).abs() < 1e-9, "heading {heading}: σ {a} is {}, expected {want}", s[a]);
+            }
+        }
+    }
+
     /// Momentum adds β × the previous step to the Gauss–Newton step, except to rotations a
     /// translation-only step holds fixed; without `previous` the step is plain.
     #[test]
@@ -573,6 +594,8 @@ mod tests {
             weak_information_ratio: 0.0,
             sigma_prior_position_m: 1e6,
             sigma_prior_rotation_deg: 1e6,
+            // The heading's too (0: the tilt's).
+            sigma_prior_heading_deg: 0.0,
             ..Default::default()
         };
         let without = Parameters { sigma_curvature_position_m: 0.0, sigma_curvature_rotation_deg: 0.0, ..with.clone() };
