@@ -23,8 +23,8 @@ use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
 use precimap_pipeline::tasks::{
-    anchor_positions, corrections_for_export, corrections_table, corrections_table_name, export_strip_file,
-    export_trajectory_file, prepare_strip_chunks,
+    anchor_positions, corrections_for_export, corrections_in_vehicle_frame, corrections_table, corrections_table_name,
+    export_strip_file, export_trajectory_file, prepare_strip_chunks,
 };
 use precimap_pipeline::PipelineError;
 use std::collections::VecDeque;
@@ -583,11 +583,16 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             };
             let name = format!("trajectories/{}.csv", trajectory.id);
             let key = format!("{prefix}/out/{tag}/{name}");
-            let (plot_name, plot) =
-                precimap_pipeline::qc::trajectory_plot(&trajectory.id, anchor_spacing_m, &corrections);
+            let rows = corrections_in_vehicle_frame(
+                &entry.data,
+                anchor_spacing_m,
+                &corrections,
+                estimated,
+                covariance.as_deref(),
+            );
+            let (plot_name, plot) = precimap_pipeline::qc::trajectory_plot(&trajectory.id, anchor_spacing_m, &rows);
             let table_name = corrections_table_name(&trajectory.id);
-            let table =
-                corrections_table(&entry.data, anchor_spacing_m, &corrections, estimated, covariance.as_deref());
+            let table = corrections_table(&rows);
             ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
                 .await?;
             let mut outputs = vec![OutputKey { name, object_key: key }];

@@ -4,8 +4,8 @@
 //! framework write the same bytes; a browser shows them.
 
 use crate::report::{IterationReport, Report};
+use crate::tasks::VehicleCorrection;
 use base64::Engine as _;
-use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::TileKey;
 use precimap_estimate::{LatentStdMap, ResidualHistogram};
 use std::fmt::Write;
@@ -13,14 +13,11 @@ use std::fmt::Write;
 /// Folder of the QC plots inside a result folder.
 pub const QC_DIR: &str = "qc";
 
-/// A trajectory's correction plot as (path inside a result folder, SVG): what both drivers write
-/// beside the corrected trajectory.
-pub fn trajectory_plot(
-    trajectory: &str,
-    anchor_spacing_m: f64,
-    corrections: &TrajectoryCorrections,
-) -> (String, String) {
-    (format!("{QC_DIR}/corrections-{trajectory}.svg"), corrections_svg(trajectory, anchor_spacing_m, corrections))
+/// A trajectory's correction plot as (path inside a result folder, SVG), from its corrections in
+/// the vehicle's frames (`tasks::corrections_in_vehicle_frame`): what both drivers write beside
+/// the corrected trajectory.
+pub fn trajectory_plot(trajectory: &str, anchor_spacing_m: f64, rows: &[VehicleCorrection]) -> (String, String) {
+    (format!("{QC_DIR}/corrections-{trajectory}.svg"), corrections_svg(trajectory, anchor_spacing_m, rows))
 }
 
 /// The report's plots as (path inside a result folder, SVG): what both drivers write beside
@@ -61,36 +58,45 @@ const MAX_VERTICES: usize = 2 * (WIDTH as usize);
 
 /// The six components of a trajectory's corrections (translation in mm, rotation in mdeg, world
 /// axes) against arc length, one panel each, with their RMS and largest magnitude.
-pub fn corrections_svg(trajectory: &str, anchor_spacing_m: f64, corrections: &TrajectoryCorrections) -> String {
+pub fn corrections_svg(trajectory: &str, anchor_spacing_m: f64, rows: &[VehicleCorrection]) -> String {
+    // The vehicle's frames, as in the corrections table: a world axis is the vehicle's only
+    // where it drives east.
     const PANELS: [(&str, &str); 6] = [
-        ("translation x", "mm"),
-        ("translation y", "mm"),
-        ("translation z", "mm"),
-        ("rotation about x (roll)", "mdeg"),
-        ("rotation about y (pitch)", "mdeg"),
-        ("rotation about z (yaw)", "mdeg"),
+        ("along-track translation", "mm"),
+        ("across-track translation (to the left)", "mm"),
+        ("vertical translation", "mm"),
+        ("roll", "mdeg"),
+        ("pitch", "mdeg"),
+        ("heading", "mdeg"),
     ];
-    let n = corrections.values.len();
-    let s0 = corrections.first_anchor as f64 * anchor_spacing_m;
+    let n = rows.len();
+    let s0 = rows.first().map_or(0.0, |r| r.arc_m);
     let s1 = s0 + (n.max(2) - 1) as f64 * anchor_spacing_m;
     let mut svg = Svg::new(TOP + 6.0 * (PANEL + GAP));
     svg.title(&format!(
-        "Corrections of trajectory {trajectory} ({n} anchors every {} m, arc length {} … {} m)",
+        "Corrections of trajectory {trajectory} in the vehicle's frame ({n} anchors every {} m, arc length {} … {} m)",
         number(anchor_spacing_m),
         number(s0),
         number(s1)
     ));
     for (k, (name, unit)) in PANELS.iter().enumerate() {
         let scale = if k < 3 { 1e3 } else { 1e3 * 180.0 / std::f64::consts::PI };
-        let values: Vec<f64> = corrections.values.iter().map(|c| c[k] * scale).collect();
+        let values: Vec<f64> = rows.iter().map(|r| r.values[k] * scale).collect();
         let rms = (values.iter().map(|v| v * v).sum::<f64>() / n.max(1) as f64).sqrt();
         let max = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        // The posterior σ's RMS over the anchors that have one (the estimated ones).
+        let sigmas: Vec<f64> = rows.iter().filter_map(|r| r.sigma.map(|s| s[k] * scale)).collect();
+        let sigma = if sigmas.is_empty() {
+            String::new()
+        } else {
+            format!(", σ RMS {}", number((sigmas.iter().map(|v| v * v).sum::<f64>() / sigmas.len() as f64).sqrt()))
+        };
         let top = TOP + k as f64 * (PANEL + GAP);
         let (lo, hi) = padded_range(values.iter().copied().chain([0.0]));
         let plot = Plot { top, x: (s0, s1), y: (lo, hi), log_y: false };
         svg.panel(
             &plot,
-            &format!("{name} ({unit}): RMS {}, largest |value| {}", number(rms), number(max)),
+            &format!("{name} ({unit}): RMS {}, largest |value| {}{sigma}", number(rms), number(max)),
             "arc length (m)",
         );
         svg.zero_line(&plot);
@@ -545,18 +551,41 @@ mod tests {
         assert!(!text.contains("NaN") && !text.contains("inf"), "non-finite coordinates");
     }
 
+    /// Corrections in the vehicle's frame from `first` on, every 0.5 m, without σ.
+    fn rows(first: u32, values: Vec<[f64; 6]>) -> Vec<VehicleCorrection> {
+        values
+            .into_iter()
+            .enumerate()
+            .map(|(k, values)| {
+                let anchor = first + k as u32;
+                VehicleCorrection {
+                    anchor,
+                    arc_m: anchor as f64 * 0.5,
+                    time: 0.0,
+                    position: precimap_core::Vec3::zeros(),
+                    values,
+                    sigma: None,
+                    estimated: true,
+                }
+            })
+            .collect()
+    }
+
     #[test]
     fn a_correction_ramp_is_drawn_where_its_values_are() {
         // Translation x rises 0 → 100 mm over 201 anchors (100 m), everything else zero.
         let values: Vec<[f64; 6]> = (0..201).map(|i| [i as f64 * 0.0005, 0.0, 0.0, 0.0, 0.0, 0.0]).collect();
-        let corrections = TrajectoryCorrections { first_anchor: 40, values };
+        let mut corrections = rows(40, values);
+        // Every anchor but the first has a σ of 2 mm along the track: its RMS is in the label.
+        corrections.iter_mut().skip(1).for_each(|r| r.sigma = Some([0.002, 0.0, 0.0, 0.0, 0.0, 0.0]));
         let svg = corrections_svg("v<1>", 0.5, &corrections);
         assert_well_formed(&svg);
         assert!(svg.contains("trajectory v&lt;1&gt;"), "the id is escaped");
         assert!(svg.contains("arc length 20 … 120 m"));
         // RMS of a 0…100 ramp: 100/√3 · √(n(n+1)(2n+1)/6)/… ≈ 57.88 mm for 201 samples.
         let rms = ((0..201).map(|i| (i as f64 * 0.5).powi(2)).sum::<f64>() / 201.0).sqrt();
-        assert!(svg.contains(&format!("RMS {}, largest |value| 100", number(rms))), "{svg}");
+        assert!(svg.contains(&format!("RMS {}, largest |value| 100, σ RMS 2", number(rms))), "{svg}");
+        assert!(svg.contains("in the vehicle&apos;s frame") && svg.contains("along-track translation (mm)"));
         let lines = polylines(&svg);
         assert_eq!(lines.len(), 6);
         let ramp = &lines[0];
@@ -579,7 +608,7 @@ mod tests {
             (0..200_000).map(|i| [((i * 7919) % 13) as f64 * 1e-4, 0.0, 0.0, 0.0, 0.0, 0.0]).collect();
         values[123_457][0] = 0.25;
         values[7][0] = -0.125;
-        let svg = corrections_svg("long", 0.5, &TrajectoryCorrections { first_anchor: 0, values });
+        let svg = corrections_svg("long", 0.5, &rows(0, values));
         assert_well_formed(&svg);
         let ramp = &polylines(&svg)[0];
         assert!(ramp.len() <= MAX_VERTICES, "{} vertices", ramp.len());

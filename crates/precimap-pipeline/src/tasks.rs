@@ -272,11 +272,12 @@ pub fn export_trajectory_task(
     let dst = out_dir.join("trajectories").join(format!("{}.csv", entry.id));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
     let estimated = (corrections.first_anchor, corrections.last_anchor());
+    let spacing = campaign.params.anchor_spacing_m;
     let corrections = corrections_for_export(entry, corrections, &campaign.params);
-    export_trajectory_file(entry, campaign.params.anchor_spacing_m, &corrections, &dst)?;
-    let table = corrections_table(&entry.data, campaign.params.anchor_spacing_m, &corrections, estimated, covariance);
-    write_atomic(&out_dir.join(corrections_table_name(&entry.id)), table.as_bytes())?;
-    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, campaign.params.anchor_spacing_m, &corrections)])?;
+    export_trajectory_file(entry, spacing, &corrections, &dst)?;
+    let rows = corrections_in_vehicle_frame(&entry.data, spacing, &corrections, estimated, covariance);
+    write_atomic(&out_dir.join(corrections_table_name(&entry.id)), corrections_table(&rows).as_bytes())?;
+    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, spacing, &rows)])?;
     Ok(dst)
 }
 
@@ -328,64 +329,104 @@ pub fn anchor_frame(trajectory: &precimap_core::Trajectory, s: f64) -> AnchorFra
     AnchorFrame { time, position: pose.position, track, body }
 }
 
-/// A trajectory's corrections, one row per anchor of `exported` (the corrections as exported,
-/// run-up and run-out included): where the anchor is (arc length, time, position on the input
-/// trajectory), its translation along the track, across it and up (metres), its rotation about
-/// the vehicle's roll, pitch and heading axes (degrees), and their posterior standard deviations
-/// from `covariance` (one per anchor of the estimated range `estimated`, first to last, in that
-/// order; empty cells where there is none). `estimated` is 1 on the anchors the adjustment
-/// solved for, 0 on those continued past them.
+/// One anchor's exported correction in the vehicle's frames ([`corrections_in_vehicle_frame`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VehicleCorrection {
+    pub anchor: u32,
+    pub arc_m: f64,
+    pub time: f64,
+    /// On the input trajectory.
+    pub position: Vec3,
+    /// Translation along the track, across it (to the left) and up (m), then the rotation about
+    /// the vehicle's roll, pitch and heading axes (rad).
+    pub values: [f64; 6],
+    /// Their posterior standard deviations, where the last solve gave a covariance.
+    pub sigma: Option<[f64; 6]>,
+    /// Solved for, not continued over the run-up or run-out.
+    pub estimated: bool,
+}
+
+/// A trajectory's corrections, one per anchor of `exported` (the corrections as exported, run-up
+/// and run-out included), in the vehicle's frames ([`AnchorFrame`]), with the posterior standard
+/// deviations from `covariance` (one per anchor of the estimated range `estimated`, first to
+/// last, in that order).
 ///
 /// The standard deviations are the last iteration's, with the latent map held fixed: how well
 /// each pass fits the map, not how far the map is from the truth (`precimap evaluate` compares
 /// them with the simulator's errors).
-pub fn corrections_table(
+pub fn corrections_in_vehicle_frame(
     trajectory: &precimap_core::Trajectory,
     anchor_spacing_m: f64,
     exported: &TrajectoryCorrections,
     estimated: (u32, u32),
     covariance: Option<&[AnchorCovariance]>,
-) -> String {
+) -> Vec<VehicleCorrection> {
+    let dot = |a: &[f64; 3], b: &[f64]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    exported
+        .values
+        .iter()
+        .enumerate()
+        .map(|(k, c)| {
+            let anchor = exported.first_anchor + k as u32;
+            let arc_m = anchor as f64 * anchor_spacing_m;
+            let frame = anchor_frame(trajectory, arc_m);
+            let [along, across, up] = frame.track.map(|e| dot(&e, &c[..3]));
+            let [roll, pitch, heading] = frame.body.map(|e| dot(&e, &c[3..]));
+            let inside = (estimated.0..=estimated.1).contains(&anchor);
+            let sigma = covariance.filter(|_| inside).and_then(|v| v.get((anchor - estimated.0) as usize)).map(|cov| {
+                let [a, b, c] = cov.sigma_along(0, &frame.track);
+                let [d, e, f] = cov.sigma_along(3, &frame.body);
+                [a, b, c, d, e, f]
+            });
+            VehicleCorrection {
+                anchor,
+                arc_m,
+                time: frame.time,
+                position: frame.position,
+                values: [along, across, up, roll, pitch, heading],
+                sigma,
+                estimated: inside,
+            }
+        })
+        .collect()
+}
+
+/// The corrections table (`OUT/corrections/{trajectory}.csv`, [`CORRECTIONS_TABLE_HEADER`]): one
+/// row per anchor, translations in metres, rotations in degrees; empty σ cells where there is
+/// none; `estimated` 1 on the anchors the adjustment solved for, 0 on those continued past them.
+pub fn corrections_table(rows: &[VehicleCorrection]) -> String {
     use std::fmt::Write;
-    let mut out = String::with_capacity(200 * (exported.values.len() + 1));
+    let mut out = String::with_capacity(200 * (rows.len() + 1));
     out.push_str(CORRECTIONS_TABLE_HEADER);
     out.push('\n');
-    let dot = |a: &[f64; 3], b: &[f64]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    for (k, c) in exported.values.iter().enumerate() {
-        let anchor = exported.first_anchor + k as u32;
-        let s = anchor as f64 * anchor_spacing_m;
-        let frame = anchor_frame(trajectory, s);
-        let translation = frame.track.map(|e| dot(&e, &c[..3]));
-        let rotation = frame.body.map(|e| dot(&e, &c[3..]).to_degrees());
-        let inside = (estimated.0..=estimated.1).contains(&anchor);
-        let p = frame.position;
+    for r in rows {
+        let [along, across, up, roll, pitch, heading] = r.values;
+        let (p, s) = (r.position, r.arc_m);
         let _ = write!(
             out,
-            "{anchor},{s:.3},{:.6},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7}",
-            frame.time,
+            "{},{s:.3},{:.6},{:.4},{:.4},{:.4},{along:.6},{across:.6},{up:.6},{:.7},{:.7},{:.7}",
+            r.anchor,
+            r.time,
             p.x,
             p.y,
             p.z,
-            translation[0],
-            translation[1],
-            translation[2],
-            rotation[0],
-            rotation[1],
-            rotation[2]
+            roll.to_degrees(),
+            pitch.to_degrees(),
+            heading.to_degrees()
         );
-        match covariance.filter(|_| inside).and_then(|v| v.get((anchor - estimated.0) as usize)) {
-            Some(cov) => {
-                let position = cov.sigma_along(0, &frame.track);
-                let attitude = cov.sigma_along(3, &frame.body).map(f64::to_degrees);
+        match r.sigma {
+            Some([a, b, c, d, e, f]) => {
                 let _ = write!(
                     out,
-                    ",{:.6},{:.6},{:.6},{:.7},{:.7},{:.7}",
-                    position[0], position[1], position[2], attitude[0], attitude[1], attitude[2]
+                    ",{a:.6},{b:.6},{c:.6},{:.7},{:.7},{:.7}",
+                    d.to_degrees(),
+                    e.to_degrees(),
+                    f.to_degrees()
                 );
             }
             None => out.push_str(",,,,,,"),
         }
-        let _ = writeln!(out, ",{}", u8::from(inside));
+        let _ = writeln!(out, ",{}", u8::from(r.estimated));
     }
     out
 }
@@ -487,7 +528,8 @@ mod tests {
                 })
             })
             .collect();
-        let table = corrections_table(&data, 0.5, &exported, estimated, Some(&covariance));
+        let table =
+            corrections_table(&corrections_in_vehicle_frame(&data, 0.5, &exported, estimated, Some(&covariance)));
         let rows: Vec<Vec<&str>> = table.lines().map(|l| l.split(',').collect()).collect();
         assert_eq!(rows[0].join(","), CORRECTIONS_TABLE_HEADER);
         assert_eq!(rows.len(), 22);
@@ -524,12 +566,13 @@ mod tests {
         // Driving north-east, the correlation shows: along (x + y)/√2 holds σx² + σy² + 2ρσxσy.
         let turned: Vec<Vec3> = times.iter().map(|&t| Vec3::new(1000.0 + t, 2000.0 + t, 50.0)).collect();
         let data = precimap_core::Trajectory::new(times.clone(), turned, vec![[0.0, 0.0, 45.0]; times.len()]).unwrap();
-        let table = corrections_table(&data, 0.5, &exported, estimated, Some(&covariance));
+        let table =
+            corrections_table(&corrections_in_vehicle_frame(&data, 0.5, &exported, estimated, Some(&covariance)));
         let row: Vec<&str> = table.lines().nth(8).unwrap().split(',').collect();
         let along = ((1e-6 + 9e-6 + 3e-6) / 2.0f64).sqrt();
         assert!((value(&row, "sigma_along_m") - along).abs() < 1e-6, "{row:?}");
         // Without covariances (an earlier iteration's corrections), the σ cells stay empty.
-        let table = corrections_table(&data, 0.5, &exported, estimated, None);
+        let table = corrections_table(&corrections_in_vehicle_frame(&data, 0.5, &exported, estimated, None));
         assert!(table.lines().skip(1).all(|l| l.contains(",,,,,,")));
     }
 
