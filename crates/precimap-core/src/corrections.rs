@@ -10,17 +10,27 @@ use serde::{Deserialize, Serialize};
 /// `[δtx, δty, δtz, δθx, δθy, δθz]`: translation in metres, rotation vector in radians, world frame.
 pub type Correction = [f64; 6];
 
+/// Upper triangle of a symmetric 6×6 matrix, row-major: how normal-equation blocks travel and
+/// how [`AnchorCovariance`] is stored.
+pub type Sym6 = [f64; 21];
+
+/// Index of (i, j), i ≤ j, in a [`Sym6`].
+#[inline]
+pub const fn sym_index(i: usize, j: usize) -> usize {
+    // Rows hold 6, 5, 4, 3, 2, 1 entries.
+    i * 6 - i * (i + 1) / 2 + j
+}
+
 /// The posterior covariance of one anchor's correction (`[δt; δθ]`, metres and radians, world
 /// frame): the upper triangle of the symmetric 6×6 matrix, row by row (21 values).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AnchorCovariance(pub [f64; 21]);
+pub struct AnchorCovariance(pub Sym6);
 
 impl AnchorCovariance {
-    /// Index of entry (a, b) of the upper triangle, either order.
+    /// Index of entry (a, b), either order.
     #[inline]
     fn index(a: usize, b: usize) -> usize {
-        let (r, c) = if a <= b { (a, b) } else { (b, a) };
-        r * 6 - r * (r + 1) / 2 + c
+        sym_index(a.min(b), a.max(b))
     }
 
     /// From a full symmetric matrix given by `entry(a, b)`; only a ≤ b is read.

@@ -7,15 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Upper triangle of a symmetric 6×6 matrix, row-major.
-pub type Sym6 = [f64; 21];
-
-/// Index of (i, j), i ≤ j, in a [`Sym6`].
-#[inline]
-pub const fn sym_index(i: usize, j: usize) -> usize {
-    // Rows hold 6, 5, 4, 3, 2, 1 entries.
-    i * 6 - i * (i + 1) / 2 + j
-}
+pub use precimap_core::corrections::{sym_index, Sym6};
 
 /// Contributions to anchor `anchor`: `H_ii` (`diag`), `H_i,i+1` (`next`), `b_i` (`rhs`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -416,7 +416,7 @@ pub fn solve_trajectory<'a>(
         }
     }
     let curvature = curvature_weights(params);
-    let (delta, sigma) = match curvature {
+    let (delta, marginals) = match curvature {
         None => {
             if !estimate_rotation {
                 freeze_rotation(&mut sys, None);
@@ -436,7 +436,7 @@ pub fn solve_trajectory<'a>(
             solve_pairs(&sys, &skip, with_sigma)?
         }
     };
-    let covariance = sigma.map(|cov| cov.iter().map(|c| AnchorCovariance::from_fn(|a, b| c[(a, b)])).collect());
+    let covariance = marginals.map(|cov| cov.iter().map(|c| AnchorCovariance::from_fn(|a, b| c[(a, b)])).collect());
     let beta = if previous.is_some() { params.momentum } else { 0.0 };
     let values: Vec<[f64; 6]> = current
         .values

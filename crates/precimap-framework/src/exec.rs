@@ -23,8 +23,8 @@ use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
 use precimap_pipeline::tasks::{
-    anchor_positions, corrections_for_export, corrections_in_vehicle_frame, corrections_table, corrections_table_name,
-    export_strip_file, export_trajectory_file, prepare_strip_chunks,
+    anchor_positions, corrections_for_export, corrections_outputs, export_strip_file, export_trajectory_file,
+    prepare_strip_chunks,
 };
 use precimap_pipeline::PipelineError;
 use std::collections::VecDeque;
@@ -234,21 +234,13 @@ fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
     }
 }
 
-async fn read_corrections(ctx: &TaskContext, c: &CorrectionsRef) -> Result<TrajectoryCorrections, TaskError> {
-    let mut read = read_corrections_many(ctx, std::slice::from_ref(c)).await?;
-    Ok(read.pop().expect("one corrections per reference"))
-}
-
-/// One trajectory's corrections with the covariances its solve stored (the last iteration's).
-async fn read_corrections_with_covariance(
+/// One trajectory's corrections, with the covariances its solve stored (the last iteration's).
+async fn read_corrections(
     ctx: &TaskContext,
     c: &CorrectionsRef,
 ) -> Result<(TrajectoryCorrections, Option<Vec<AnchorCovariance>>), TaskError> {
-    let Some(key) = &c.key else {
-        return Ok((TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1), None));
-    };
-    let bytes = ctx.get(key).await?;
-    decode_corrections(&bytes).map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))
+    let mut read = read_stored_corrections(ctx, std::slice::from_ref(c)).await?;
+    Ok(read.pop().expect("one corrections per reference"))
 }
 
 /// Several trajectories' corrections, read together (see [`Objects::get_many`]).
@@ -256,16 +248,24 @@ async fn read_corrections_many(
     ctx: &TaskContext,
     refs: &[CorrectionsRef],
 ) -> Result<Vec<TrajectoryCorrections>, TaskError> {
+    Ok(read_stored_corrections(ctx, refs).await?.into_iter().map(|(c, _)| c).collect())
+}
+
+/// Corrections and their covariances where stored, read together; a reference without an object
+/// is zero corrections over its anchors.
+async fn read_stored_corrections(
+    ctx: &TaskContext,
+    refs: &[CorrectionsRef],
+) -> Result<Vec<(TrajectoryCorrections, Option<Vec<AnchorCovariance>>)>, TaskError> {
     let keys: Vec<String> = refs.iter().filter_map(|c| c.key.clone()).collect();
     let mut stored = ctx.get_many(&keys).await?.into_iter().zip(keys);
     let mut out = Vec::with_capacity(refs.len());
     for c in refs {
         out.push(match &c.key {
-            None => TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1),
+            None => (TrajectoryCorrections::zeros(c.anchors.0, c.anchors.1), None),
             Some(_) => {
                 let (bytes, key) = stored.next().expect("one object per key");
                 decode_corrections(&bytes)
-                    .map(|(c, _)| c)
                     .map_err(|e| TaskError::permanent(format!("corrections object {key}: {e}")))?
             }
         });
@@ -551,7 +551,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             })
         }
         TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
-            let corrections = read_corrections(ctx, &corrections).await?;
+            let (corrections, _) = read_corrections(ctx, &corrections).await?;
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
             let entry = strip_entry(&strip, &local.path);
@@ -574,7 +574,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
         }
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
-            let (corrections, covariance) = read_corrections_with_covariance(ctx, &corrections).await?;
+            let (corrections, covariance) = read_corrections(ctx, &corrections).await?;
             let entry = read_trajectory(ctx, &trajectory).await?;
             let estimated = (corrections.first_anchor, corrections.last_anchor());
             let corrections = match params {
@@ -583,26 +583,15 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             };
             let name = format!("trajectories/{}.csv", trajectory.id);
             let key = format!("{prefix}/out/{tag}/{name}");
-            let rows = corrections_in_vehicle_frame(
-                &entry.data,
-                anchor_spacing_m,
-                &corrections,
-                estimated,
-                covariance.as_deref(),
-            );
-            let (plot_name, plot) = precimap_pipeline::qc::trajectory_plot(&trajectory.id, anchor_spacing_m, &rows);
-            let table_name = corrections_table_name(&trajectory.id);
-            let table = corrections_table(&rows);
+            let beside: Vec<(String, String, Vec<u8>)> =
+                corrections_outputs(&entry, anchor_spacing_m, &corrections, estimated, covariance.as_deref())
+                    .into_iter()
+                    .map(|(name, bytes)| (name.clone(), format!("{prefix}/out/{tag}/{name}"), bytes))
+                    .collect();
             ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
                 .await?;
             let mut outputs = vec![OutputKey { name, object_key: key }];
-            outputs.extend(
-                ctx.put_many(vec![
-                    (plot_name.clone(), format!("{prefix}/out/{tag}/{plot_name}"), plot.into_bytes()),
-                    (table_name.clone(), format!("{prefix}/out/{tag}/{table_name}"), table.into_bytes()),
-                ])
-                .await?,
-            );
+            outputs.extend(ctx.put_many(beside).await?);
             let result = ExportResult { points: 0, seconds: started.elapsed().as_secs_f64() };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }

@@ -275,10 +275,26 @@ pub fn export_trajectory_task(
     let spacing = campaign.params.anchor_spacing_m;
     let corrections = corrections_for_export(entry, corrections, &campaign.params);
     export_trajectory_file(entry, spacing, &corrections, &dst)?;
-    let rows = corrections_in_vehicle_frame(&entry.data, spacing, &corrections, estimated, covariance);
-    write_atomic(&out_dir.join(corrections_table_name(&entry.id)), corrections_table(&rows).as_bytes())?;
-    write_plots(out_dir, [crate::qc::trajectory_plot(&entry.id, spacing, &rows)])?;
+    for (name, bytes) in corrections_outputs(entry, spacing, &corrections, estimated, covariance) {
+        write_atomic(&out_dir.join(name), &bytes)?;
+    }
     Ok(dst)
+}
+
+/// A trajectory's corrections table and correction plot, as (path inside a result folder,
+/// bytes): what both drivers write beside the corrected trajectory. `exported` are the
+/// corrections as exported, `estimated` and `covariance` as for
+/// [`corrections_in_vehicle_frame`].
+pub fn corrections_outputs(
+    entry: &TrajectoryEntry,
+    anchor_spacing_m: f64,
+    exported: &TrajectoryCorrections,
+    estimated: (u32, u32),
+    covariance: Option<&[AnchorCovariance]>,
+) -> [(String, Vec<u8>); 2] {
+    let rows = corrections_in_vehicle_frame(&entry.data, anchor_spacing_m, exported, estimated, covariance);
+    let (plot_name, plot) = crate::qc::trajectory_plot(&entry.id, anchor_spacing_m, &rows);
+    [(corrections_table_name(&entry.id), corrections_table(&rows).into_bytes()), (plot_name, plot.into_bytes())]
 }
 
 /// The folder of the per-anchor corrections tables inside a result folder.
