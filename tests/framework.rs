@@ -51,6 +51,8 @@ fn assert_same_results(a: &Path, b: &Path) {
             "max_correction_change_m",
             "max_correction_change_at",
             "common_mode_field_max_m",
+            "common_mode_heading_max_deg",
+            "campaign_rotation_deg",
             "anderson_coefficients",
         ] {
             assert_eq!(x[field], y[field], "{field}");
@@ -60,6 +62,12 @@ fn assert_same_results(a: &Path, b: &Path) {
     }
     // The fine steps solved the common-mode field (its own stage in the framework).
     assert!(ra["iterations"].as_array().unwrap().iter().any(|i| i["common_mode_field_max_m"].as_f64().unwrap() > 0.0));
+    // With its heading (the default).
+    assert!(ra["iterations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|i| i["common_mode_heading_max_deg"].as_f64().unwrap() > 0.0));
     assert_eq!(ra["converged"], rb["converged"]);
     assert_eq!(ra["points_total"], rb["points_total"]);
     assert_eq!(ra["trajectories"], rb["trajectories"]);
@@ -749,9 +757,14 @@ fn the_dashboard_shows_campaigns_in_headless_chromium() {
         // The campaign: one table row per iteration, the convergence chart, every QC plot loaded.
         let table = element(dom, "iterations", "</table>");
         assert_eq!(table.matches("<tr>").count(), 1 + iterations, "{table}");
-        // Each iteration's largest change says where it is (a tooltip: "v01 at 123 m").
-        assert_eq!(table.matches("<td title=\"").count(), iterations, "{table}");
-        assert!(table.contains(" m\">"), "{table}");
+        // Each iteration's largest change says where it is (a tooltip: "v01 at 123 m"), and the
+        // field's cell its largest heading where it solved one.
+        let heading_tips = table.matches("<td title=\"heading up to ").count();
+        let field_iterations =
+            recorded.iter().filter(|i| i.stats["common_mode_heading_max_deg"].as_f64() > Some(0.0)).count();
+        assert!(heading_tips > 0 && heading_tips == field_iterations, "{heading_tips} of {field_iterations}: {table}");
+        assert_eq!(table.matches("<td title=\"").count() - heading_tips, iterations, "{table}");
+        assert!(table.contains(" m\">") && table.contains(" mdeg\">"), "{table}");
         // Those that started from Anderson's combination are marked, the coefficients a tooltip.
         assert_eq!(
             table.matches("<abbr class=\"accelerated\" title=\"started from Anderson").count(),

@@ -202,7 +202,12 @@ function renderStatus(s) {
         mm(it.max_correction_change_m, 2),
       ),
       el("td", {}, mm(it.median_correction_change_m, 3)),
-      el("td", {}, it.common_mode_field_max_m > 0 ? mm(it.common_mode_field_max_m, 2) : "–"),
+      // The field's largest shift; its largest heading (parameters.common_mode_heading) as a tooltip.
+      el(
+        "td",
+        { title: it.common_mode_heading_max_deg > 0 ? `heading up to ${(1000 * it.common_mode_heading_max_deg).toFixed(2)} mdeg` : null },
+        it.common_mode_field_max_m > 0 ? mm(it.common_mode_field_max_m, 2) : "–",
+      ),
       el("td", {}, typeof it.seconds === "number" ? it.seconds.toFixed(1) : "–"),
     );
   });

@@ -19,8 +19,15 @@
 //! two-level method, with the data blocks of the same map task: the map moves with the field,
 //! so a point's residual barely changes.
 //!
-//! The field has three unknowns per node, nodes every `common_mode_field_m` where anchors or
-//! observations reach, each coupled only to the nodes near it: its normal equations are solved
+//! With `Parameters::common_mode_heading` the field also has a heading `ψ(x, y)` on the same
+//! nodes, added to every anchor's rotation about the vertical: every pass at a place turning
+//! with the map (a constant `ψ` with the translation `ψ ez × (x − x0)`) is just as invisible to
+//! the strips. A point's heading entry is `k·(φ(v)·((p − v) × w)_z − φ(v̄)·((p − v̄) × w)_z)`,
+//! each pass turning about its own scan head.
+//!
+//! The field has three unknowns per node (four with the heading), nodes every
+//! `common_mode_field_m` where anchors or observations reach, each coupled only to the nodes
+//! near it: its normal equations are solved
 //! by a sparse Cholesky in nested-dissection order, cut straight across the street network at the
 //! nodes' grid positions (`precimap_solve::sparse`), whose factor grows about as n log n.
 //!
@@ -80,6 +87,14 @@ pub struct FieldEquations {
     pub pairs: Vec<(u32, u32, [f64; 9])>,
     pub rhs: Vec<[f64; 3]>,
     pub observations: u64,
+    /// With the field's heading ([`FieldAccumulator::with_heading`]), one entry per entry of
+    /// `pairs` (`a ≤ b`): node `a`'s translation with node `b`'s heading (3), `a`'s heading with
+    /// `b`'s translation (3), heading with heading. Empty without.
+    #[serde(default)]
+    pub heading_pairs: Vec<[f64; 7]>,
+    /// With the heading, its right-hand side per node; empty without.
+    #[serde(default)]
+    pub heading_rhs: Vec<f64>,
 }
 
 /// Sums observation rows in a tile. A tile's points see a handful of nodes, so the nodes are a
@@ -98,6 +113,9 @@ pub struct FieldAccumulator {
     /// Upper triangles `[xx, xy, xz, yy, yz, zz]` of the 3×3 blocks, row-major over node pairs.
     h: Vec<[f64; 6]>,
     rhs: Vec<[f64; 3]>,
+    /// With the heading: its terms per node pair `a ≤ b` as in [`FieldEquations::heading_pairs`]
+    /// (row-major like `h`), and its right-hand side per node. `None` without.
+    heading: Option<(Vec<[f64; 7]>, Vec<f64>)>,
     observations: u64,
     run: Run,
     /// Per position of a row (the point's scan head, the other passes' mean), the cell it fell
@@ -115,6 +133,11 @@ struct Run {
     /// `Σ ω r_s r_t` over slot pairs `s ≤ t` and `Σ ω r_s e` per slot.
     rr: [f64; SLOT_PAIRS],
     re: [f64; SLOTS],
+    /// With the heading, whose row entry `h_s` varies with the point's lever arm: `Σ ω r_s h_t`
+    /// over all slot pairs (row-major), `Σ ω h_s h_t` over `s ≤ t` and `Σ ω h_s e`.
+    rh: [f64; SLOTS * SLOTS],
+    hh: [f64; SLOT_PAIRS],
+    he: [f64; SLOTS],
     /// A row reached the slot with a non-zero weight.
     reached: [bool; SLOTS],
     /// The slot of each corner of the other passes' cell: its own (4 + corner) or, for a node
@@ -129,6 +152,9 @@ impl Run {
             w: [0.0; 3],
             rr: [0.0; SLOT_PAIRS],
             re: [0.0; SLOTS],
+            rh: [0.0; SLOTS * SLOTS],
+            hh: [0.0; SLOT_PAIRS],
+            he: [0.0; SLOTS],
             reached: [false; SLOTS],
             slot: [4, 5, 6, 7],
         }
@@ -152,6 +178,7 @@ impl FieldAccumulator {
             nodes: Vec::new(),
             h: Vec::new(),
             rhs: Vec::new(),
+            heading: None,
             observations: 0,
             run: Run::new(),
             cells: [((i64::MIN, i64::MIN), [UNKNOWN; 4]); 2],
@@ -169,16 +196,32 @@ impl FieldAccumulator {
             h[a * new..a * new + old].copy_from_slice(&self.h[a * old..(a + 1) * old]);
         }
         self.h = h;
+        if let Some((pairs, rhs)) = self.heading.as_mut() {
+            let mut grown = vec![[0.0; 7]; new * new];
+            for a in 0..old {
+                grown[a * new..a * new + old].copy_from_slice(&pairs[a * old..(a + 1) * old]);
+            }
+            *pairs = grown;
+            rhs.push(0.0);
+        }
         self.nodes.push(node);
         self.rhs.push([0.0; 3]);
         old
     }
 
+    /// An accumulator that also sums the field's heading rows (`Parameters::common_mode_heading`).
+    pub fn with_heading(spacing: f64) -> Self {
+        Self { heading: Some((Vec::new(), Vec::new())), ..Self::new(spacing) }
+    }
+
     /// One observation with residual `e` and weight `weight`: the point's own scan head at
     /// `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
-    /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`.
+    /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`; `lever` is the point's own
+    /// Jacobian entry for a rotation about the vertical, `((p − v) × w)_z`, which only the
+    /// heading uses.
     #[inline]
-    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
+    #[allow(clippy::too_many_arguments)]
+    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: f64) {
         let (own_cell, own) = cell_weights(vehicle[0], vehicle[1], self.spacing);
         let (other_cell, other) = cell_weights(others[0], others[1], self.spacing);
         let key = (own_cell, other_cell, w.map(f64::to_bits));
@@ -211,6 +254,32 @@ impl FieldAccumulator {
             for &rt in &r[s..] {
                 run.rr[pair] += ws * rt;
                 pair += 1;
+            }
+        }
+        if self.heading.is_some() {
+            // Turning a pass by ψ about its scan head `v` moves the point along its normal by
+            // ψ·((p − v) × w)_z; the other passes turn about theirs, `v̄`, so their entry adds
+            // ((v − v̄) × w)_z to the point's own lever arm.
+            let dv = [vehicle[0] - others[0], vehicle[1] - others[1]];
+            let lever_others = lever + dv[0] * w[1] - dv[1] * w[0];
+            let mut h = [0.0; SLOTS];
+            for c in 0..4 {
+                h[c] = k * own[c] * lever;
+            }
+            for c in 0..4 {
+                h[run.slot[c]] -= k * other[c] * lever_others;
+            }
+            let mut pair = 0;
+            for s in 0..SLOTS {
+                let (ws, wh) = (weight * r[s], weight * h[s]);
+                run.he[s] += wh * e;
+                for t in 0..SLOTS {
+                    run.rh[s * SLOTS + t] += ws * h[t];
+                }
+                for &ht in &h[s..] {
+                    run.hh[pair] += wh * ht;
+                    pair += 1;
+                }
             }
         }
         self.observations += 1;
@@ -250,6 +319,9 @@ impl FieldAccumulator {
             for c in 0..3 {
                 self.rhs[a][c] -= self.run.re[s] * w[c];
             }
+            if let Some((_, rhs)) = self.heading.as_mut() {
+                rhs[a] -= self.run.he[s];
+            }
             for t in s..SLOTS {
                 let (b, sum) = (node[t], self.run.rr[pair]);
                 pair += 1;
@@ -259,6 +331,18 @@ impl FieldAccumulator {
                 let m = &mut self.h[a.min(b) * n + a.max(b)];
                 for c in 0..6 {
                     m[c] += sum * ww[c];
+                }
+                if let Some((pairs, _)) = self.heading.as_mut() {
+                    // The stored pair is (min, max): slot s's translation with t's heading is
+                    // its first part when a is the smaller node, its second otherwise.
+                    let (st, ts) = (self.run.rh[s * SLOTS + t], self.run.rh[t * SLOTS + s]);
+                    let (first, second) = if a <= b { (st, ts) } else { (ts, st) };
+                    let x = &mut pairs[a.min(b) * n + a.max(b)];
+                    for c in 0..3 {
+                        x[c] += first * w[c];
+                        x[3 + c] += second * w[c];
+                    }
+                    x[6] += self.run.hh[pair - 1];
                 }
             }
         }
@@ -278,20 +362,29 @@ impl FieldAccumulator {
         for a in 0..n {
             for b in a..n {
                 let u = self.h[a * n + b];
-                if u.iter().all(|&v| v == 0.0) {
+                let x = self.heading.as_ref().map_or([0.0; 7], |(h, _)| h[a * n + b]);
+                if u.iter().chain(&x).all(|&v| v == 0.0) {
                     continue;
                 }
                 // The accumulator kept the upper triangle of each 3×3 (ww is symmetric).
                 let m = [u[0], u[1], u[2], u[1], u[3], u[4], u[2], u[4], u[5]];
                 let (ra, rb) = (rank[a], rank[b]);
-                pairs.push(if ra <= rb { (ra, rb, m) } else { (rb, ra, m) });
+                // Reordered, the pair's two cross parts trade places.
+                let swapped = [x[3], x[4], x[5], x[0], x[1], x[2], x[6]];
+                pairs.push(if ra <= rb { (ra, rb, m, x) } else { (rb, ra, m, swapped) });
             }
         }
         pairs.sort_by_key(|p| (p.0, p.1));
+        let heading = self.heading.is_some();
         FieldEquations {
             nodes: order.iter().map(|&i| self.nodes[i]).collect(),
-            pairs,
+            heading_pairs: if heading { pairs.iter().map(|p| p.3).collect() } else { Vec::new() },
+            pairs: pairs.into_iter().map(|(a, b, m, _)| (a, b, m)).collect(),
             rhs: order.iter().map(|&i| self.rhs[i]).collect(),
+            heading_rhs: self
+                .heading
+                .as_ref()
+                .map_or_else(Vec::new, |(_, rhs)| order.iter().map(|&i| rhs[i]).collect()),
             observations: self.observations,
         }
     }
@@ -317,6 +410,10 @@ pub struct FieldSolution {
     /// The campaign's rigid motion on top of the field (`Parameters::campaign_motion`).
     #[serde(default)]
     pub motion: Option<CampaignMotion>,
+    /// The heading per node (radians, about the vertical; `Parameters::common_mode_heading`),
+    /// empty when not solved.
+    #[serde(default)]
+    pub heading: Vec<f64>,
 }
 
 /// A rotation of the whole campaign about `origin`, to first order: every anchor's rotation gains
@@ -350,13 +447,13 @@ struct MotionTerms {
 
 impl MotionTerms {
     /// A translation term: residual `Σ row·field + ω × d + value` of weight `w`.
-    fn add(&mut self, row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], w: f64) {
+    fn add(&mut self, row: &[(usize, f64)], per_node: usize, d: [f64; 3], value: [f64; 3], w: f64) {
         // `∂(ω × d)/∂ω = −[d]×`.
         let m = -skew(&Vec3::from(d));
         for &(node, phi) in row {
             for c in 0..3 {
                 for j in 0..3 {
-                    self.coupling[3 * node + c][j] += w * phi * m[(c, j)];
+                    self.coupling[per_node * node + c][j] += w * phi * m[(c, j)];
                 }
             }
         }
@@ -379,6 +476,22 @@ impl FieldSolution {
         out
     }
 
+    /// The field's heading at `(x, y)` (radians); zero where not solved.
+    pub fn heading_at(&self, x: f64, y: f64) -> f64 {
+        if self.heading.is_empty() {
+            return 0.0;
+        }
+        bilinear(x, y, self.spacing_m)
+            .iter()
+            .filter_map(|(node, phi)| self.nodes.binary_search(node).ok().map(|i| phi * self.heading[i]))
+            .sum()
+    }
+
+    /// Largest heading the field gives any of `positions` (degrees).
+    pub fn max_heading_deg_at(&self, positions: &[[f64; 3]]) -> f64 {
+        positions.iter().map(|p| self.heading_at(p[0], p[1]).abs().to_degrees()).fold(0.0, f64::max)
+    }
+
     /// `corrections` with the field added to every anchor's translation (and the campaign's
     /// motion, when solved, to every anchor's correction).
     pub fn apply(&self, positions: &[[f64; 3]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
@@ -387,6 +500,9 @@ impl FieldSolution {
             let c = self.at(p[0], p[1]);
             for a in 0..3 {
                 v[a] += c[a];
+            }
+            if !self.heading.is_empty() {
+                v[5] += self.heading_at(p[0], p[1]);
             }
             if let Some(motion) = &self.motion {
                 for (value, m) in v.iter_mut().zip(motion.at(*p)) {
@@ -446,11 +562,13 @@ fn unknown_positions(index: &BTreeMap<FieldNode, usize>, per_node: usize) -> Vec
 /// `previous` moved so that `current − previous` (the step momentum carries on) loses its
 /// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
 /// next iteration, so carrying it as well overshoots and the two levels fight.
-/// `trajectories` hold the current corrections and their anchors' positions.
+/// `trajectories` hold the current corrections and their anchors' positions; with `heading`
+/// the field has a heading as well (`Parameters::common_mode_heading`).
 pub fn remove_field_share(
     trajectories: &[FieldTrajectory],
     previous: &[TrajectoryCorrections],
     spacing: f64,
+    heading: bool,
 ) -> Result<Vec<TrajectoryCorrections>, FieldError> {
     if previous.len() != trajectories.len() {
         return Err(FieldError::Trajectories { expected: trajectories.len(), found: previous.len() });
@@ -467,7 +585,8 @@ pub fn remove_field_share(
     // One scalar system for the three axes: Σ φφᵀ g = Σ φ d, with a small ridge for nodes that
     // anchors touch only at their far corner.
     let mut a = SymmetricSparse::new(nodes);
-    let mut b = vec![[0.0f64; 3]; nodes];
+    // Per node the right-hand sides of x, y, z and, with the heading, the rotation about z.
+    let mut b = vec![[0.0f64; 4]; nodes];
     for (tr, before) in trajectories.iter().zip(previous) {
         for ((p, now), was) in tr.positions.iter().zip(&tr.corrections.values).zip(&before.values) {
             let row: Vec<(usize, f64)> = bilinear(p[0], p[1], spacing)
@@ -485,6 +604,7 @@ pub fn remove_field_share(
                 for c in 0..3 {
                     b[i][c] += pi * (now[c] - was[c]);
                 }
+                b[i][3] += pi * (now[5] - was[5]);
             }
         }
     }
@@ -494,13 +614,16 @@ pub fn remove_field_share(
     let factor = a
         .factorise_at(MAX_FIELD_FACTOR_ENTRIES, &unknown_positions(&index, 1))
         .map_err(|e| FieldError::from_sparse(e, nodes))?;
-    let per_axis: Vec<Vec<f64>> = (0..3).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
+    let axes = if heading { 4 } else { 3 };
+    let per_axis: Vec<Vec<f64>> =
+        (0..axes).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
     let fit = FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
         values: (0..nodes).map(|i| [per_axis[0][i], per_axis[1][i], per_axis[2][i]]).collect(),
         observations: 0,
         motion: None,
+        heading: if heading { per_axis[3].clone() } else { Vec::new() },
     };
     Ok(trajectories.iter().zip(previous).map(|(tr, before)| fit.apply(tr.positions, before)).collect())
 }
@@ -571,7 +694,9 @@ fn solve_field_within<'a>(
     // Node numbering: every node a tile or an anchor touches.
     let index = number_nodes(equations.iter().flat_map(|e| e.nodes.iter().copied()), trajectories, spacing);
     let nodes = index.len();
-    let dim = 3 * nodes;
+    // Unknowns per node: the translation and, with the heading, the rotation about z (index 3).
+    let per_node = if params.common_mode_heading { 4 } else { 3 };
+    let dim = per_node * nodes;
     // The lower triangle is what the factorisation reads: each block pair adds there once.
     let mut h = SymmetricSparse::new(dim);
     let mut rhs = vec![0.0f64; dim];
@@ -585,14 +710,30 @@ fn solve_field_within<'a>(
                 for c in 0..3 {
                     // A node's own block is symmetric: its lower half once.
                     if ga != gb || r >= c {
-                        h.add(3 * ga + r, 3 * gb + c, m[3 * r + c]);
+                        h.add(per_node * ga + r, per_node * gb + c, m[3 * r + c]);
                     }
                 }
             }
         }
+        // Equations summed without the heading (an older field object) leave its data out.
+        if per_node == 4 && e.heading_pairs.len() == e.pairs.len() && e.heading_rhs.len() == e.nodes.len() {
+            for (&(a, b, _), x) in e.pairs.iter().zip(&e.heading_pairs) {
+                let (ga, gb) = (4 * global[a as usize], 4 * global[b as usize]);
+                for c in 0..3 {
+                    h.add(ga + c, gb + 3, x[c]);
+                    if ga != gb {
+                        h.add(ga + 3, gb + c, x[3 + c]);
+                    }
+                }
+                h.add(ga + 3, gb + 3, x[6]);
+            }
+            for (n, r) in e.heading_rhs.iter().enumerate() {
+                rhs[4 * global[n] + 3] += r;
+            }
+        }
         for (n, r) in e.rhs.iter().enumerate() {
             for c in 0..3 {
-                rhs[3 * global[n] + c] += r[c];
+                rhs[per_node * global[n] + c] += r[c];
             }
         }
     }
@@ -622,19 +763,19 @@ fn solve_field_within<'a>(
     let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64| {
         for &(a, ra) in row {
             for c in 0..3 {
-                rhs[3 * a + c] -= weight * ra * value[c];
+                rhs[per_node * a + c] -= weight * ra * value[c];
             }
             for &(b, rb) in row {
                 // Each unordered pair of nodes once.
                 if a >= b {
                     for c in 0..3 {
-                        h.add(3 * a + c, 3 * b + c, weight * ra * rb);
+                        h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
                     }
                 }
             }
         }
         if let Some(m) = motion.as_mut() {
-            m.add(row, d, value, weight);
+            m.add(row, per_node, d, value, weight);
         }
     };
     let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
@@ -667,6 +808,52 @@ fn solve_field_within<'a>(
             }
         }
     }
+    // The heading's prior, smoothness and curvature, exact as the translation's. Only the prior
+    // sees the campaign's rotation about z (a constant drops out of the differences).
+    if per_node == 4 {
+        let rotation_weight = |sigma_deg: f64| match sigma_deg.to_radians() {
+            s if s > 0.0 => 1.0 / (s * s),
+            _ => 0.0,
+        };
+        let smooth = rotation_weight(params.sigma_smooth_rotation_deg);
+        let curvature = rotation_weight(params.sigma_curvature_rotation_deg);
+        let mut add_heading = |row: &[(usize, f64)], value: f64, weight: f64, sees_motion: bool| {
+            for &(a, ra) in row {
+                rhs[4 * a + 3] -= weight * ra * value;
+                for &(b, rb) in row {
+                    if a >= b {
+                        h.add(4 * a + 3, 4 * b + 3, weight * ra * rb);
+                    }
+                }
+                if let (true, Some(m)) = (sees_motion, motion.as_mut()) {
+                    m.coupling[4 * a + 3][2] += weight * ra;
+                }
+            }
+        };
+        for tr in trajectories {
+            let values = &tr.corrections.values;
+            let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
+            for (k, row) in rows.iter().enumerate() {
+                add_heading(row, values[k][5], prior_rotation[2], true);
+                if k + 1 < rows.len() {
+                    let mut diff = rows[k + 1].clone();
+                    for &(a, ra) in row {
+                        accumulate(&mut diff, a, -ra);
+                    }
+                    add_heading(&diff, values[k + 1][5] - values[k][5], smooth, false);
+                }
+                if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
+                    let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
+                    for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
+                        for &(a, ra) in r {
+                            accumulate(&mut second, a, f * ra);
+                        }
+                    }
+                    add_heading(&second, values[k - 1][5] - 2.0 * values[k][5] + values[k + 1][5], curvature, false);
+                }
+            }
+        }
+    }
     // The rotation prior sees the motion's rotation directly: it holds the campaign's mean
     // attitude correction.
     if let Some(m) = motion.as_mut() {
@@ -680,10 +867,11 @@ fn solve_field_within<'a>(
     // A node that only a scan head's lever arm reaches (no anchor near it) may see data in some
     // directions only; a weak prior on the field itself (σ 10 × the anchors') keeps it definite.
     for i in 0..dim {
-        h.add(i, i, prior * 1e-2);
+        let own_prior = if i % per_node == 3 { prior_rotation[2] } else { prior };
+        h.add(i, i, own_prior * 1e-2);
     }
     let factor = h
-        .factorise_at(max_factor_entries, &unknown_positions(&index, 3))
+        .factorise_at(max_factor_entries, &unknown_positions(&index, per_node))
         .map_err(|e| FieldError::from_sparse(e, nodes))?;
     let mut solution = factor.solve(&rhs);
     // The rotation by the Schur complement of the field's block: the field's factor solves the
@@ -713,9 +901,10 @@ fn solve_field_within<'a>(
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
-        values: (0..nodes).map(|i| [solution[3 * i], solution[3 * i + 1], solution[3 * i + 2]]).collect(),
+        values: (0..nodes).map(|i| std::array::from_fn(|c| solution[per_node * i + c])).collect(),
         observations,
         motion,
+        heading: if per_node == 4 { (0..nodes).map(|i| solution[4 * i + 3]).collect() } else { Vec::new() },
     })
 }
 
@@ -741,12 +930,12 @@ mod tests {
         let mut acc = FieldAccumulator::new(10.0);
         let w = [0.6, 0.0, 0.8];
         // Same position for the point and the other passes: the row is zero.
-        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0);
+        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0, 0.0);
         let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
         assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
         // One row across two cells against a dense computation.
         let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
-        acc.add(v, o, n / (n + 1.0), w, e, weight);
+        acc.add(v, o, n / (n + 1.0), w, e, weight, 0.0);
         let eq = acc.finish();
         let k = n / (n + 1.0);
         let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
@@ -773,38 +962,49 @@ mod tests {
         assert!(row.values().sum::<f64>().abs() < 1e-12);
     }
 
-    /// The runs give the equations that summing every row's 3×3 blocks into `H` directly gives
+    /// The runs give the equations that summing every row's blocks into `H` directly gives
     /// (to rounding): runs that leave a cell and come back, rows whose two positions share
     /// nodes or a whole cell, normals that change every few rows, and rows on a node line (a
-    /// zero weight creates no node).
+    /// zero weight creates no node); with the heading, its row entries too.
     #[test]
     fn summed_runs_give_the_row_by_row_equations() {
-        /// Row by row: merge the row's nodes, then every pair's 3×3 block.
+        summed_runs_match_direct_rows(false);
+        summed_runs_match_direct_rows(true);
+    }
+
+    fn summed_runs_match_direct_rows(heading: bool) {
+        /// Row by row: merge the row's nodes, then every pair's 4×4 block (translation, heading).
         struct Direct {
             spacing: f64,
-            h: BTreeMap<(FieldNode, FieldNode), [f64; 9]>,
-            rhs: BTreeMap<FieldNode, [f64; 3]>,
+            h: BTreeMap<(FieldNode, FieldNode), [f64; 16]>,
+            rhs: BTreeMap<FieldNode, [f64; 4]>,
         }
         impl Direct {
-            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64) {
-                let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
-                for (sign, at) in [(k, v), (-k, o)] {
+            #[allow(clippy::too_many_arguments)]
+            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: f64) {
+                // The other passes turn about their own mean scan head.
+                let lever_o = lever + (v[0] - o[0]) * w[1] - (v[1] - o[1]) * w[0];
+                let mut row: BTreeMap<FieldNode, [f64; 2]> = BTreeMap::new();
+                for (sign, at, arm) in [(k, v, lever), (-k, o, lever_o)] {
                     for (node, phi) in bilinear(at[0], at[1], self.spacing) {
                         if phi != 0.0 {
-                            *row.entry(node).or_default() += sign * phi;
+                            let entry = row.entry(node).or_default();
+                            entry[0] += sign * phi;
+                            entry[1] += sign * phi * arm;
                         }
                     }
                 }
+                let full = |r: [f64; 2]| [r[0] * w[0], r[0] * w[1], r[0] * w[2], r[1]];
                 for (&a, &ra) in &row {
-                    let rhs = self.rhs.entry(a).or_default();
-                    for c in 0..3 {
-                        rhs[c] -= weight * ra * e * w[c];
+                    let (fa, rhs) = (full(ra), self.rhs.entry(a).or_default());
+                    for c in 0..4 {
+                        rhs[c] -= weight * e * fa[c];
                     }
                     for (&b, &rb) in row.range(a..) {
-                        let m = self.h.entry((a, b)).or_default();
-                        for r in 0..3 {
-                            for c in 0..3 {
-                                m[3 * r + c] += weight * ra * rb * w[r] * w[c];
+                        let (fb, m) = (full(rb), self.h.entry((a, b)).or_default());
+                        for r in 0..4 {
+                            for c in 0..4 {
+                                m[4 * r + c] += weight * fa[r] * fb[c];
                             }
                         }
                     }
@@ -817,7 +1017,7 @@ mod tests {
             (seed >> 11) as f64 / (1u64 << 53) as f64
         };
         let spacing = 10.0;
-        let mut acc = FieldAccumulator::new(spacing);
+        let mut acc = if heading { FieldAccumulator::with_heading(spacing) } else { FieldAccumulator::new(spacing) };
         let mut direct = Direct { spacing, h: BTreeMap::new(), rhs: BTreeMap::new() };
         let mut w = [0.0, 0.0, 1.0];
         for i in 0..2000 {
@@ -840,36 +1040,50 @@ mod tests {
                 let norm = (a * a + b * b + 1.0f64).sqrt();
                 w = [a / norm, b / norm, 1.0 / norm];
             }
-            let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
-            acc.add([x, y], o, k, w, e, 5.0);
-            direct.add([x, y], o, k, w, e, 5.0);
+            let (k, e, lever) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5), 20.0 * (rand() - 0.5));
+            acc.add([x, y], o, k, w, e, 5.0, lever);
+            direct.add([x, y], o, k, w, e, 5.0, lever);
         }
-        // The same position for both: no node pair gets a non-zero block.
+        // The same position for both: no node pair gets a non-zero translation block.
         let same = [500_003.0, 5_400_004.0];
-        acc.add(same, same, 0.5, w, 0.01, 5.0);
-        direct.add(same, same, 0.5, w, 0.01, 5.0);
+        acc.add(same, same, 0.5, w, 0.01, 5.0, 3.0);
+        direct.add(same, same, 0.5, w, 0.01, 5.0, 3.0);
         let eq = acc.finish();
         assert_eq!(eq.observations, 2001);
         assert!(eq.nodes.len() >= 12, "{} nodes", eq.nodes.len());
         assert_eq!(eq.nodes, direct.rhs.keys().copied().collect::<Vec<_>>());
+        assert_eq!(eq.heading_pairs.len(), if heading { eq.pairs.len() } else { 0 });
+        assert_eq!(eq.heading_rhs.len(), if heading { eq.nodes.len() } else { 0 });
         let scale = direct.h.values().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
         let mut nonzero = 0;
         for (&(a, b), m) in &direct.h {
             let (ia, ib) = (eq.nodes.binary_search(&a).unwrap() as u32, eq.nodes.binary_search(&b).unwrap() as u32);
-            match eq.pairs.iter().find(|p| (p.0, p.1) == (ia, ib)) {
-                Some((_, _, got)) => {
+            // The translation block, then the heading's parts as `FieldEquations` keeps them.
+            let mut want: Vec<f64> = (0..9).map(|i| m[4 * (i / 3) + i % 3]).collect();
+            if heading {
+                want.extend([m[3], m[7], m[11], m[12], m[13], m[14], m[15]]);
+            }
+            match eq.pairs.iter().position(|p| (p.0, p.1) == (ia, ib)) {
+                Some(at) => {
                     nonzero += 1;
-                    for c in 0..9 {
-                        assert!((got[c] - m[c]).abs() <= 1e-12 * scale, "{a:?} {b:?}: {got:?} against {m:?}");
+                    let mut got = eq.pairs[at].2.to_vec();
+                    if heading {
+                        got.extend(eq.heading_pairs[at]);
+                    }
+                    for c in 0..want.len() {
+                        assert!((got[c] - want[c]).abs() <= 1e-12 * scale, "{a:?} {b:?}: {got:?} against {want:?}");
                     }
                 }
-                None => assert!(m.iter().all(|v| v.abs() <= 1e-12 * scale), "{a:?} {b:?} missing: {m:?}"),
+                None => assert!(want.iter().all(|v| v.abs() <= 1e-12 * scale), "{a:?} {b:?} missing: {want:?}"),
             }
         }
         assert_eq!(nonzero, eq.pairs.len());
-        for (got, want) in eq.rhs.iter().zip(direct.rhs.values()) {
+        for (n, (got, want)) in eq.rhs.iter().zip(direct.rhs.values()).enumerate() {
             for c in 0..3 {
                 assert!((got[c] - want[c]).abs() <= 1e-12, "{got:?} against {want:?}");
+            }
+            if heading {
+                assert!((eq.heading_rhs[n] - want[3]).abs() <= 1e-10, "{} against {}", eq.heading_rhs[n], want[3]);
             }
         }
     }
@@ -895,15 +1109,15 @@ mod tests {
             FieldTrajectory { positions: &positions, corrections: &current },
             FieldTrajectory { positions: &positions, corrections: &current },
         ];
-        let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing).unwrap();
+        let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing, false).unwrap();
         // Inconsistent inputs are errors, not panics.
         assert!(matches!(
-            remove_field_share(&trajectories, std::slice::from_ref(&previous), spacing),
+            remove_field_share(&trajectories, std::slice::from_ref(&previous), spacing, false),
             Err(FieldError::Trajectories { expected: 2, found: 1 })
         ));
         let short = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 10] };
         assert!(matches!(
-            remove_field_share(&trajectories, &[previous.clone(), short], spacing),
+            remove_field_share(&trajectories, &[previous.clone(), short], spacing, false),
             Err(FieldError::Positions { trajectory: 1, anchors: 10, .. })
         ));
         for before in &moved {
@@ -977,7 +1191,14 @@ mod tests {
         // Corrections that are one rigid motion of the whole campaign (a 10 mdeg tilt, a yaw
         // and a shift) and nothing else. The field alone takes out only the translation; with
         // the campaign's rotation every anchor's correction returns to zero.
-        let base = Parameters { common_mode_field_m: 20.0, campaign_motion: false, ..Default::default() };
+        // The field's heading off: its constant part is a turn about z as well, which the two
+        // would share (checked at the end).
+        let base = Parameters {
+            common_mode_field_m: 20.0,
+            campaign_motion: false,
+            common_mode_heading: false,
+            ..Default::default()
+        };
         let positions = crossing();
         let tilt = CampaignMotion { origin: [1030.0, 1990.0, 52.0], rotation: [1.7e-4, -1.2e-4, 3e-4] };
         let corrections: Vec<TrajectoryCorrections> = positions
@@ -998,7 +1219,7 @@ mod tests {
             .collect();
         let without = solve_without_data(&positions, &corrections, &base);
         assert_eq!(without.motion, None);
-        let with = solve_without_data(&positions, &corrections, &Parameters { campaign_motion: true, ..base });
+        let with = solve_without_data(&positions, &corrections, &Parameters { campaign_motion: true, ..base.clone() });
         let motion = with.motion.expect("asked for");
         for (a, b) in motion.rotation.iter().zip(&tilt.rotation) {
             assert!((a + b).abs() < 1e-9, "{motion:?}");
@@ -1008,6 +1229,19 @@ mod tests {
                 assert!((x[3] - 1.7e-4).abs() < 1e-15 && (x[4] + 1.2e-4).abs() < 1e-15, "{x:?}");
                 assert!(y[3..].iter().all(|v| v.abs() < 1e-9), "{y:?}");
                 // What is left of the translation is the nodes' own weak prior's share (< 1 %).
+                assert!(y[0].abs() < 2e-3 && y[1].abs() < 1e-3 && y[2].abs() < 5e-4, "{y:?}");
+            }
+        }
+        // With the field's heading too (the defaults), the yaw is the motion's and the field's
+        // together: the corrections still return to zero.
+        let all = solve_without_data(
+            &positions,
+            &corrections,
+            &Parameters { campaign_motion: true, common_mode_heading: true, ..base },
+        );
+        for (p, c) in positions.iter().zip(&corrections) {
+            for y in &all.apply(p, c).values {
+                assert!(y[3..].iter().all(|v| v.abs() < 1e-8), "{y:?}");
                 assert!(y[0].abs() < 2e-3 && y[1].abs() < 1e-3 && y[2].abs() < 5e-4, "{y:?}");
             }
         }
@@ -1051,5 +1285,111 @@ mod tests {
         let m = solve_without_data(&positions, &corrections, &params).motion.unwrap();
         assert!((m.rotation[0] + 1.1e-4).abs() < 1e-6 && (m.rotation[1] - 5e-5).abs() < 1e-6, "{m:?}");
         assert!(m.rotation[2].abs() < 1e-6, "{m:?}");
+    }
+
+    /// The field's heading: turning every pass and the map together about a point (a constant
+    /// heading with the translation field `ψ ez × (x − x0)`) changes no residual, so the data
+    /// give it no curvature, while a heading alone (the passes turning about their own scan
+    /// heads) does.
+    #[test]
+    fn the_heading_sees_no_rigid_turn_of_passes_and_map() {
+        let spacing = 10.0;
+        let mut acc = FieldAccumulator::with_heading(spacing);
+        let mut seed = 11u64;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..500 {
+            let v = [1000.0 + 30.0 * rand(), 2000.0 + 3.0 * rand()];
+            let o = [v[0] + 4.0 * (rand() - 0.5), v[1] + 3.0 + rand()];
+            let p = [v[0] + 10.0 * (rand() - 0.5), v[1] + 8.0 * (rand() - 0.5), 0.0];
+            // Road-like normals and façade-like ones.
+            let (a, b, c) =
+                if rand() < 0.5 { (0.2 * (rand() - 0.5), 0.2 * (rand() - 0.5), 1.0) } else { (rand() - 0.5, 1.0, 0.0) };
+            let norm = (a * a + b * b + c * c).sqrt();
+            let w = [a / norm, b / norm, c / norm];
+            // The lever arm of the point's own Jacobian: ((p − v) × w)_z.
+            let lever = (p[0] - v[0]) * w[1] - (p[1] - v[1]) * w[0];
+            acc.add(v, o, 0.5 + 0.4 * rand(), w, 0.0, 1.0, lever);
+        }
+        let eq = acc.finish();
+        let quadratic = |u: &dyn Fn(FieldNode) -> [f64; 4]| -> f64 {
+            let mut sum = 0.0;
+            for (&(a, b, m), x) in eq.pairs.iter().zip(&eq.heading_pairs) {
+                let (ua, ub) = (u(eq.nodes[a as usize]), u(eq.nodes[b as usize]));
+                let mut term = 0.0;
+                for r in 0..3 {
+                    for c in 0..3 {
+                        term += ua[r] * m[3 * r + c] * ub[c];
+                    }
+                    term += ua[r] * x[r] * ub[3] + ua[3] * x[3 + r] * ub[r];
+                }
+                term += ua[3] * x[6] * ub[3];
+                // The upper triangle holds each off-diagonal pair once.
+                sum += if a == b { term } else { 2.0 * term };
+            }
+            sum
+        };
+        let psi = 1e-3;
+        let x0 = [1010.0, 1995.0];
+        let rigid = |(ix, iy): FieldNode| {
+            let (x, y) = (ix as f64 * spacing - x0[0], iy as f64 * spacing - x0[1]);
+            [-psi * y, psi * x, 0.0, psi]
+        };
+        let heading_alone = |_: FieldNode| [0.0, 0.0, 0.0, psi];
+        let (turned, alone) = (quadratic(&rigid), quadratic(&heading_alone));
+        assert!(alone > 1e-7, "{alone}");
+        assert!(turned.abs() < 1e-9 * alone, "{turned} against {alone}");
+    }
+
+    /// Without data, a heading every pass shares over a stretch (a slow bend of 0.05°, no
+    /// translation) is what only the prior decides: with the field's heading the solve takes it
+    /// out at once; without, it stays for the per-trajectory solves. (The field is piecewise
+    /// linear along a street, and the attitude's stiff curvature term resists its kinks: a bend
+    /// much narrower than this one's 50 m is taken out only in part.)
+    #[test]
+    fn the_field_heading_takes_a_shared_bend_out() {
+        let positions: Vec<Vec<[f64; 3]>> = (0..2)
+            .map(|t| (0..400).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 3.0 * t as f64, 50.0]).collect())
+            .collect();
+        let bend = |x: f64| 0.05f64.to_radians() * (-((x - 1100.0) / 50.0).powi(2)).exp();
+        let corrections: Vec<TrajectoryCorrections> = positions
+            .iter()
+            .map(|p| TrajectoryCorrections {
+                first_anchor: 0,
+                values: p.iter().map(|q| [0.0, 0.0, 0.0, 0.0, 0.0, bend(q[0])]).collect(),
+            })
+            .collect();
+        let base = Parameters {
+            common_mode_field_m: 7.5,
+            campaign_motion: false,
+            common_mode_heading: false,
+            ..Default::default()
+        };
+        let rms = |field: &FieldSolution| {
+            let values: Vec<f64> = positions
+                .iter()
+                .zip(&corrections)
+                .flat_map(|(p, c)| field.apply(p, c).values.into_iter().map(|v| v[5]))
+                .collect();
+            (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt()
+        };
+        let without = solve_without_data(&positions, &corrections, &base);
+        assert!(without.heading.is_empty());
+        let with =
+            solve_without_data(&positions, &corrections, &Parameters { common_mode_heading: true, ..base.clone() });
+        let before = rms(&without);
+        assert!(before > 1e-4, "{before}");
+        assert!(rms(&with) < 0.05 * before, "{} against {before}", rms(&with));
+        assert!(with.max_heading_deg_at(&positions[0]) > 0.04, "{}", with.max_heading_deg_at(&positions[0]));
+        // With the campaign's rotation as well (its turn about z overlaps the field's constant
+        // heading): still solved, still taken out.
+        let both = solve_without_data(
+            &positions,
+            &corrections,
+            &Parameters { common_mode_heading: true, campaign_motion: true, ..base },
+        );
+        assert!(rms(&both) < 0.05 * before, "{} against {before}", rms(&both));
     }
 }

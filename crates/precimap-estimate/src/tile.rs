@@ -514,7 +514,10 @@ fn estimate_tile_into<S: LatentSink>(
         None => (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull)),
     };
     drop((index, covers, pull));
-    let mut field = solves_field.then(|| FieldAccumulator::new(params.common_mode_field_m));
+    let mut field = solves_field.then(|| match params.common_mode_heading {
+        true => FieldAccumulator::with_heading(params.common_mode_field_m),
+        false => FieldAccumulator::new(params.common_mode_field_m),
+    });
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
     let mut histogram = ResidualHistogram::default();
@@ -569,7 +572,7 @@ fn estimate_tile_into<S: LatentSink>(
                     moments.add_weighted(&g, weighted, total, lambda, observations);
                     if let Some(field) = field.as_mut() {
                         let [x, y, share] = at.others;
-                        field.add(vehicle[a], [x, y], share, w, e, weight);
+                        field.add(vehicle[a], [x, y], share, w, e, weight, g[5]);
                     }
                 }
             }

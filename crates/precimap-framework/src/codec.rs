@@ -8,6 +8,9 @@ use precimap_estimate::{AnchorBlock, FieldEquations};
 
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
 const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
+/// With the field's heading (`Parameters::common_mode_heading`): version 1 followed by the
+/// heading's right-hand side per node and its seven terms per node pair.
+const FIELD_MAGIC_HEADING: &[u8; 8] = b"PMFIELD2";
 const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR02";
 /// Posterior standard deviations only (before the exported corrections table needed the whole
 /// covariance to give them in the vehicle's frame).
@@ -134,9 +137,11 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
 }
 
 /// One tile's common-mode field equations: nodes, node-pair blocks, right-hand sides.
+/// Equations without the heading keep version 1, byte for byte.
 pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
-    let mut out = Vec::with_capacity(28 + f.nodes.len() * 40 + f.pairs.len() * 80);
-    out.extend_from_slice(FIELD_MAGIC);
+    let heading = !f.heading_pairs.is_empty() || !f.heading_rhs.is_empty();
+    let mut out = Vec::with_capacity(28 + f.nodes.len() * 48 + f.pairs.len() * 136);
+    out.extend_from_slice(if heading { FIELD_MAGIC_HEADING } else { FIELD_MAGIC });
     out.extend_from_slice(&f.observations.to_le_bytes());
     out.extend_from_slice(&(f.nodes.len() as u32).to_le_bytes());
     for (node, rhs) in f.nodes.iter().zip(&f.rhs) {
@@ -150,12 +155,22 @@ pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
         out.extend_from_slice(&b.to_le_bytes());
         put_f64s(&mut out, m);
     }
+    if heading {
+        // Lengths written, not assumed: a reader checks them against the nodes and pairs.
+        out.extend_from_slice(&(f.heading_rhs.len() as u32).to_le_bytes());
+        put_f64s(&mut out, &f.heading_rhs);
+        out.extend_from_slice(&(f.heading_pairs.len() as u32).to_le_bytes());
+        for x in &f.heading_pairs {
+            put_f64s(&mut out, x);
+        }
+    }
     out
 }
 
 pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
     const WHAT: &str = "common-mode field equations";
-    let mut r = Reader::new(bytes, FIELD_MAGIC, WHAT)?;
+    let heading = bytes.starts_with(FIELD_MAGIC_HEADING);
+    let mut r = Reader::new(bytes, if heading { FIELD_MAGIC_HEADING } else { FIELD_MAGIC }, WHAT)?;
     let observations = r.u64()?;
     let n = r.count(40)?;
     let (mut nodes, mut rhs) = (Vec::with_capacity(n), Vec::with_capacity(n));
@@ -172,8 +187,23 @@ pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
         }
         pairs.push((a, b, r.f64s::<9>()?));
     }
+    let (mut heading_rhs, mut heading_pairs) = (Vec::new(), Vec::new());
+    if heading {
+        if r.count(8)? != n {
+            return Err(CodecError::Truncated { what: WHAT, at: r.at, len: bytes.len() });
+        }
+        for _ in 0..n {
+            heading_rhs.push(r.f64()?);
+        }
+        if r.count(56)? != m {
+            return Err(CodecError::Truncated { what: WHAT, at: r.at, len: bytes.len() });
+        }
+        for _ in 0..m {
+            heading_pairs.push(r.f64s::<7>()?);
+        }
+    }
     r.finish()?;
-    Ok(FieldEquations { nodes, pairs, rhs, observations })
+    Ok(FieldEquations { nodes, pairs, rhs, observations, heading_pairs, heading_rhs })
 }
 
 /// Corrections with the optional posterior covariances of the final iteration.
@@ -285,6 +315,7 @@ mod tests {
             pairs: vec![(0, 0, [1.5; 9]), (0, 1, std::array::from_fn(|k| -1e-300 * k as f64)), (1, 1, [0.25; 9])],
             rhs: vec![[0.1, -0.2, 1e300], [f64::MIN_POSITIVE, -0.0, 3.0]],
             observations: 1 << 40,
+            ..Default::default()
         };
         let bytes = encode_field(&f);
         let back = decode_field(&bytes).unwrap();
@@ -300,6 +331,38 @@ mod tests {
         let at = 8 + 8 + 4 + 2 * 40 + 4 + 80;
         bad[at..at + 4].copy_from_slice(&9u32.to_le_bytes());
         assert!(decode_field(&bad).is_err());
+    }
+
+    #[test]
+    fn field_with_heading_round_trips_and_without_keeps_version_1() {
+        let mut f = FieldEquations {
+            nodes: vec![(-3, 7), (16_667, 180_000)],
+            pairs: vec![(0, 0, [1.5; 9]), (0, 1, [-2.0; 9])],
+            rhs: vec![[0.1, -0.2, 1e300], [f64::MIN_POSITIVE, -0.0, 3.0]],
+            observations: 12,
+            heading_pairs: vec![std::array::from_fn(|k| k as f64 - 0.5), [-0.0, 1e-300, 3.0, 4.0, 5.0, 6.0, 7.0]],
+            heading_rhs: vec![0.25, -1e200],
+        };
+        let bytes = encode_field(&f);
+        assert_eq!(&bytes[..8], FIELD_MAGIC_HEADING);
+        let back = decode_field(&bytes).unwrap();
+        let bits = |e: &FieldEquations| -> Vec<u64> {
+            e.heading_rhs.iter().chain(e.heading_pairs.iter().flatten()).map(|v| v.to_bits()).collect()
+        };
+        assert_eq!(bits(&back), bits(&f));
+        assert_eq!((back.nodes.clone(), back.pairs.len(), back.observations), (f.nodes.clone(), 2, 12));
+        assert!(decode_field(&bytes[..bytes.len() - 8]).is_err());
+        // The heading's pair count must match the pairs'.
+        let mut bad = bytes.clone();
+        let at = bytes.len() - 2 * 56 - 4;
+        bad[at..at + 4].copy_from_slice(&1u32.to_le_bytes());
+        assert!(decode_field(&bad).is_err());
+        // Without the heading: version 1, as every earlier field object.
+        f.heading_pairs.clear();
+        f.heading_rhs.clear();
+        let plain = encode_field(&f);
+        assert_eq!(&plain[..8], FIELD_MAGIC);
+        assert_eq!(decode_field(&plain).unwrap(), f);
     }
 
     #[test]

@@ -430,6 +430,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                         &field_trajectories,
                         &before,
                         params.common_mode_field_m,
+                        params.common_mode_heading,
                     )?
                 } else {
                     before
@@ -437,7 +438,8 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let max_m = positions.iter().map(|p| field.max_at(p)).fold(0.0, f64::max);
-                let figures = (max_m, field.rotation_deg(), field.nodes.len());
+                let heading_max_deg = positions.iter().map(|p| field.max_heading_deg_at(p)).fold(0.0, f64::max);
+                let figures = (max_m, field.rotation_deg(), heading_max_deg, field.nodes.len());
                 Ok::<_, precimap_estimate::field::FieldError>((start, before, figures))
             })
             .await?
@@ -449,7 +451,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
                 )),
             })?;
-            let (start, before, (max_m, rotation_deg, nodes)) = solved;
+            let (start, before, (max_m, rotation_deg, heading_max_deg, nodes)) = solved;
             let mut objects = Vec::with_capacity(start.len() + before.len());
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
                 for (t, c) in trajectories.iter().zip(list) {
@@ -458,7 +460,8 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 }
             }
             outputs.extend(ctx.put_many(objects).await?);
-            let result = FieldResult { max_m, rotation_deg, nodes, seconds: started.elapsed().as_secs_f64() };
+            let seconds = started.elapsed().as_secs_f64();
+            let result = FieldResult { max_m, rotation_deg, heading_max_deg, nodes, seconds };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::SolveTrajectory {

@@ -266,6 +266,9 @@ pub struct FieldResult {
     /// The campaign's rotation solved with the field (degrees; zero without it).
     #[serde(default)]
     pub rotation_deg: [f64; 3],
+    /// Largest heading the field gave an anchor (degrees; zero without it).
+    #[serde(default)]
+    pub heading_max_deg: f64,
     pub nodes: usize,
     pub seconds: f64,
 }
@@ -339,6 +342,8 @@ pub struct PlanState {
     pub pending_field_max_m: f64,
     #[serde(default)]
     pub pending_campaign_rotation_deg: [f64; 3],
+    #[serde(default)]
+    pub pending_field_heading_max_deg: f64,
     /// The settling iterations' corrections objects Anderson acceleration combines.
     #[serde(default)]
     pub anderson: AndersonHistory<Option<String>>,
@@ -432,6 +437,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         started_from: Vec::new(),
         pending_field_max_m: 0.0,
         pending_campaign_rotation_deg: [0.0; 3],
+        pending_field_heading_max_deg: 0.0,
         anderson: AndersonHistory::default(),
         pending_anderson_coefficients: Vec::new(),
         anchor_positions: None,
@@ -749,6 +755,7 @@ fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, St
     state.pending_seconds += r.seconds;
     state.pending_field_max_m = r.max_m;
     state.pending_campaign_rotation_deg = r.rotation_deg;
+    state.pending_field_heading_max_deg = r.heading_max_deg;
     let n = state.trajectories.len();
     let mut start = vec![None; n];
     let mut previous = vec![None; n];
@@ -879,6 +886,7 @@ fn after_solve(
     report.max_correction_change_at = max_change_at;
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     report.campaign_rotation_deg = std::mem::take(&mut state.pending_campaign_rotation_deg);
+    report.common_mode_heading_max_deg = std::mem::take(&mut state.pending_field_heading_max_deg);
     report.anderson_coefficients = std::mem::take(&mut state.pending_anderson_coefficients);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();

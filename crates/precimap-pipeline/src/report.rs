@@ -61,6 +61,10 @@ pub struct IterationReport {
     /// degrees): zero in steps without it.
     #[serde(default)]
     pub campaign_rotation_deg: [f64; 3],
+    /// Largest heading the common-mode field solved in this iteration gave an anchor
+    /// (`parameters.common_mode_heading`; degrees): zero in steps without it.
+    #[serde(default)]
+    pub common_mode_heading_max_deg: f64,
     pub grid_m: f64,
     pub threshold_m: f64,
     /// Points in tile cores (each point once).

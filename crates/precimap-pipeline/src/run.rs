@@ -177,9 +177,13 @@ pub fn iterate(
             .map_err(PipelineError::Field)?;
         if campaign.params.field_free_momentum {
             if let Some(p) = previous.as_mut() {
-                *p =
-                    precimap_estimate::field::remove_field_share(&trajectories, p, campaign.params.common_mode_field_m)
-                        .map_err(PipelineError::Field)?;
+                *p = precimap_estimate::field::remove_field_share(
+                    &trajectories,
+                    p,
+                    campaign.params.common_mode_field_m,
+                    campaign.params.common_mode_heading,
+                )
+                .map_err(PipelineError::Field)?;
             }
         }
         for (t, positions) in prepared.anchor_positions.iter().enumerate() {
@@ -288,6 +292,9 @@ pub fn run_campaign(
         report.common_mode_field_max_m =
             field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
         report.campaign_rotation_deg = field.as_ref().map_or([0.0; 3], FieldSolution::rotation_deg);
+        report.common_mode_heading_max_deg = field
+            .as_ref()
+            .map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_heading_deg_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
@@ -471,6 +478,7 @@ pub fn iteration_report(
     IterationReport {
         iteration,
         common_mode_field_max_m: 0.0,
+        common_mode_heading_max_deg: 0.0,
         campaign_rotation_deg: [0.0; 3],
         grid_m: step.grid_m,
         threshold_m: step.threshold_m,
