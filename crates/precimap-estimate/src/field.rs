@@ -756,11 +756,18 @@ fn solve_field_within<'a>(
         }
     });
     let origin = motion.as_ref().map_or([0.0; 3], |m| m.origin);
-    let prior_rotation = params.sigma_prior_rotation_axes_deg().map(|s| match s.to_radians() {
+    let rotation_weight = |sigma_deg: f64| match sigma_deg.to_radians() {
         s if s > 0.0 => 1.0 / (s * s),
         _ => 0.0,
-    });
-    let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64| {
+    };
+    let prior_rotation = params.sigma_prior_rotation_axes_deg().map(rotation_weight);
+    let (smooth_heading, curvature_heading) =
+        (rotation_weight(params.sigma_smooth_rotation_deg), rotation_weight(params.sigma_curvature_rotation_deg));
+    // One term of an anchor's prior, smoothness or curvature: on the translation, residual
+    // `Σ row·field + ω × d + value` of weight `weight`; with the heading, also on the rotation
+    // about z, residual `Σ row·ψ + value` of weight `heading.1` (plus the campaign's rotation
+    // about z where `heading.2`: only the prior sees it, a constant drops out of differences).
+    let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64, heading: (f64, f64, bool)| {
         for &(a, ra) in row {
             for c in 0..3 {
                 rhs[per_node * a + c] -= weight * ra * value[c];
@@ -777,47 +784,8 @@ fn solve_field_within<'a>(
         if let Some(m) = motion.as_mut() {
             m.add(row, per_node, d, value, weight);
         }
-    };
-    let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
-        bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
-    };
-    for tr in trajectories {
-        let values = &tr.corrections.values;
-        let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
-        let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
-        for (k, row) in rows.iter().enumerate() {
-            add_term(row, d[k], [values[k][0], values[k][1], values[k][2]], prior);
-            if k + 1 < rows.len() {
-                let mut diff = rows[k + 1].clone();
-                for &(a, ra) in row {
-                    accumulate(&mut diff, a, -ra);
-                }
-                let dv = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
-                add_term(&diff, std::array::from_fn(|a| d[k + 1][a] - d[k][a]), dv, smooth);
-            }
-            if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
-                let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
-                for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
-                    for &(a, ra) in r {
-                        accumulate(&mut second, a, f * ra);
-                    }
-                }
-                let dv = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
-                let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
-                add_term(&second, dd, dv, curvature);
-            }
-        }
-    }
-    // The heading's prior, smoothness and curvature, exact as the translation's. Only the prior
-    // sees the campaign's rotation about z (a constant drops out of the differences).
-    if per_node == 4 {
-        let rotation_weight = |sigma_deg: f64| match sigma_deg.to_radians() {
-            s if s > 0.0 => 1.0 / (s * s),
-            _ => 0.0,
-        };
-        let smooth = rotation_weight(params.sigma_smooth_rotation_deg);
-        let curvature = rotation_weight(params.sigma_curvature_rotation_deg);
-        let mut add_heading = |row: &[(usize, f64)], value: f64, weight: f64, sees_motion: bool| {
+        if per_node == 4 {
+            let (value, weight, sees_motion) = heading;
             for &(a, ra) in row {
                 rhs[4 * a + 3] -= weight * ra * value;
                 for &(b, rb) in row {
@@ -829,28 +797,37 @@ fn solve_field_within<'a>(
                     m.coupling[4 * a + 3][2] += weight * ra;
                 }
             }
-        };
-        for tr in trajectories {
-            let values = &tr.corrections.values;
-            let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
-            for (k, row) in rows.iter().enumerate() {
-                add_heading(row, values[k][5], prior_rotation[2], true);
-                if k + 1 < rows.len() {
-                    let mut diff = rows[k + 1].clone();
-                    for &(a, ra) in row {
-                        accumulate(&mut diff, a, -ra);
-                    }
-                    add_heading(&diff, values[k + 1][5] - values[k][5], smooth, false);
+        }
+    };
+    let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
+        bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
+    };
+    for tr in trajectories {
+        let values = &tr.corrections.values;
+        let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
+        let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
+        for (k, row) in rows.iter().enumerate() {
+            let v = &values[k];
+            add_term(row, d[k], [v[0], v[1], v[2]], prior, (v[5], prior_rotation[2], true));
+            if k + 1 < rows.len() {
+                let mut diff = rows[k + 1].clone();
+                for &(a, ra) in row {
+                    accumulate(&mut diff, a, -ra);
                 }
-                if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
-                    let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
-                    for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
-                        for &(a, ra) in r {
-                            accumulate(&mut second, a, f * ra);
-                        }
+                let dv: [f64; 6] = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
+                let dd = std::array::from_fn(|a| d[k + 1][a] - d[k][a]);
+                add_term(&diff, dd, [dv[0], dv[1], dv[2]], smooth, (dv[5], smooth_heading, false));
+            }
+            if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
+                let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
+                for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
+                    for &(a, ra) in r {
+                        accumulate(&mut second, a, f * ra);
                     }
-                    add_heading(&second, values[k - 1][5] - 2.0 * values[k][5] + values[k + 1][5], curvature, false);
                 }
+                let dv: [f64; 6] = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
+                let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
+                add_term(&second, dd, [dv[0], dv[1], dv[2]], curvature, (dv[5], curvature_heading, false));
             }
         }
     }
