@@ -114,6 +114,10 @@ pub enum BenchCommand {
     FieldSolve {
         #[arg(long, default_value_t = 8)]
         blocks: usize,
+        /// Unknowns per node: 4 for the field with its heading (`common_mode_heading`, the
+        /// default), 3 without.
+        #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(3..=4))]
+        per_node: u8,
         #[arg(long)]
         json: bool,
     },
@@ -164,15 +168,15 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             }
             Ok(())
         }
-        BenchCommand::FieldSolve { blocks, json } => {
-            let b = precimap_solve::sparse::bench_street_network(blocks)?;
+        BenchCommand::FieldSolve { blocks, per_node, json } => {
+            let b = precimap_solve::sparse::bench_street_network(blocks, per_node as usize)?;
             if json {
                 outln!("{}", serde_json::to_string(&b)?);
             } else {
                 let area_km2 = (blocks as f64 * 7.0 * 15.0 / 1000.0).powi(2);
                 outln!(
                     "field solve, {blocks} × {blocks} blocks ({area_km2:.2} km², {} nodes, {} unknowns):",
-                    b.unknowns / 3,
+                    b.unknowns / per_node as usize,
                     b.unknowns
                 );
                 outln!(

@@ -226,8 +226,10 @@ pub struct Parameters {
     /// 7.5 m since stop 40 (15 m since stop 12, 30 m before): with the looser attitude model and
     /// Anderson, medium seed 1's latent map lies 4.27 mm from the truth without the campaign's
     /// shift at 7.5 m against 5.52 mm at 15 m and 4.48 mm at 5 m. The field's sparse solve takes
-    /// a street network of ~70 km² at 7.5 m (~290 km² at 15 m: `MAX_FIELD_FACTOR_ENTRIES` in
-    /// `precimap-estimate`; ARCHITECTURE.md, "The common-mode field's sparse solve").
+    /// a street network of ~40 km² at 7.5 m with the heading (~165 km² at 15 m; without the
+    /// heading ~70 and ~290 km²: `MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
+    /// ARCHITECTURE.md, "The common-mode field's sparse solve" and "The common-mode field's
+    /// heading").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step
     /// that no field on the same nodes represents (the field re-solves the rest itself, so

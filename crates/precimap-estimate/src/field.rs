@@ -638,8 +638,9 @@ pub enum FieldError {
     Singular { nodes: usize },
     #[error(
         "the common-mode field's {nodes} nodes need {entries} factor entries, more than the {limit} \
-         (12 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing) \
-         or set it to 0"
+         (12 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing), \
+         set parameters.common_mode_heading to false (a quarter fewer unknowns), or set \
+         parameters.common_mode_field_m to 0"
     )]
     TooLarge { nodes: usize, entries: usize, limit: usize },
     /// A system the field built wrongly (a bug, not the data's fault).
@@ -658,9 +659,10 @@ impl FieldError {
 }
 
 /// Most factor entries the field's sparse solve may hold (12 bytes each: 1 GiB). After nested
-/// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this, so the
-/// limit lies near 290 km² of such a network (`precimap bench field-solve --blocks N`;
-/// ARCHITECTURE.md, "The common-mode field's sparse solve").
+/// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this with three
+/// unknowns per node, so the limit lies near 290 km² of such a network; with the heading's
+/// fourth, 159 km² needs 89 % and the limit lies near 165 km² (`precimap bench field-solve
+/// --blocks N --per-node 3|4`; ARCHITECTURE.md, "The common-mode field's sparse solve").
 pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,

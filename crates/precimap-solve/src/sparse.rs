@@ -634,10 +634,11 @@ fn choose_separator(levels: &[u32], depth: usize) -> usize {
 
 /// A field-like system over a street network: nodes on a square grid of `blocks` × `blocks` city
 /// blocks, five nodes of block between streets two nodes wide (15 m nodes: 30 m streets, 75 m
-/// blocks), three unknowns per node, each node coupled to its eight grid neighbours on the
-/// streets by a random positive semi-definite 3×3 block, plus a weak prior on every unknown.
-/// Returns the system, a right-hand side and each unknown's node position (grid units).
-pub fn street_network_system(blocks: usize, seed: u64) -> (SymmetricSparse, Vec<f64>, Vec<[f64; 2]>) {
+/// blocks), `per_node` unknowns per node (3: the translation; 4 with the field's heading), each
+/// node coupled to its eight grid neighbours on the streets by a random positive semi-definite
+/// block, plus a weak prior on every unknown. Returns the system, a right-hand side and each
+/// unknown's node position (grid units).
+pub fn street_network_system(blocks: usize, per_node: usize, seed: u64) -> (SymmetricSparse, Vec<f64>, Vec<[f64; 2]>) {
     let mut rng = crate::rng::SplitMix64::new(seed);
     let side = 7 * blocks + 2;
     let street = |x: usize, y: usize| x % 7 < 2 || y % 7 < 2;
@@ -649,11 +650,11 @@ pub fn street_network_system(blocks: usize, seed: u64) -> (SymmetricSparse, Vec<
             if street(x, y) {
                 index[y * side + x] = nodes;
                 nodes += 1;
-                coordinates.extend([[x as f64, y as f64]; 3]);
+                coordinates.extend(std::iter::repeat_n([x as f64, y as f64], per_node));
             }
         }
     }
-    let mut m = SymmetricSparse::new(3 * nodes);
+    let mut m = SymmetricSparse::new(per_node * nodes);
     for y in 0..side {
         for x in 0..side {
             let a = index[y * side + x];
@@ -670,25 +671,25 @@ pub fn street_network_system(blocks: usize, seed: u64) -> (SymmetricSparse, Vec<
                     continue;
                 }
                 // w (e_a − e_b)(e_a − e_b)ᵀ ⊗ u uᵀ with a random direction u.
-                let u = [rng.uniform() - 0.5, rng.uniform() - 0.5, rng.uniform() - 0.5];
+                let u: Vec<f64> = (0..per_node).map(|_| rng.uniform() - 0.5).collect();
                 let w = 1.0 + 1e3 * rng.uniform();
-                for r in 0..3 {
-                    for c in 0..3 {
+                for r in 0..per_node {
+                    for c in 0..per_node {
                         let v = w * u[r] * u[c];
                         if r >= c {
-                            m.add(3 * a + r, 3 * a + c, v);
-                            m.add(3 * b + r, 3 * b + c, v);
+                            m.add(per_node * a + r, per_node * a + c, v);
+                            m.add(per_node * b + r, per_node * b + c, v);
                         }
-                        m.add(3 * a + r, 3 * b + c, -v);
+                        m.add(per_node * a + r, per_node * b + c, -v);
                     }
                 }
             }
         }
     }
-    for i in 0..3 * nodes {
+    for i in 0..per_node * nodes {
         m.add(i, i, 1.0);
     }
-    let rhs = (0..3 * nodes).map(|_| rng.uniform() - 0.5).collect();
+    let rhs = (0..per_node * nodes).map(|_| rng.uniform() - 0.5).collect();
     (m, rhs, coordinates)
 }
 
@@ -714,8 +715,8 @@ pub struct SparseBench {
 
 /// Solves [`street_network_system`] with the sparse Cholesky, and with a dense Cholesky where it
 /// is small enough to form.
-pub fn bench_street_network(blocks: usize) -> Result<SparseBench, SparseError> {
-    let (m, rhs, coordinates) = street_network_system(blocks, 0x5EED);
+pub fn bench_street_network(blocks: usize, per_node: usize) -> Result<SparseBench, SparseError> {
+    let (m, rhs, coordinates) = street_network_system(blocks, per_node, 0x5EED);
     let n = m.unknowns();
     let start = std::time::Instant::now();
     let level_set = m.factorise(usize::MAX)?;
@@ -927,7 +928,7 @@ mod tests {
 
     #[test]
     fn street_network_system_solves_like_the_dense_solve() {
-        let (sparse, rhs, coordinates) = street_network_system(3, 11);
+        let (sparse, rhs, coordinates) = street_network_system(3, 4, 11);
         let n = sparse.unknowns();
         let mut dense = nalgebra::DMatrix::<f64>::zeros(n, n);
         for i in 0..n {
