@@ -255,7 +255,7 @@ pub struct Parameters {
     /// alternation relaxes it slowly, and more slowly the looser the heading's prior
     /// (`sigma_prior_heading_deg`). Solved with the field, they decide it at once. On by default
     /// since stop 47: iteration 18 comes within 0.12 mm RMS of the fixed point on small s1
-    /// (0.95 mm without), and the latent map 3–12 % closer to the truth (ARCHITECTURE.md, "The
+    /// (0.95 mm without), and the latent map 1.5–12 % closer to the truth (ARCHITECTURE.md, "The
     /// common-mode field's heading").
     pub common_mode_heading: bool,
     /// In point-sampled steps, give each pass the gradient of the cost the common-mode field
