@@ -161,6 +161,16 @@ impl Run {
     }
 }
 
+/// `square`, row-major `n × n` with `n = old`, grown to `(n + 1) × (n + 1)` with zeros.
+fn grow_square<T: Copy + Default>(square: &mut Vec<T>, old: usize) {
+    let new = old + 1;
+    let mut grown = vec![T::default(); new * new];
+    for a in 0..old {
+        grown[a * new..a * new + old].copy_from_slice(&square[a * old..(a + 1) * old]);
+    }
+    *square = grown;
+}
+
 /// A node index not looked up yet.
 const UNKNOWN: usize = usize::MAX;
 
@@ -190,18 +200,9 @@ impl FieldAccumulator {
             return i;
         }
         let old = self.nodes.len();
-        let new = old + 1;
-        let mut h = vec![[0.0; 6]; new * new];
-        for a in 0..old {
-            h[a * new..a * new + old].copy_from_slice(&self.h[a * old..(a + 1) * old]);
-        }
-        self.h = h;
+        grow_square(&mut self.h, old);
         if let Some((pairs, rhs)) = self.heading.as_mut() {
-            let mut grown = vec![[0.0; 7]; new * new];
-            for a in 0..old {
-                grown[a * new..a * new + old].copy_from_slice(&pairs[a * old..(a + 1) * old]);
-            }
-            *pairs = grown;
+            grow_square(pairs, old);
             rhs.push(0.0);
         }
         self.nodes.push(node);
@@ -463,33 +464,21 @@ impl MotionTerms {
 }
 
 impl FieldSolution {
-    /// The field's translation at `(x, y)`; zero at nodes it does not hold.
-    pub fn at(&self, x: f64, y: f64) -> [f64; 3] {
-        let mut out = [0.0; 3];
+    /// The field's translation at `(x, y)` and its heading there (radians; zero where not
+    /// solved); zero at nodes it does not hold. One look-up of the four nodes for both.
+    pub fn at(&self, x: f64, y: f64) -> ([f64; 3], f64) {
+        let (mut out, mut heading) = ([0.0; 3], 0.0);
         for (node, phi) in bilinear(x, y, self.spacing_m) {
             if let Ok(i) = self.nodes.binary_search(&node) {
                 for (c, v) in out.iter_mut().zip(&self.values[i]) {
                     *c += phi * v;
                 }
+                if let Some(h) = self.heading.get(i) {
+                    heading += phi * h;
+                }
             }
         }
-        out
-    }
-
-    /// The field's heading at `(x, y)` (radians); zero where not solved.
-    pub fn heading_at(&self, x: f64, y: f64) -> f64 {
-        if self.heading.is_empty() {
-            return 0.0;
-        }
-        bilinear(x, y, self.spacing_m)
-            .iter()
-            .filter_map(|(node, phi)| self.nodes.binary_search(node).ok().map(|i| phi * self.heading[i]))
-            .sum()
-    }
-
-    /// Largest heading the field gives any of `positions` (degrees).
-    pub fn max_heading_deg_at(&self, positions: &[[f64; 3]]) -> f64 {
-        positions.iter().map(|p| self.heading_at(p[0], p[1]).abs().to_degrees()).fold(0.0, f64::max)
+        (out, heading)
     }
 
     /// `corrections` with the field added to every anchor's translation (and the campaign's
@@ -497,12 +486,12 @@ impl FieldSolution {
     pub fn apply(&self, positions: &[[f64; 3]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
         let mut out = corrections.clone();
         for (v, p) in out.values.iter_mut().zip(positions) {
-            let c = self.at(p[0], p[1]);
+            let (c, heading) = self.at(p[0], p[1]);
             for a in 0..3 {
                 v[a] += c[a];
             }
             if !self.heading.is_empty() {
-                v[5] += self.heading_at(p[0], p[1]);
+                v[5] += heading;
             }
             if let Some(motion) = &self.motion {
                 for (value, m) in v.iter_mut().zip(motion.at(*p)) {
@@ -518,15 +507,16 @@ impl FieldSolution {
         self.motion.map_or([0.0; 3], |m| m.rotation.map(f64::to_degrees))
     }
 
-    /// Largest translation the field applies at any of `positions`.
-    pub fn max_at(&self, positions: &[[f64; 3]]) -> f64 {
-        positions
-            .iter()
-            .map(|p| {
-                let v = self.at(p[0], p[1]);
-                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
-            })
-            .fold(0.0, f64::max)
+    /// Largest translation (metres) and largest heading (degrees) the field gives any anchor of
+    /// `trajectories` (each a list of anchor positions): what the reports show.
+    pub fn largest<P: AsRef<[[f64; 3]]>>(&self, trajectories: &[P]) -> (f64, f64) {
+        let mut largest = (0.0f64, 0.0f64);
+        for p in trajectories.iter().flat_map(|t| t.as_ref()) {
+            let (v, heading) = self.at(p[0], p[1]);
+            largest.0 = largest.0.max((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt());
+            largest.1 = largest.1.max(heading.abs().to_degrees());
+        }
+        largest
     }
 }
 
@@ -706,21 +696,20 @@ fn solve_field_within<'a>(
     for e in &equations {
         observations += e.observations;
         let global: Vec<usize> = e.nodes.iter().map(|n| index[n]).collect();
-        for &(a, b, m) in &e.pairs {
-            let (ga, gb) = (global[a as usize], global[b as usize]);
+        // Equations summed without the heading (an older field object) leave its data out.
+        let heading = per_node == 4 && e.heading_pairs.len() == e.pairs.len() && e.heading_rhs.len() == e.nodes.len();
+        for (k, &(a, b, m)) in e.pairs.iter().enumerate() {
+            let (ga, gb) = (per_node * global[a as usize], per_node * global[b as usize]);
             for r in 0..3 {
                 for c in 0..3 {
                     // A node's own block is symmetric: its lower half once.
                     if ga != gb || r >= c {
-                        h.add(per_node * ga + r, per_node * gb + c, m[3 * r + c]);
+                        h.add(ga + r, gb + c, m[3 * r + c]);
                     }
                 }
             }
-        }
-        // Equations summed without the heading (an older field object) leave its data out.
-        if per_node == 4 && e.heading_pairs.len() == e.pairs.len() && e.heading_rhs.len() == e.nodes.len() {
-            for (&(a, b, _), x) in e.pairs.iter().zip(&e.heading_pairs) {
-                let (ga, gb) = (4 * global[a as usize], 4 * global[b as usize]);
+            if heading {
+                let x = &e.heading_pairs[k];
                 for c in 0..3 {
                     h.add(ga + c, gb + 3, x[c]);
                     if ga != gb {
@@ -729,6 +718,8 @@ fn solve_field_within<'a>(
                 }
                 h.add(ga + 3, gb + 3, x[6]);
             }
+        }
+        if heading {
             for (n, r) in e.heading_rhs.iter().enumerate() {
                 rhs[4 * global[n] + 3] += r;
             }
@@ -1361,7 +1352,8 @@ mod tests {
         let before = rms(&without);
         assert!(before > 1e-4, "{before}");
         assert!(rms(&with) < 0.05 * before, "{} against {before}", rms(&with));
-        assert!(with.max_heading_deg_at(&positions[0]) > 0.04, "{}", with.max_heading_deg_at(&positions[0]));
+        let (_, heading_deg) = with.largest(&positions[..1]);
+        assert!(heading_deg > 0.04, "{heading_deg}");
         // With the campaign's rotation as well (its turn about z overlaps the field's constant
         // heading): still solved, still taken out.
         let both = solve_without_data(

@@ -437,8 +437,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 };
                 let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
-                let max_m = positions.iter().map(|p| field.max_at(p)).fold(0.0, f64::max);
-                let heading_max_deg = positions.iter().map(|p| field.max_heading_deg_at(p)).fold(0.0, f64::max);
+                let (max_m, heading_max_deg) = field.largest(&positions);
                 let figures = (max_m, field.rotation_deg(), heading_max_deg, field.nodes.len());
                 Ok::<_, precimap_estimate::field::FieldError>((start, before, figures))
             })

@@ -289,12 +289,9 @@ pub fn run_campaign(
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         report.max_correction_change_at = max_change_at;
         report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
-        report.common_mode_field_max_m =
-            field.as_ref().map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_at(p)).fold(0.0, f64::max));
+        (report.common_mode_field_max_m, report.common_mode_heading_max_deg) =
+            field.as_ref().map_or((0.0, 0.0), |f| f.largest(&prepared.anchor_positions));
         report.campaign_rotation_deg = field.as_ref().map_or([0.0; 3], FieldSolution::rotation_deg);
-        report.common_mode_heading_max_deg = field
-            .as_ref()
-            .map_or(0.0, |f| prepared.anchor_positions.iter().map(|p| f.max_heading_deg_at(p)).fold(0.0, f64::max));
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
         match after_iteration(step_index, schedule.len(), max_change, campaign.params.convergence_tolerance_m) {
