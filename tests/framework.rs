@@ -52,6 +52,7 @@ fn assert_same_results(a: &Path, b: &Path) {
             "max_correction_change_at",
             "common_mode_field_max_m",
             "common_mode_heading_max_deg",
+            "common_mode_tilt_max_deg",
             "campaign_rotation_deg",
             "anderson_coefficients",
         ] {
@@ -287,6 +288,22 @@ fn field_free_momentum_gives_the_in_process_result_through_the_framework() {
         dir.path(),
         serde_json::json!({ "field_free_momentum": true }),
     );
+}
+
+/// The field's tilt (`common_mode_tilt`, off by default; field objects version 3) gives the
+/// in-process result through the framework, with the momentum's field share removed by the same
+/// six-unknown fit in both drivers, and both report the tilt the field solved.
+#[test]
+fn common_mode_tilt_gives_the_in_process_result_through_the_framework() {
+    let dir = tempfile::tempdir().unwrap();
+    let reference = option_gives_the_in_process_result_through_the_framework(
+        dir.path(),
+        serde_json::json!({ "common_mode_tilt": true, "field_free_momentum": true }),
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(reference.join("report.json")).unwrap()).unwrap();
+    let iterations = report["iterations"].as_array().unwrap();
+    assert!(iterations.iter().any(|i| i["common_mode_tilt_max_deg"].as_f64().unwrap() > 0.0), "{report}");
 }
 
 /// A history depth other than the default's 5 gives the framework's `accelerate` stage the

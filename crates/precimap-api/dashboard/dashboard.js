@@ -53,6 +53,15 @@ function formatDuration(ms) {
   return `${Math.floor(s / 3600)} h ${pad(Math.floor((s % 3600) / 60))} min`;
 }
 
+// The tooltip of an iteration's field cell: the largest heading and tilt the field gave an
+// anchor, where it solved them.
+function fieldRotationTitle(it) {
+  const parts = [];
+  if (it.common_mode_heading_max_deg > 0) parts.push(`heading up to ${(1000 * it.common_mode_heading_max_deg).toFixed(2)} mdeg`);
+  if (it.common_mode_tilt_max_deg > 0) parts.push(`tilt up to ${(1000 * it.common_mode_tilt_max_deg).toFixed(2)} mdeg`);
+  return parts.length ? parts.join(", ") : null;
+}
+
 function mm(metres, digits) {
   return typeof metres === "number" ? `${(metres * 1000).toFixed(digits)} mm` : "–";
 }
@@ -202,10 +211,11 @@ function renderStatus(s) {
         mm(it.max_correction_change_m, 2),
       ),
       el("td", {}, mm(it.median_correction_change_m, 3)),
-      // The field's largest shift; its largest heading (parameters.common_mode_heading) as a tooltip.
+      // The field's largest shift; its largest heading and tilt (parameters.common_mode_heading,
+      // common_mode_tilt) as a tooltip.
       el(
         "td",
-        { title: it.common_mode_heading_max_deg > 0 ? `heading up to ${(1000 * it.common_mode_heading_max_deg).toFixed(2)} mdeg` : null },
+        { title: fieldRotationTitle(it) },
         it.common_mode_field_max_m > 0 ? mm(it.common_mode_field_max_m, 2) : "–",
       ),
       el("td", {}, typeof it.seconds === "number" ? it.seconds.toFixed(1) : "–"),

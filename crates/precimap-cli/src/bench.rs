@@ -115,8 +115,8 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 8)]
         blocks: usize,
         /// Unknowns per node: 4 for the field with its heading (`common_mode_heading`, the
-        /// default), 3 without.
-        #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(3..=4))]
+        /// default), 6 with its tilt too (`common_mode_tilt`), 3 without either.
+        #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(3..=6))]
         per_node: u8,
         #[arg(long)]
         json: bool,

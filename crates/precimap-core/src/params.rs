@@ -258,6 +258,14 @@ pub struct Parameters {
     /// (0.95 mm without), and the latent map 1.5–12 % closer to the truth (ARCHITECTURE.md, "The
     /// common-mode field's heading").
     pub common_mode_heading: bool,
+    /// Give the common-mode field a tilt too (needs `common_mode_heading`): rotations about the
+    /// two horizontal axes, bilinear between the same nodes, added to every anchor's attitude
+    /// correction, so that the field turns the passes at a place about any axis. Every pass
+    /// through a place tilting with the map (the translation field's vertical gradient carrying
+    /// the heights along) is as invisible to the strips as the shared heading, and the denser
+    /// the scanner, the smaller the prior's share of the information and the slower alternation
+    /// relaxes it (ARCHITECTURE.md, "The common-mode field's tilt").
+    pub common_mode_tilt: bool,
     /// In point-sampled steps, give each pass the gradient of the cost the common-mode field
     /// minimises: a point's own pass is weighted by its share `c/(c+1)` in the latent height
     /// (`c` other passes' triangles there), and every other pass whose triangle covers the point
@@ -319,6 +327,7 @@ impl Default for Parameters {
             field_free_momentum: false,
             campaign_motion: true,
             common_mode_heading: true,
+            common_mode_tilt: false,
             consistent_gradient: true,
             anderson_depth: 5,
             schedule: default_schedule(),
@@ -488,6 +497,13 @@ impl Parameters {
                     "must be 0 (off) or a node spacing of at least {MIN_FIELD_SPACING_M} m, got {}",
                     self.common_mode_field_m
                 ),
+            });
+        }
+        if self.common_mode_tilt && !self.common_mode_heading {
+            out.push(ParameterProblem {
+                field: "common_mode_tilt".into(),
+                problem: "needs common_mode_heading: the field's tilt is solved with its heading, as one rotation"
+                    .into(),
             });
         }
         if !(self.latent_map_grid_m.is_finite() && (self.latent_map_grid_m == 0.0 || self.latent_map_grid_m >= 0.005)) {

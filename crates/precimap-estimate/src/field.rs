@@ -95,6 +95,15 @@ pub struct FieldEquations {
     /// With the heading, its right-hand side per node; empty without.
     #[serde(default)]
     pub heading_rhs: Vec<f64>,
+    /// With the field's tilt ([`FieldAccumulator::with_tilt`], always with the heading), one
+    /// entry per entry of `pairs` (`a ≤ b`; τ the rotations about x and y, ψ the heading),
+    /// row-major: `t_a × τ_b` (3×2), `τ_a × t_b` (2×3), `ψ_a × τ_b` (2), `τ_a × ψ_b` (2),
+    /// `τ_a × τ_b` (2×2). Empty without.
+    #[serde(default)]
+    pub tilt_pairs: Vec<[f64; 20]>,
+    /// With the tilt, its right-hand side per node (about x, about y); empty without.
+    #[serde(default)]
+    pub tilt_rhs: Vec<[f64; 2]>,
 }
 
 /// Sums observation rows in a tile. A tile's points see a handful of nodes, so the nodes are a
@@ -106,6 +115,11 @@ pub struct FieldEquations {
 /// `ω r rᵀ` and `ω r e` over the eight corner slots (44 products a row, where the 3×3 blocks
 /// took 216) and multiplies by `w wᵀ` and `w` once, when the run ends. A slot's node is created
 /// when the run ends, and only if a row reached it with a non-zero weight.
+///
+/// A rotation's entry varies with each point's lever arm `(p − v) × w`, so the run sums it per
+/// point: the heading alone needs its z component (one number per slot); the whole rotation
+/// (heading and tilt) needs the lever's two components in a basis `u₁, u₂` of the plane normal to
+/// `w`, where every lever lies, and the run's end turns them into the three axes.
 #[derive(Debug)]
 pub struct FieldAccumulator {
     spacing: f64,
@@ -116,6 +130,8 @@ pub struct FieldAccumulator {
     /// With the heading: its terms per node pair `a ≤ b` as in [`FieldEquations::heading_pairs`]
     /// (row-major like `h`), and its right-hand side per node. `None` without.
     heading: Option<(Vec<[f64; 7]>, Vec<f64>)>,
+    /// With the tilt: its terms as in [`FieldEquations::tilt_pairs`], and its right-hand side.
+    tilt: Option<TiltSums>,
     observations: u64,
     run: Run,
     /// Per position of a row (the point's scan head, the other passes' mean), the cell it fell
@@ -124,20 +140,31 @@ pub struct FieldAccumulator {
     cells: [(FieldNode, [usize; 4]); 2],
 }
 
+/// The tilt's terms per node pair (row-major, as `h`) and its right-hand side per node.
+type TiltSums = (Vec<[f64; 20]>, Vec<[f64; 2]>);
+
+/// Most lever components a run sums per slot (the whole rotation's two).
+const LEVER_COMPONENTS: usize = 2;
+/// Rotation entries of a row: per slot, its lever components.
+const ROTATION_ENTRIES: usize = SLOTS * LEVER_COMPONENTS;
+
 /// The rows summed since the surface normal or either cell last changed.
 #[derive(Debug)]
 struct Run {
     /// Own cell, other passes' cell (their lower-left nodes) and the normal's bits.
     key: Option<(FieldNode, FieldNode, [u64; 3])>,
     w: [f64; 3],
+    /// With the tilt, the basis of the plane normal to `w` the levers are summed in.
+    basis: [[f64; 3]; LEVER_COMPONENTS],
     /// `Σ ω r_s r_t` over slot pairs `s ≤ t` and `Σ ω r_s e` per slot.
     rr: [f64; SLOT_PAIRS],
     re: [f64; SLOTS],
-    /// With the heading, whose row entry `h_s` varies with the point's lever arm: `Σ ω r_s h_t`
-    /// over all slot pairs (row-major), `Σ ω h_s h_t` over `s ≤ t` and `Σ ω h_s e`.
-    rh: [f64; SLOTS * SLOTS],
-    hh: [f64; SLOT_PAIRS],
-    he: [f64; SLOTS],
+    /// With a rotation, whose row entries `h_q` (`q = s·m + i`: slot `s`, lever component `i` of
+    /// `m`) vary with the point's lever arm: `Σ ω r_s h_q` (row-major over `s` and `q`),
+    /// `Σ ω h_q h_q'` over `q ≤ q'` and `Σ ω h_q e`.
+    rh: [f64; SLOTS * ROTATION_ENTRIES],
+    hh: [f64; ROTATION_ENTRIES * (ROTATION_ENTRIES + 1) / 2],
+    he: [f64; ROTATION_ENTRIES],
     /// A row reached the slot with a non-zero weight.
     reached: [bool; SLOTS],
     /// The slot of each corner of the other passes' cell: its own (4 + corner) or, for a node
@@ -150,14 +177,91 @@ impl Run {
         Self {
             key: None,
             w: [0.0; 3],
+            basis: [[0.0; 3]; LEVER_COMPONENTS],
             rr: [0.0; SLOT_PAIRS],
             re: [0.0; SLOTS],
-            rh: [0.0; SLOTS * SLOTS],
-            hh: [0.0; SLOT_PAIRS],
-            he: [0.0; SLOTS],
+            rh: [0.0; SLOTS * ROTATION_ENTRIES],
+            hh: [0.0; ROTATION_ENTRIES * (ROTATION_ENTRIES + 1) / 2],
+            he: [0.0; ROTATION_ENTRIES],
             reached: [false; SLOTS],
             slot: [4, 5, 6, 7],
         }
+    }
+}
+
+impl Run {
+    /// A row's rotation entries, `M` lever components per slot (1: the heading's z component;
+    /// 2: the whole rotation's, in the plane normal to `w`), added to the run's sums. `dv` is
+    /// the point's scan head less the other passes' mean, `r` the row's translation weights.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn add_rotation<const M: usize>(
+        &mut self,
+        own: [f64; 4],
+        other: [f64; 4],
+        k: f64,
+        r: &[f64; SLOTS],
+        dv: [f64; 2],
+        lever: [f64; 3],
+        e: f64,
+        weight: f64,
+    ) {
+        // Turning a pass by ρ about its scan head `v` moves the point along its normal by
+        // ρ·((p − v) × w); the other passes turn about theirs, `v̄`, so their lever adds
+        // (v − v̄) × w (horizontal positions: the heads' heights differ little).
+        let w = self.w;
+        let lever_others = [lever[0] + dv[1] * w[2], lever[1] - dv[0] * w[2], lever[2] + dv[0] * w[1] - dv[1] * w[0]];
+        let (mut own_arm, mut other_arm) = ([0.0; M], [0.0; M]);
+        if M == 1 {
+            (own_arm[0], other_arm[0]) = (lever[2], lever_others[2]);
+        } else {
+            for i in 0..M {
+                own_arm[i] = dot(lever, self.basis[i]);
+                other_arm[i] = dot(lever_others, self.basis[i]);
+            }
+        }
+        let mut h = [0.0; ROTATION_ENTRIES];
+        for c in 0..4 {
+            for i in 0..M {
+                h[c * M + i] = k * own[c] * own_arm[i];
+            }
+        }
+        for c in 0..4 {
+            let slot = self.slot[c];
+            for i in 0..M {
+                h[slot * M + i] -= k * other[c] * other_arm[i];
+            }
+        }
+        let entries = SLOTS * M;
+        for s in 0..SLOTS {
+            let ws = weight * r[s];
+            for q in 0..entries {
+                self.rh[s * entries + q] += ws * h[q];
+            }
+        }
+        let mut pair = 0;
+        for q in 0..entries {
+            let wh = weight * h[q];
+            self.he[q] += wh * e;
+            for &hq in &h[q..entries] {
+                self.hh[pair] += wh * hq;
+                pair += 1;
+            }
+        }
+    }
+
+    /// Empties the sums for the next run, only as far as `M` lever components used them.
+    #[inline(always)]
+    fn reset<const M: usize>(&mut self) {
+        let entries = SLOTS * M;
+        self.key = None;
+        self.rr = [0.0; SLOT_PAIRS];
+        self.re = [0.0; SLOTS];
+        self.rh[..SLOTS * entries].fill(0.0);
+        self.hh[..entries * (entries + 1) / 2].fill(0.0);
+        self.he[..entries].fill(0.0);
+        self.reached = [false; SLOTS];
+        self.slot = [4, 5, 6, 7];
     }
 }
 
@@ -181,6 +285,32 @@ fn cell_weights(x: f64, y: f64, spacing: f64) -> (FieldNode, [f64; 4]) {
     (weights[0].0, weights.map(|(_, phi)| phi))
 }
 
+#[inline]
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+/// An orthonormal basis of the plane normal to the unit vector `w`.
+fn plane_basis(w: [f64; 3]) -> [[f64; 3]; 2] {
+    // Crossed with the axis it is least aligned with, for a well-conditioned first vector.
+    let axis = if w[0].abs() <= w[1].abs() && w[0].abs() <= w[2].abs() {
+        [1.0, 0.0, 0.0]
+    } else if w[1].abs() <= w[2].abs() {
+        [0.0, 1.0, 0.0]
+    } else {
+        [0.0, 0.0, 1.0]
+    };
+    let u = cross3(w, axis);
+    let norm = dot(u, u).sqrt();
+    let u1 = u.map(|c| c / norm);
+    [u1, cross3(w, u1)]
+}
+
 impl FieldAccumulator {
     pub fn new(spacing: f64) -> Self {
         Self {
@@ -189,6 +319,7 @@ impl FieldAccumulator {
             h: Vec::new(),
             rhs: Vec::new(),
             heading: None,
+            tilt: None,
             observations: 0,
             run: Run::new(),
             cells: [((i64::MIN, i64::MIN), [UNKNOWN; 4]); 2],
@@ -205,6 +336,10 @@ impl FieldAccumulator {
             grow_square(pairs, old);
             rhs.push(0.0);
         }
+        if let Some((pairs, rhs)) = self.tilt.as_mut() {
+            grow_square(pairs, old);
+            rhs.push([0.0; 2]);
+        }
         self.nodes.push(node);
         self.rhs.push([0.0; 3]);
         old
@@ -215,21 +350,87 @@ impl FieldAccumulator {
         Self { heading: Some((Vec::new(), Vec::new())), ..Self::new(spacing) }
     }
 
+    /// An accumulator that sums the field's whole rotation, heading and tilt
+    /// (`Parameters::common_mode_tilt`).
+    pub fn with_tilt(spacing: f64) -> Self {
+        Self { tilt: Some((Vec::new(), Vec::new())), ..Self::with_heading(spacing) }
+    }
+
+    /// Lever components summed per slot: 0 without a rotation, 1 (the z component) for the
+    /// heading alone, 2 (in the plane normal to `w`) for the whole rotation.
+    #[inline]
+    fn lever_components(&self) -> usize {
+        match (self.heading.is_some(), self.tilt.is_some()) {
+            (_, true) => 2,
+            (true, false) => 1,
+            (false, false) => 0,
+        }
+    }
+
     /// One observation with residual `e` and weight `weight`: the point's own scan head at
     /// `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
     /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`; `lever` is the point's own
-    /// Jacobian entry for a rotation about the vertical, `((p − v) × w)_z`, which only the
-    /// heading uses.
+    /// Jacobian for a rotation, `(p − v) × w`, which only the heading (its z component) and the
+    /// tilt use.
     #[inline]
     #[allow(clippy::too_many_arguments)]
-    pub fn add(&mut self, vehicle: [f64; 2], others: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: f64) {
+    pub fn add(
+        &mut self,
+        vehicle: [f64; 2],
+        others: [f64; 2],
+        k: f64,
+        w: [f64; 3],
+        e: f64,
+        weight: f64,
+        lever: [f64; 3],
+    ) {
+        // Monomorphised per lever count; the whole rotation's out of line, so that the default's
+        // inlined row loop stays as small as before the tilt.
+        match self.lever_components() {
+            0 => self.add_with::<0>(vehicle, others, k, w, e, weight, lever),
+            1 => self.add_with::<1>(vehicle, others, k, w, e, weight, lever),
+            _ => self.add_with_tilt(vehicle, others, k, w, e, weight, lever),
+        }
+    }
+
+    /// [`Self::add_with`] for the whole rotation, kept out of the callers' inlined loops.
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn add_with_tilt(
+        &mut self,
+        vehicle: [f64; 2],
+        others: [f64; 2],
+        k: f64,
+        w: [f64; 3],
+        e: f64,
+        weight: f64,
+        lever: [f64; 3],
+    ) {
+        self.add_with::<2>(vehicle, others, k, w, e, weight, lever);
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn add_with<const M: usize>(
+        &mut self,
+        vehicle: [f64; 2],
+        others: [f64; 2],
+        k: f64,
+        w: [f64; 3],
+        e: f64,
+        weight: f64,
+        lever: [f64; 3],
+    ) {
         let (own_cell, own) = cell_weights(vehicle[0], vehicle[1], self.spacing);
         let (other_cell, other) = cell_weights(others[0], others[1], self.spacing);
         let key = (own_cell, other_cell, w.map(f64::to_bits));
         if self.run.key != Some(key) {
-            self.end_run();
+            self.end_run_with::<M>();
             self.run.key = Some(key);
             self.run.w = w;
+            if M == 2 {
+                self.run.basis = plane_basis(w);
+            }
             // A corner both cells share is one slot, so that the row's two weights there are
             // summed first, as one node's entry (a row whose positions coincide is exactly zero).
             let own_corners = corners(own_cell);
@@ -257,37 +458,33 @@ impl FieldAccumulator {
                 pair += 1;
             }
         }
-        if self.heading.is_some() {
-            // Turning a pass by ψ about its scan head `v` moves the point along its normal by
-            // ψ·((p − v) × w)_z; the other passes turn about theirs, `v̄`, so their entry adds
-            // ((v − v̄) × w)_z to the point's own lever arm.
-            let dv = [vehicle[0] - others[0], vehicle[1] - others[1]];
-            let lever_others = lever + dv[0] * w[1] - dv[1] * w[0];
-            let mut h = [0.0; SLOTS];
-            for c in 0..4 {
-                h[c] = k * own[c] * lever;
-            }
-            for c in 0..4 {
-                h[run.slot[c]] -= k * other[c] * lever_others;
-            }
-            let mut pair = 0;
-            for s in 0..SLOTS {
-                let (ws, wh) = (weight * r[s], weight * h[s]);
-                run.he[s] += wh * e;
-                for t in 0..SLOTS {
-                    run.rh[s * SLOTS + t] += ws * h[t];
-                }
-                for &ht in &h[s..] {
-                    run.hh[pair] += wh * ht;
-                    pair += 1;
-                }
-            }
+        if M > 0 {
+            run.add_rotation::<M>(
+                own,
+                other,
+                k,
+                &r,
+                [vehicle[0] - others[0], vehicle[1] - others[1]],
+                lever,
+                e,
+                weight,
+            );
         }
         self.observations += 1;
     }
 
     /// Adds the current run's sums to `H` and the right-hand side.
     fn end_run(&mut self) {
+        // Monomorphised per lever count, so that the default's run ends carry no branches or
+        // sizes of the others.
+        match self.lever_components() {
+            0 => self.end_run_with::<0>(),
+            1 => self.end_run_with::<1>(),
+            _ => self.end_run_with::<2>(),
+        }
+    }
+
+    fn end_run_with<const M: usize>(&mut self) {
         let Some((own_cell, other_cell, _)) = self.run.key.take() else { return };
         let mut node = [UNKNOWN; SLOTS];
         for (position, cell) in [own_cell, other_cell].into_iter().enumerate() {
@@ -308,8 +505,18 @@ impl FieldAccumulator {
             }
         }
         let n = self.nodes.len();
+        let q_count = SLOTS * M;
         let w = self.run.w;
         let ww = [w[0] * w[0], w[0] * w[1], w[0] * w[2], w[1] * w[1], w[1] * w[2], w[2] * w[2]];
+        // The whole rotation's sums in the three axes: lever components back through the basis.
+        let run = &self.run;
+        let to_axes =
+            |c: &[f64]| -> [f64; 3] { std::array::from_fn(|j| run.basis[0][j] * c[0] + run.basis[1][j] * c[1]) };
+        // `Σ ω h_q h_q'` for any q, q' (stored for q ≤ q').
+        let hh = |q: usize, p: usize| {
+            let (lo, hi) = (q.min(p), q.max(p));
+            run.hh[lo * q_count - lo * (lo.saturating_sub(1)) / 2 + (hi - lo)]
+        };
         let mut pair = 0;
         for s in 0..SLOTS {
             let a = node[s];
@@ -318,36 +525,98 @@ impl FieldAccumulator {
                 continue;
             }
             for c in 0..3 {
-                self.rhs[a][c] -= self.run.re[s] * w[c];
+                self.rhs[a][c] -= run.re[s] * w[c];
             }
-            if let Some((_, rhs)) = self.heading.as_mut() {
-                rhs[a] -= self.run.he[s];
+            match M {
+                1 => {
+                    if let Some((_, rhs)) = self.heading.as_mut() {
+                        rhs[a] -= run.he[s];
+                    }
+                }
+                2 => {
+                    let he = to_axes(&run.he[2 * s..2 * s + 2]);
+                    if let Some((_, rhs)) = self.heading.as_mut() {
+                        rhs[a] -= he[2];
+                    }
+                    if let Some((_, rhs)) = self.tilt.as_mut() {
+                        rhs[a][0] -= he[0];
+                        rhs[a][1] -= he[1];
+                    }
+                }
+                _ => {}
             }
             for t in s..SLOTS {
-                let (b, sum) = (node[t], self.run.rr[pair]);
+                let (b, sum) = (node[t], run.rr[pair]);
                 pair += 1;
                 if b == UNKNOWN {
                     continue;
                 }
-                let m = &mut self.h[a.min(b) * n + a.max(b)];
+                let block = &mut self.h[a.min(b) * n + a.max(b)];
                 for c in 0..6 {
-                    m[c] += sum * ww[c];
+                    block[c] += sum * ww[c];
                 }
-                if let Some((pairs, _)) = self.heading.as_mut() {
-                    // The stored pair is (min, max): slot s's translation with t's heading is
-                    // its first part when a is the smaller node, its second otherwise.
-                    let (st, ts) = (self.run.rh[s * SLOTS + t], self.run.rh[t * SLOTS + s]);
-                    let (first, second) = if a <= b { (st, ts) } else { (ts, st) };
-                    let x = &mut pairs[a.min(b) * n + a.max(b)];
-                    for c in 0..3 {
-                        x[c] += first * w[c];
-                        x[3 + c] += second * w[c];
+                if M == 1 {
+                    if let Some((pairs, _)) = self.heading.as_mut() {
+                        // The stored pair is (min, max): slot s's translation with t's heading is
+                        // its first part when a is the smaller node, its second otherwise.
+                        let (st, ts) = (run.rh[s * SLOTS + t], run.rh[t * SLOTS + s]);
+                        let (first, second) = if a <= b { (st, ts) } else { (ts, st) };
+                        let x = &mut pairs[a.min(b) * n + a.max(b)];
+                        for c in 0..3 {
+                            x[c] += first * w[c];
+                            x[3 + c] += second * w[c];
+                        }
+                        x[6] += run.hh[pair - 1];
                     }
-                    x[6] += self.run.hh[pair - 1];
+                } else if M == 2 {
+                    // Slot s's translation with t's rotation (`w cᵀ`), s's rotation with t's
+                    // translation, and rotation with rotation, each in the three axes.
+                    let st = to_axes(&run.rh[s * q_count + 2 * t..s * q_count + 2 * t + 2]);
+                    let ts = to_axes(&run.rh[t * q_count + 2 * s..t * q_count + 2 * s + 2]);
+                    let mut rr = [[0.0; 3]; 3];
+                    for (i, ui) in run.basis.iter().enumerate() {
+                        for (l, ul) in run.basis.iter().enumerate() {
+                            let v = hh(2 * s + i, 2 * t + l);
+                            for j in 0..3 {
+                                for o in 0..3 {
+                                    rr[j][o] += v * ui[j] * ul[o];
+                                }
+                            }
+                        }
+                    }
+                    // Stored as (min, max): from the smaller node's side.
+                    let (first, second, rot) = if a <= b {
+                        (st, ts, rr)
+                    } else {
+                        (ts, st, std::array::from_fn(|j| std::array::from_fn(|o| rr[o][j])))
+                    };
+                    let at = a.min(b) * n + a.max(b);
+                    if let Some((pairs, _)) = self.heading.as_mut() {
+                        let x = &mut pairs[at];
+                        for c in 0..3 {
+                            x[c] += w[c] * first[2];
+                            x[3 + c] += second[2] * w[c];
+                        }
+                        x[6] += rot[2][2];
+                    }
+                    if let Some((pairs, _)) = self.tilt.as_mut() {
+                        let y = &mut pairs[at];
+                        for j in 0..2 {
+                            for c in 0..3 {
+                                y[c * 2 + j] += w[c] * first[j];
+                                y[6 + j * 3 + c] += second[j] * w[c];
+                            }
+                            y[12 + j] += rot[2][j];
+                            y[14 + j] += rot[j][2];
+                            for l in 0..2 {
+                                y[16 + 2 * j + l] += rot[j][l];
+                            }
+                        }
+                    }
                 }
             }
         }
-        self.run = Run::new();
+        self.run.reset::<M>();
     }
 
     pub fn finish(mut self) -> FieldEquations {
@@ -364,31 +633,55 @@ impl FieldAccumulator {
             for b in a..n {
                 let u = self.h[a * n + b];
                 let x = self.heading.as_ref().map_or([0.0; 7], |(h, _)| h[a * n + b]);
-                if u.iter().chain(&x).all(|&v| v == 0.0) {
+                let y = self.tilt.as_ref().map_or([0.0; 20], |(t, _)| t[a * n + b]);
+                if u.iter().chain(&x).chain(&y).all(|&v| v == 0.0) {
                     continue;
                 }
                 // The accumulator kept the upper triangle of each 3×3 (ww is symmetric).
                 let m = [u[0], u[1], u[2], u[1], u[3], u[4], u[2], u[4], u[5]];
                 let (ra, rb) = (rank[a], rank[b]);
-                // Reordered, the pair's two cross parts trade places.
-                let swapped = [x[3], x[4], x[5], x[0], x[1], x[2], x[6]];
-                pairs.push(if ra <= rb { (ra, rb, m, x) } else { (rb, ra, m, swapped) });
+                pairs.push(if ra <= rb { (ra, rb, m, x, y) } else { (rb, ra, m, swap_heading(x), swap_tilt(y)) });
             }
         }
         pairs.sort_by_key(|p| (p.0, p.1));
         let heading = self.heading.is_some();
+        let tilt = self.tilt.is_some();
         FieldEquations {
             nodes: order.iter().map(|&i| self.nodes[i]).collect(),
             heading_pairs: if heading { pairs.iter().map(|p| p.3).collect() } else { Vec::new() },
-            pairs: pairs.into_iter().map(|(a, b, m, _)| (a, b, m)).collect(),
+            tilt_pairs: if tilt { pairs.iter().map(|p| p.4).collect() } else { Vec::new() },
+            pairs: pairs.into_iter().map(|(a, b, m, _, _)| (a, b, m)).collect(),
             rhs: order.iter().map(|&i| self.rhs[i]).collect(),
             heading_rhs: self
                 .heading
                 .as_ref()
                 .map_or_else(Vec::new, |(_, rhs)| order.iter().map(|&i| rhs[i]).collect()),
+            tilt_rhs: self.tilt.as_ref().map_or_else(Vec::new, |(_, rhs)| order.iter().map(|&i| rhs[i]).collect()),
             observations: self.observations,
         }
     }
+}
+
+/// A pair's heading terms seen from its other node: the two cross parts trade places.
+fn swap_heading(x: [f64; 7]) -> [f64; 7] {
+    [x[3], x[4], x[5], x[0], x[1], x[2], x[6]]
+}
+
+/// A pair's tilt terms seen from its other node (the pair's block transposed).
+fn swap_tilt(y: [f64; 20]) -> [f64; 20] {
+    let mut out = [0.0; 20];
+    for j in 0..2 {
+        for c in 0..3 {
+            out[c * 2 + j] = y[6 + j * 3 + c];
+            out[6 + j * 3 + c] = y[c * 2 + j];
+        }
+        out[12 + j] = y[14 + j];
+        out[14 + j] = y[12 + j];
+        for l in 0..2 {
+            out[16 + 2 * j + l] = y[16 + 2 * l + j];
+        }
+    }
+    out
 }
 
 /// One trajectory as the field sees it: the position of each anchor of `corrections` (same
@@ -415,6 +708,10 @@ pub struct FieldSolution {
     /// empty when not solved.
     #[serde(default)]
     pub heading: Vec<f64>,
+    /// The tilt per node (radians, about x and y; `Parameters::common_mode_tilt`), empty when
+    /// not solved.
+    #[serde(default)]
+    pub tilt: Vec<[f64; 2]>,
 }
 
 /// A rotation of the whole campaign about `origin`, to first order: every anchor's rotation gains
@@ -464,21 +761,26 @@ impl MotionTerms {
 }
 
 impl FieldSolution {
-    /// The field's translation at `(x, y)` and its heading there (radians; zero where not
-    /// solved); zero at nodes it does not hold. One look-up of the four nodes for both.
-    pub fn at(&self, x: f64, y: f64) -> ([f64; 3], f64) {
-        let (mut out, mut heading) = ([0.0; 3], 0.0);
+    /// The field's translation at `(x, y)` and its rotation there (radians about x, y, z; the
+    /// tilt and heading, zero where not solved); zero at nodes it does not hold. One look-up of
+    /// the four nodes for both.
+    pub fn at(&self, x: f64, y: f64) -> ([f64; 3], [f64; 3]) {
+        let (mut out, mut rotation) = ([0.0; 3], [0.0; 3]);
         for (node, phi) in bilinear(x, y, self.spacing_m) {
             if let Ok(i) = self.nodes.binary_search(&node) {
                 for (c, v) in out.iter_mut().zip(&self.values[i]) {
                     *c += phi * v;
                 }
                 if let Some(h) = self.heading.get(i) {
-                    heading += phi * h;
+                    rotation[2] += phi * h;
+                }
+                if let Some(t) = self.tilt.get(i) {
+                    rotation[0] += phi * t[0];
+                    rotation[1] += phi * t[1];
                 }
             }
         }
-        (out, heading)
+        (out, rotation)
     }
 
     /// `corrections` with the field added to every anchor's translation (and the campaign's
@@ -486,12 +788,16 @@ impl FieldSolution {
     pub fn apply(&self, positions: &[[f64; 3]], corrections: &TrajectoryCorrections) -> TrajectoryCorrections {
         let mut out = corrections.clone();
         for (v, p) in out.values.iter_mut().zip(positions) {
-            let (c, heading) = self.at(p[0], p[1]);
+            let (c, rotation) = self.at(p[0], p[1]);
             for a in 0..3 {
                 v[a] += c[a];
             }
             if !self.heading.is_empty() {
-                v[5] += heading;
+                v[5] += rotation[2];
+            }
+            if !self.tilt.is_empty() {
+                v[3] += rotation[0];
+                v[4] += rotation[1];
             }
             if let Some(motion) = &self.motion {
                 for (value, m) in v.iter_mut().zip(motion.at(*p)) {
@@ -507,16 +813,36 @@ impl FieldSolution {
         self.motion.map_or([0.0; 3], |m| m.rotation.map(f64::to_degrees))
     }
 
-    /// Largest translation (metres) and largest heading (degrees) the field gives any anchor of
-    /// `trajectories` (each a list of anchor positions): what the reports show.
-    pub fn largest<P: AsRef<[[f64; 3]]>>(&self, trajectories: &[P]) -> (f64, f64) {
-        let mut largest = (0.0f64, 0.0f64);
+    /// Largest translation (metres), heading and tilt (degrees; the tilt as the angle of its
+    /// rotation about a horizontal axis) the field gives any anchor of `trajectories` (each a
+    /// list of anchor positions): what the reports show.
+    pub fn largest<P: AsRef<[[f64; 3]]>>(&self, trajectories: &[P]) -> FieldLargest {
+        let mut largest = FieldLargest::default();
         for p in trajectories.iter().flat_map(|t| t.as_ref()) {
-            let (v, heading) = self.at(p[0], p[1]);
-            largest.0 = largest.0.max((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt());
-            largest.1 = largest.1.max(heading.abs().to_degrees());
+            let (v, rotation) = self.at(p[0], p[1]);
+            largest.translation_m = largest.translation_m.max((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt());
+            largest.heading_deg = largest.heading_deg.max(rotation[2].abs().to_degrees());
+            largest.tilt_deg = largest.tilt_deg.max(rotation[0].hypot(rotation[1]).to_degrees());
         }
         largest
+    }
+}
+
+/// What [`FieldSolution::largest`] finds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FieldLargest {
+    pub translation_m: f64,
+    pub heading_deg: f64,
+    pub tilt_deg: f64,
+}
+
+/// Rotation unknowns per node of the field the parameters ask for: none, the heading (1), or
+/// heading and tilt (3).
+pub fn rotation_axes(params: &Parameters) -> usize {
+    match (params.common_mode_heading, params.common_mode_tilt) {
+        (false, _) => 0,
+        (true, false) => 1,
+        (true, true) => 3,
     }
 }
 
@@ -552,13 +878,14 @@ fn unknown_positions(index: &BTreeMap<FieldNode, usize>, per_node: usize) -> Vec
 /// `previous` moved so that `current − previous` (the step momentum carries on) loses its
 /// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
 /// next iteration, so carrying it as well overshoots and the two levels fight.
-/// `trajectories` hold the current corrections and their anchors' positions; with `heading`
-/// the field has a heading as well (`Parameters::common_mode_heading`).
+/// `trajectories` hold the current corrections and their anchors' positions; the field has
+/// `rotation_axes` rotations per node as well ([`rotation_axes`]: 0, 1 for the heading, 3 with
+/// the tilt).
 pub fn remove_field_share(
     trajectories: &[FieldTrajectory],
     previous: &[TrajectoryCorrections],
     spacing: f64,
-    heading: bool,
+    rotation_axes: usize,
 ) -> Result<Vec<TrajectoryCorrections>, FieldError> {
     if previous.len() != trajectories.len() {
         return Err(FieldError::Trajectories { expected: trajectories.len(), found: previous.len() });
@@ -575,8 +902,9 @@ pub fn remove_field_share(
     // One scalar system for the three axes: Σ φφᵀ g = Σ φ d, with a small ridge for nodes that
     // anchors touch only at their far corner.
     let mut a = SymmetricSparse::new(nodes);
-    // Per node the right-hand sides of x, y, z and, with the heading, the rotation about z.
-    let mut b = vec![[0.0f64; 4]; nodes];
+    // Per node the right-hand sides of x, y, z, the rotation about z (the heading), about x and
+    // about y (the tilt).
+    let mut b = vec![[0.0f64; 6]; nodes];
     for (tr, before) in trajectories.iter().zip(previous) {
         for ((p, now), was) in tr.positions.iter().zip(&tr.corrections.values).zip(&before.values) {
             let row: Vec<(usize, f64)> = bilinear(p[0], p[1], spacing)
@@ -595,6 +923,8 @@ pub fn remove_field_share(
                     b[i][c] += pi * (now[c] - was[c]);
                 }
                 b[i][3] += pi * (now[5] - was[5]);
+                b[i][4] += pi * (now[3] - was[3]);
+                b[i][5] += pi * (now[4] - was[4]);
             }
         }
     }
@@ -604,7 +934,7 @@ pub fn remove_field_share(
     let factor = a
         .factorise_at(MAX_FIELD_FACTOR_ENTRIES, &unknown_positions(&index, 1))
         .map_err(|e| FieldError::from_sparse(e, nodes))?;
-    let axes = if heading { 4 } else { 3 };
+    let axes = 3 + rotation_axes;
     let per_axis: Vec<Vec<f64>> =
         (0..axes).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
     let fit = FieldSolution {
@@ -613,7 +943,12 @@ pub fn remove_field_share(
         values: (0..nodes).map(|i| [per_axis[0][i], per_axis[1][i], per_axis[2][i]]).collect(),
         observations: 0,
         motion: None,
-        heading: if heading { per_axis[3].clone() } else { Vec::new() },
+        heading: if rotation_axes > 0 { per_axis[3].clone() } else { Vec::new() },
+        tilt: if rotation_axes == 3 {
+            (0..nodes).map(|i| [per_axis[4][i], per_axis[5][i]]).collect()
+        } else {
+            Vec::new()
+        },
     };
     Ok(trajectories.iter().zip(previous).map(|(tr, before)| fit.apply(tr.positions, before)).collect())
 }
@@ -629,7 +964,8 @@ pub enum FieldError {
     #[error(
         "the common-mode field's {nodes} nodes need {entries} factor entries, more than the {limit} \
          (12 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing), \
-         set parameters.common_mode_heading to false (a quarter fewer unknowns), or set \
+         set parameters.common_mode_tilt to false (a third fewer unknowns) or \
+         parameters.common_mode_heading to false (a quarter fewer), or set \
          parameters.common_mode_field_m to 0"
     )]
     TooLarge { nodes: usize, entries: usize, limit: usize },
@@ -651,8 +987,9 @@ impl FieldError {
 /// Most factor entries the field's sparse solve may hold (12 bytes each: 1 GiB). After nested
 /// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this with three
 /// unknowns per node, so the limit lies near 290 km² of such a network; with the heading's
-/// fourth, 159 km² needs 89 % and the limit lies near 165 km² (`precimap bench field-solve
-/// --blocks N --per-node 3|4`; ARCHITECTURE.md, "The common-mode field's sparse solve").
+/// fourth, 159 km² needs 89 % and the limit lies near 165 km²; with the tilt's six, 39.7 km²
+/// need 2.1× the entries of four, and the limit lies near 80 km² (`precimap bench field-solve
+/// --blocks N --per-node 3|4|6`; ARCHITECTURE.md, "The common-mode field's sparse solve").
 pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,
@@ -686,8 +1023,10 @@ fn solve_field_within<'a>(
     // Node numbering: every node a tile or an anchor touches.
     let index = number_nodes(equations.iter().flat_map(|e| e.nodes.iter().copied()), trajectories, spacing);
     let nodes = index.len();
-    // Unknowns per node: the translation and, with the heading, the rotation about z (index 3).
-    let per_node = if params.common_mode_heading { 4 } else { 3 };
+    // Unknowns per node: the translation, then with the heading the rotation about z (index 3),
+    // with the tilt the rotations about x and y (4 and 5).
+    let axes = rotation_axes(params);
+    let per_node = 3 + axes;
     let dim = per_node * nodes;
     // The lower triangle is what the factorisation reads: each block pair adds there once.
     let mut h = SymmetricSparse::new(dim);
@@ -697,7 +1036,8 @@ fn solve_field_within<'a>(
         observations += e.observations;
         let global: Vec<usize> = e.nodes.iter().map(|n| index[n]).collect();
         // Equations summed without the heading (an older field object) leave its data out.
-        let heading = per_node == 4 && e.heading_pairs.len() == e.pairs.len() && e.heading_rhs.len() == e.nodes.len();
+        let heading = axes > 0 && e.heading_pairs.len() == e.pairs.len() && e.heading_rhs.len() == e.nodes.len();
+        let tilt = heading && axes == 3 && e.tilt_pairs.len() == e.pairs.len() && e.tilt_rhs.len() == e.nodes.len();
         for (k, &(a, b, m)) in e.pairs.iter().enumerate() {
             let (ga, gb) = (per_node * global[a as usize], per_node * global[b as usize]);
             for r in 0..3 {
@@ -718,10 +1058,38 @@ fn solve_field_within<'a>(
                 }
                 h.add(ga + 3, gb + 3, x[6]);
             }
+            if tilt {
+                // As `FieldEquations::tilt_pairs` lays them out; a node's own block adds each of
+                // its entries once.
+                let y = &e.tilt_pairs[k];
+                for j in 0..2 {
+                    for c in 0..3 {
+                        h.add(ga + c, gb + 4 + j, y[c * 2 + j]);
+                        if ga != gb {
+                            h.add(ga + 4 + j, gb + c, y[6 + j * 3 + c]);
+                        }
+                    }
+                    h.add(ga + 3, gb + 4 + j, y[12 + j]);
+                    if ga != gb {
+                        h.add(ga + 4 + j, gb + 3, y[14 + j]);
+                    }
+                    for l in 0..2 {
+                        if ga != gb || j >= l {
+                            h.add(ga + 4 + j, gb + 4 + l, y[16 + 2 * j + l]);
+                        }
+                    }
+                }
+            }
         }
         if heading {
             for (n, r) in e.heading_rhs.iter().enumerate() {
-                rhs[4 * global[n] + 3] += r;
+                rhs[per_node * global[n] + 3] += r;
+            }
+        }
+        if tilt {
+            for (n, r) in e.tilt_rhs.iter().enumerate() {
+                rhs[per_node * global[n] + 4] += r[0];
+                rhs[per_node * global[n] + 5] += r[1];
             }
         }
         for (n, r) in e.rhs.iter().enumerate() {
@@ -754,44 +1122,51 @@ fn solve_field_within<'a>(
         _ => 0.0,
     };
     let prior_rotation = params.sigma_prior_rotation_axes_deg().map(rotation_weight);
-    let (smooth_heading, curvature_heading) =
+    let (smooth_rotation, curvature_rotation) =
         (rotation_weight(params.sigma_smooth_rotation_deg), rotation_weight(params.sigma_curvature_rotation_deg));
-    // One term of an anchor's prior, smoothness or curvature: on the translation, residual
-    // `Σ row·field + ω × d + value` of weight `weight`; with the heading, also on the rotation
-    // about z, residual `Σ row·ψ + value` of weight `heading.1` (plus the campaign's rotation
-    // about z where `heading.2`: only the prior sees it, a constant drops out of differences).
-    let mut add_term = |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64, heading: (f64, f64, bool)| {
-        for &(a, ra) in row {
-            for c in 0..3 {
-                rhs[per_node * a + c] -= weight * ra * value[c];
-            }
-            for &(b, rb) in row {
-                // Each unordered pair of nodes once.
-                if a >= b {
-                    for c in 0..3 {
-                        h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
-                    }
-                }
-            }
-        }
-        if let Some(m) = motion.as_mut() {
-            m.add(row, per_node, d, value, weight);
-        }
-        if per_node == 4 {
-            let (value, weight, sees_motion) = heading;
-            for &(a, ra) in row {
-                rhs[4 * a + 3] -= weight * ra * value;
-                for &(b, rb) in row {
-                    if a >= b {
-                        h.add(4 * a + 3, 4 * b + 3, weight * ra * rb);
-                    }
-                }
-                if let (true, Some(m)) = (sees_motion, motion.as_mut()) {
-                    m.coupling[4 * a + 3][2] += weight * ra;
-                }
-            }
-        }
+    // The field's rotation unknowns: (index within the node, axis).
+    let rotation_unknowns: &[(usize, usize)] = match axes {
+        0 => &[],
+        1 => &[(3, 2)],
+        _ => &[(3, 2), (4, 0), (5, 1)],
     };
+    // One term of an anchor's prior, smoothness or curvature: on the translation, residual
+    // `Σ row·field + ω × d + value` of weight `weight`; with the field's rotation, also on each
+    // of its axes, residual `Σ row·ρ + value` of weight `rotation.1` (plus the campaign's
+    // rotation where `rotation.2`: only the prior sees it, a constant drops out of differences).
+    let mut add_term =
+        |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64, rotation: ([f64; 3], [f64; 3], bool)| {
+            for &(a, ra) in row {
+                for c in 0..3 {
+                    rhs[per_node * a + c] -= weight * ra * value[c];
+                }
+                for &(b, rb) in row {
+                    // Each unordered pair of nodes once.
+                    if a >= b {
+                        for c in 0..3 {
+                            h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
+                        }
+                    }
+                }
+            }
+            if let Some(m) = motion.as_mut() {
+                m.add(row, per_node, d, value, weight);
+            }
+            let (value, weight, sees_motion) = rotation;
+            for &(unknown, axis) in rotation_unknowns {
+                for &(a, ra) in row {
+                    rhs[per_node * a + unknown] -= weight[axis] * ra * value[axis];
+                    for &(b, rb) in row {
+                        if a >= b {
+                            h.add(per_node * a + unknown, per_node * b + unknown, weight[axis] * ra * rb);
+                        }
+                    }
+                    if let (true, Some(m)) = (sees_motion, motion.as_mut()) {
+                        m.coupling[per_node * a + unknown][axis] += weight[axis] * ra;
+                    }
+                }
+            }
+        };
     let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
         bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
     };
@@ -801,7 +1176,7 @@ fn solve_field_within<'a>(
         let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
         for (k, row) in rows.iter().enumerate() {
             let v = &values[k];
-            add_term(row, d[k], [v[0], v[1], v[2]], prior, (v[5], prior_rotation[2], true));
+            add_term(row, d[k], [v[0], v[1], v[2]], prior, ([v[3], v[4], v[5]], prior_rotation, true));
             if k + 1 < rows.len() {
                 let mut diff = rows[k + 1].clone();
                 for &(a, ra) in row {
@@ -809,7 +1184,13 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
                 let dd = std::array::from_fn(|a| d[k + 1][a] - d[k][a]);
-                add_term(&diff, dd, [dv[0], dv[1], dv[2]], smooth, (dv[5], smooth_heading, false));
+                add_term(
+                    &diff,
+                    dd,
+                    [dv[0], dv[1], dv[2]],
+                    smooth,
+                    ([dv[3], dv[4], dv[5]], [smooth_rotation; 3], false),
+                );
             }
             if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
                 let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
@@ -820,7 +1201,13 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
                 let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
-                add_term(&second, dd, [dv[0], dv[1], dv[2]], curvature, (dv[5], curvature_heading, false));
+                add_term(
+                    &second,
+                    dd,
+                    [dv[0], dv[1], dv[2]],
+                    curvature,
+                    ([dv[3], dv[4], dv[5]], [curvature_rotation; 3], false),
+                );
             }
         }
     }
@@ -837,7 +1224,12 @@ fn solve_field_within<'a>(
     // A node that only a scan head's lever arm reaches (no anchor near it) may see data in some
     // directions only; a weak prior on the field itself (σ 10 × the anchors') keeps it definite.
     for i in 0..dim {
-        let own_prior = if i % per_node == 3 { prior_rotation[2] } else { prior };
+        let own_prior = match i % per_node {
+            3 => prior_rotation[2],
+            4 => prior_rotation[0],
+            5 => prior_rotation[1],
+            _ => prior,
+        };
         h.add(i, i, own_prior * 1e-2);
     }
     let factor = h
@@ -874,7 +1266,12 @@ fn solve_field_within<'a>(
         values: (0..nodes).map(|i| std::array::from_fn(|c| solution[per_node * i + c])).collect(),
         observations,
         motion,
-        heading: if per_node == 4 { (0..nodes).map(|i| solution[4 * i + 3]).collect() } else { Vec::new() },
+        heading: if axes > 0 { (0..nodes).map(|i| solution[per_node * i + 3]).collect() } else { Vec::new() },
+        tilt: if axes == 3 {
+            (0..nodes).map(|i| [solution[per_node * i + 4], solution[per_node * i + 5]]).collect()
+        } else {
+            Vec::new()
+        },
     })
 }
 
@@ -900,12 +1297,12 @@ mod tests {
         let mut acc = FieldAccumulator::new(10.0);
         let w = [0.6, 0.0, 0.8];
         // Same position for the point and the other passes: the row is zero.
-        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0, 0.0);
+        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0, [0.0; 3]);
         let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
         assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
         // One row across two cells against a dense computation.
         let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
-        acc.add(v, o, n / (n + 1.0), w, e, weight, 0.0);
+        acc.add(v, o, n / (n + 1.0), w, e, weight, [0.0; 3]);
         let eq = acc.finish();
         let k = n / (n + 1.0);
         let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
@@ -935,46 +1332,86 @@ mod tests {
     /// The runs give the equations that summing every row's blocks into `H` directly gives
     /// (to rounding): runs that leave a cell and come back, rows whose two positions share
     /// nodes or a whole cell, normals that change every few rows, and rows on a node line (a
-    /// zero weight creates no node); with the heading, its row entries too.
+    /// zero weight creates no node); with the heading, and with heading and tilt, their row
+    /// entries too.
     #[test]
     fn summed_runs_give_the_row_by_row_equations() {
-        summed_runs_match_direct_rows(false);
-        summed_runs_match_direct_rows(true);
+        for axes in [0, 1, 3] {
+            summed_runs_match_direct_rows(axes);
+        }
     }
 
-    fn summed_runs_match_direct_rows(heading: bool) {
-        /// Row by row: merge the row's nodes, then every pair's 4×4 block (translation, heading).
+    /// A pair's block over `[t_x, t_y, t_z, ψ, τ_x, τ_y]` from `FieldEquations`' parts (zeros
+    /// where they are empty).
+    fn full_block(m: &[f64; 9], x: Option<&[f64; 7]>, y: Option<&[f64; 20]>) -> [[f64; 6]; 6] {
+        let mut b = [[0.0; 6]; 6];
+        for r in 0..3 {
+            for c in 0..3 {
+                b[r][c] = m[3 * r + c];
+            }
+        }
+        if let Some(x) = x {
+            for c in 0..3 {
+                b[c][3] = x[c];
+                b[3][c] = x[3 + c];
+            }
+            b[3][3] = x[6];
+        }
+        if let Some(y) = y {
+            for j in 0..2 {
+                for c in 0..3 {
+                    b[c][4 + j] = y[c * 2 + j];
+                    b[4 + j][c] = y[6 + j * 3 + c];
+                }
+                b[3][4 + j] = y[12 + j];
+                b[4 + j][3] = y[14 + j];
+                for l in 0..2 {
+                    b[4 + j][4 + l] = y[16 + 2 * j + l];
+                }
+            }
+        }
+        b
+    }
+
+    fn summed_runs_match_direct_rows(axes: usize) {
+        /// Row by row: merge the row's nodes, then every pair's 6×6 block over
+        /// `[t_x, t_y, t_z, ψ, τ_x, τ_y]`.
         struct Direct {
             spacing: f64,
-            h: BTreeMap<(FieldNode, FieldNode), [f64; 16]>,
-            rhs: BTreeMap<FieldNode, [f64; 4]>,
+            h: BTreeMap<(FieldNode, FieldNode), [[f64; 6]; 6]>,
+            rhs: BTreeMap<FieldNode, [f64; 6]>,
         }
         impl Direct {
             #[allow(clippy::too_many_arguments)]
-            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: f64) {
+            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: [f64; 3]) {
                 // The other passes turn about their own mean scan head.
-                let lever_o = lever + (v[0] - o[0]) * w[1] - (v[1] - o[1]) * w[0];
-                let mut row: BTreeMap<FieldNode, [f64; 2]> = BTreeMap::new();
+                let d = [v[0] - o[0], v[1] - o[1], 0.0];
+                let turn = cross3(d, w);
+                let lever_o = [lever[0] + turn[0], lever[1] + turn[1], lever[2] + turn[2]];
+                let mut row: BTreeMap<FieldNode, [f64; 6]> = BTreeMap::new();
                 for (sign, at, arm) in [(k, v, lever), (-k, o, lever_o)] {
                     for (node, phi) in bilinear(at[0], at[1], self.spacing) {
                         if phi != 0.0 {
                             let entry = row.entry(node).or_default();
-                            entry[0] += sign * phi;
-                            entry[1] += sign * phi * arm;
+                            for c in 0..3 {
+                                entry[c] += sign * phi * w[c];
+                            }
+                            entry[3] += sign * phi * arm[2];
+                            entry[4] += sign * phi * arm[0];
+                            entry[5] += sign * phi * arm[1];
                         }
                     }
                 }
-                let full = |r: [f64; 2]| [r[0] * w[0], r[0] * w[1], r[0] * w[2], r[1]];
-                for (&a, &ra) in &row {
-                    let (fa, rhs) = (full(ra), self.rhs.entry(a).or_default());
-                    for c in 0..4 {
+                for (&a, &fa) in &row {
+                    let rhs = self.rhs.entry(a).or_default();
+                    for c in 0..6 {
                         rhs[c] -= weight * e * fa[c];
                     }
-                    for (&b, &rb) in row.range(a..) {
-                        let (fb, m) = (full(rb), self.h.entry((a, b)).or_default());
-                        for r in 0..4 {
-                            for c in 0..4 {
-                                m[4 * r + c] += weight * fa[r] * fb[c];
+                    for (&b, &fb) in row.range(a..) {
+                        let m = self.h.entry((a, b)).or_default();
+                        for r in 0..6 {
+                            for c in 0..6 {
+                                m[r][c] += weight * fa[r] * fb[c];
                             }
                         }
                     }
@@ -987,9 +1424,14 @@ mod tests {
             (seed >> 11) as f64 / (1u64 << 53) as f64
         };
         let spacing = 10.0;
-        let mut acc = if heading { FieldAccumulator::with_heading(spacing) } else { FieldAccumulator::new(spacing) };
+        let mut acc = match axes {
+            0 => FieldAccumulator::new(spacing),
+            1 => FieldAccumulator::with_heading(spacing),
+            _ => FieldAccumulator::with_tilt(spacing),
+        };
         let mut direct = Direct { spacing, h: BTreeMap::new(), rhs: BTreeMap::new() };
         let mut w = [0.0, 0.0, 1.0];
+        let mut last_lever = [0.0; 3];
         for i in 0..2000 {
             // Back and forth over three cells; every 7th point on a node line.
             let x = 500_000.0 + 30.0 * (i as f64 * 0.01).sin().abs() + rand();
@@ -1000,51 +1442,58 @@ mod tests {
                 1 => [x + 12.0 * (rand() - 0.5), y + 3.0 * rand()],
                 _ => [x + 25.0, y - 14.0 * rand()],
             };
-            // Another normal every few rows, some of them one seen before.
+            // Another normal every few rows, some of them one seen before; façades among them.
             if rand() < 0.3 {
-                let (a, b) = if rand() < 0.8 {
-                    [(0.0, 0.0), (0.1, -0.05), (-0.12, 0.02)][(3.0 * rand()) as usize]
+                let (a, b, c) = if rand() < 0.8 {
+                    [(0.0, 0.0, 1.0), (0.1, -0.05, 1.0), (-0.12, 0.02, 1.0), (1.0, 0.2, 0.05)][(4.0 * rand()) as usize]
                 } else {
-                    (0.3 * (rand() - 0.5), 0.3 * (rand() - 0.5))
+                    (0.3 * (rand() - 0.5), 0.3 * (rand() - 0.5), 1.0)
                 };
-                let norm = (a * a + b * b + 1.0f64).sqrt();
-                w = [a / norm, b / norm, 1.0 / norm];
+                let norm = (a * a + b * b + c * c).sqrt();
+                w = [a / norm, b / norm, c / norm];
             }
-            let (k, e, lever) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5), 20.0 * (rand() - 0.5));
+            // The point's own Jacobian for a rotation, `(p − v) × w`, from a lever arm of metres.
+            let arm = [20.0 * (rand() - 0.5), 20.0 * (rand() - 0.5), 3.0 * (rand() - 0.5)];
+            let lever = cross3(arm, w);
+            last_lever = lever;
+            let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
             acc.add([x, y], o, k, w, e, 5.0, lever);
             direct.add([x, y], o, k, w, e, 5.0, lever);
         }
         // The same position for both: no node pair gets a non-zero translation block.
         let same = [500_003.0, 5_400_004.0];
-        acc.add(same, same, 0.5, w, 0.01, 5.0, 3.0);
-        direct.add(same, same, 0.5, w, 0.01, 5.0, 3.0);
+        acc.add(same, same, 0.5, w, 0.01, 5.0, last_lever);
+        direct.add(same, same, 0.5, w, 0.01, 5.0, last_lever);
         let eq = acc.finish();
         assert_eq!(eq.observations, 2001);
         assert!(eq.nodes.len() >= 12, "{} nodes", eq.nodes.len());
         assert_eq!(eq.nodes, direct.rhs.keys().copied().collect::<Vec<_>>());
-        assert_eq!(eq.heading_pairs.len(), if heading { eq.pairs.len() } else { 0 });
-        assert_eq!(eq.heading_rhs.len(), if heading { eq.nodes.len() } else { 0 });
-        let scale = direct.h.values().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert_eq!(eq.heading_pairs.len(), if axes > 0 { eq.pairs.len() } else { 0 });
+        assert_eq!(eq.heading_rhs.len(), if axes > 0 { eq.nodes.len() } else { 0 });
+        assert_eq!(eq.tilt_pairs.len(), if axes == 3 { eq.pairs.len() } else { 0 });
+        assert_eq!(eq.tilt_rhs.len(), if axes == 3 { eq.nodes.len() } else { 0 });
+        // The unknowns the accumulator sums: translation, heading, tilt.
+        let unknowns = 3 + axes;
+        let scale = direct.h.values().flatten().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
         let mut nonzero = 0;
-        for (&(a, b), m) in &direct.h {
+        for (&(a, b), want) in &direct.h {
             let (ia, ib) = (eq.nodes.binary_search(&a).unwrap() as u32, eq.nodes.binary_search(&b).unwrap() as u32);
-            // The translation block, then the heading's parts as `FieldEquations` keeps them.
-            let mut want: Vec<f64> = (0..9).map(|i| m[4 * (i / 3) + i % 3]).collect();
-            if heading {
-                want.extend([m[3], m[7], m[11], m[12], m[13], m[14], m[15]]);
-            }
-            match eq.pairs.iter().position(|p| (p.0, p.1) == (ia, ib)) {
+            let got = match eq.pairs.iter().position(|p| (p.0, p.1) == (ia, ib)) {
                 Some(at) => {
                     nonzero += 1;
-                    let mut got = eq.pairs[at].2.to_vec();
-                    if heading {
-                        got.extend(eq.heading_pairs[at]);
-                    }
-                    for c in 0..want.len() {
-                        assert!((got[c] - want[c]).abs() <= 1e-12 * scale, "{a:?} {b:?}: {got:?} against {want:?}");
-                    }
+                    full_block(&eq.pairs[at].2, eq.heading_pairs.get(at), eq.tilt_pairs.get(at))
                 }
-                None => assert!(want.iter().all(|v| v.abs() <= 1e-12 * scale), "{a:?} {b:?} missing: {want:?}"),
+                None => [[0.0; 6]; 6],
+            };
+            for r in 0..unknowns {
+                for c in 0..unknowns {
+                    assert!(
+                        (got[r][c] - want[r][c]).abs() <= 1e-12 * scale,
+                        "{a:?} {b:?} ({r}, {c}), {axes} axes: {} against {}",
+                        got[r][c],
+                        want[r][c]
+                    );
+                }
             }
         }
         assert_eq!(nonzero, eq.pairs.len());
@@ -1052,8 +1501,13 @@ mod tests {
             for c in 0..3 {
                 assert!((got[c] - want[c]).abs() <= 1e-12, "{got:?} against {want:?}");
             }
-            if heading {
+            if axes > 0 {
                 assert!((eq.heading_rhs[n] - want[3]).abs() <= 1e-10, "{} against {}", eq.heading_rhs[n], want[3]);
+            }
+            if axes == 3 {
+                for j in 0..2 {
+                    assert!((eq.tilt_rhs[n][j] - want[4 + j]).abs() <= 1e-10, "{:?} against {want:?}", eq.tilt_rhs[n]);
+                }
             }
         }
     }
@@ -1079,15 +1533,15 @@ mod tests {
             FieldTrajectory { positions: &positions, corrections: &current },
             FieldTrajectory { positions: &positions, corrections: &current },
         ];
-        let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing, false).unwrap();
+        let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing, 0).unwrap();
         // Inconsistent inputs are errors, not panics.
         assert!(matches!(
-            remove_field_share(&trajectories, std::slice::from_ref(&previous), spacing, false),
+            remove_field_share(&trajectories, std::slice::from_ref(&previous), spacing, 0),
             Err(FieldError::Trajectories { expected: 2, found: 1 })
         ));
         let short = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 10] };
         assert!(matches!(
-            remove_field_share(&trajectories, &[previous.clone(), short], spacing, false),
+            remove_field_share(&trajectories, &[previous.clone(), short], spacing, 0),
             Err(FieldError::Positions { trajectory: 1, anchors: 10, .. })
         ));
         for before in &moved {
@@ -1207,12 +1661,21 @@ mod tests {
         let all = solve_without_data(
             &positions,
             &corrections,
-            &Parameters { campaign_motion: true, common_mode_heading: true, ..base },
+            &Parameters { campaign_motion: true, common_mode_heading: true, ..base.clone() },
         );
-        for (p, c) in positions.iter().zip(&corrections) {
-            for y in &all.apply(p, c).values {
-                assert!(y[3..].iter().all(|v| v.abs() < 1e-8), "{y:?}");
-                assert!(y[0].abs() < 2e-3 && y[1].abs() < 1e-3 && y[2].abs() < 5e-4, "{y:?}");
+        // And with its tilt: the field's constant rotation overlaps the motion's on every axis.
+        let tilted = solve_without_data(
+            &positions,
+            &corrections,
+            &Parameters { campaign_motion: true, common_mode_heading: true, common_mode_tilt: true, ..base },
+        );
+        assert_eq!(tilted.tilt.len(), tilted.nodes.len());
+        for field in [&all, &tilted] {
+            for (p, c) in positions.iter().zip(&corrections) {
+                for y in &field.apply(p, c).values {
+                    assert!(y[3..].iter().all(|v| v.abs() < 1e-8), "{y:?}");
+                    assert!(y[0].abs() < 2e-3 && y[1].abs() < 1e-3 && y[2].abs() < 5e-4, "{y:?}");
+                }
             }
         }
     }
@@ -1263,8 +1726,21 @@ mod tests {
     /// heads) does.
     #[test]
     fn the_heading_sees_no_rigid_turn_of_passes_and_map() {
+        rigid_turns_are_invisible(false);
+    }
+
+    /// The field's tilt likewise: every pass and the map tilting together about a point (a
+    /// constant tilt with the translation field's vertical gradient `τ × (x − x0)`) changes no
+    /// residual, while a tilt alone (each pass about its own scan head) does; and the whole
+    /// rotation's sums still see no rigid turn about the vertical.
+    #[test]
+    fn the_tilt_sees_no_rigid_tilt_of_passes_and_map() {
+        rigid_turns_are_invisible(true);
+    }
+
+    fn rigid_turns_are_invisible(tilt: bool) {
         let spacing = 10.0;
-        let mut acc = FieldAccumulator::with_heading(spacing);
+        let mut acc = if tilt { FieldAccumulator::with_tilt(spacing) } else { FieldAccumulator::with_heading(spacing) };
         let mut seed = 11u64;
         let mut rand = move || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
@@ -1273,44 +1749,59 @@ mod tests {
         for _ in 0..500 {
             let v = [1000.0 + 30.0 * rand(), 2000.0 + 3.0 * rand()];
             let o = [v[0] + 4.0 * (rand() - 0.5), v[1] + 3.0 + rand()];
-            let p = [v[0] + 10.0 * (rand() - 0.5), v[1] + 8.0 * (rand() - 0.5), 0.0];
+            // Scan heads at z 0, points below and above them.
+            let p = [v[0] + 10.0 * (rand() - 0.5), v[1] + 8.0 * (rand() - 0.5), 4.0 * (rand() - 0.7)];
             // Road-like normals and façade-like ones.
             let (a, b, c) =
                 if rand() < 0.5 { (0.2 * (rand() - 0.5), 0.2 * (rand() - 0.5), 1.0) } else { (rand() - 0.5, 1.0, 0.0) };
             let norm = (a * a + b * b + c * c).sqrt();
             let w = [a / norm, b / norm, c / norm];
-            // The lever arm of the point's own Jacobian: ((p − v) × w)_z.
-            let lever = (p[0] - v[0]) * w[1] - (p[1] - v[1]) * w[0];
+            // The point's own Jacobian for a rotation: (p − v) × w.
+            let lever = cross3([p[0] - v[0], p[1] - v[1], p[2]], w);
             acc.add(v, o, 0.5 + 0.4 * rand(), w, 0.0, 1.0, lever);
         }
         let eq = acc.finish();
-        let quadratic = |u: &dyn Fn(FieldNode) -> [f64; 4]| -> f64 {
+        // `uᵀ H u` over the unknowns `[t_x, t_y, t_z, ψ, τ_x, τ_y]` per node.
+        let quadratic = |u: &dyn Fn(FieldNode) -> [f64; 6]| -> f64 {
             let mut sum = 0.0;
-            for (&(a, b, m), x) in eq.pairs.iter().zip(&eq.heading_pairs) {
+            for (k, &(a, b, m)) in eq.pairs.iter().enumerate() {
+                let block = full_block(&m, eq.heading_pairs.get(k), eq.tilt_pairs.get(k));
                 let (ua, ub) = (u(eq.nodes[a as usize]), u(eq.nodes[b as usize]));
                 let mut term = 0.0;
-                for r in 0..3 {
-                    for c in 0..3 {
-                        term += ua[r] * m[3 * r + c] * ub[c];
+                for r in 0..6 {
+                    for c in 0..6 {
+                        term += ua[r] * block[r][c] * ub[c];
                     }
-                    term += ua[r] * x[r] * ub[3] + ua[3] * x[3 + r] * ub[r];
                 }
-                term += ua[3] * x[6] * ub[3];
                 // The upper triangle holds each off-diagonal pair once.
                 sum += if a == b { term } else { 2.0 * term };
             }
             sum
         };
-        let psi = 1e-3;
         let x0 = [1010.0, 1995.0];
-        let rigid = |(ix, iy): FieldNode| {
-            let (x, y) = (ix as f64 * spacing - x0[0], iy as f64 * spacing - x0[1]);
-            [-psi * y, psi * x, 0.0, psi]
+        let offset = |(ix, iy): FieldNode| (ix as f64 * spacing - x0[0], iy as f64 * spacing - x0[1]);
+        let psi = 1e-3;
+        let turned = |node: FieldNode| {
+            let (x, y) = offset(node);
+            [-psi * y, psi * x, 0.0, psi, 0.0, 0.0]
         };
-        let heading_alone = |_: FieldNode| [0.0, 0.0, 0.0, psi];
-        let (turned, alone) = (quadratic(&rigid), quadratic(&heading_alone));
+        let heading_alone = |_: FieldNode| [0.0, 0.0, 0.0, psi, 0.0, 0.0];
+        let (rigid, alone) = (quadratic(&turned), quadratic(&heading_alone));
         assert!(alone > 1e-7, "{alone}");
-        assert!(turned.abs() < 1e-9 * alone, "{turned} against {alone}");
+        assert!(rigid.abs() < 1e-9 * alone, "{rigid} against {alone}");
+        if tilt {
+            // A rotation τ about a horizontal axis through x0 moves a node by τ × (x − x0): only
+            // its height, by τ_x·y − τ_y·x.
+            let tau = [0.7e-3, -1.1e-3];
+            let tilted = |node: FieldNode| {
+                let (x, y) = offset(node);
+                [0.0, 0.0, tau[0] * y - tau[1] * x, 0.0, tau[0], tau[1]]
+            };
+            let tilt_alone = |_: FieldNode| [0.0, 0.0, 0.0, 0.0, tau[0], tau[1]];
+            let (rigid, alone) = (quadratic(&tilted), quadratic(&tilt_alone));
+            assert!(alone > 1e-7, "{alone}");
+            assert!(rigid.abs() < 1e-9 * alone, "{rigid} against {alone}");
+        }
     }
 
     /// Without data, a heading every pass shares over a stretch (a slow bend of 0.05°, no
@@ -1352,7 +1843,7 @@ mod tests {
         let before = rms(&without);
         assert!(before > 1e-4, "{before}");
         assert!(rms(&with) < 0.05 * before, "{} against {before}", rms(&with));
-        let (_, heading_deg) = with.largest(&positions[..1]);
+        let heading_deg = with.largest(&positions[..1]).heading_deg;
         assert!(heading_deg > 0.04, "{heading_deg}");
         // With the campaign's rotation as well (its turn about z overlaps the field's constant
         // heading): still solved, still taken out.

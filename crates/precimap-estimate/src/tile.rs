@@ -514,9 +514,10 @@ fn estimate_tile_into<S: LatentSink>(
         None => (index.is_some() && params.consistent_gradient).then(|| corner_pulls(&triangles, &covers, &pull)),
     };
     drop((index, covers, pull));
-    let mut field = solves_field.then(|| match params.common_mode_heading {
-        true => FieldAccumulator::with_heading(params.common_mode_field_m),
-        false => FieldAccumulator::new(params.common_mode_field_m),
+    let mut field = solves_field.then(|| match (params.common_mode_heading, params.common_mode_tilt) {
+        (true, true) => FieldAccumulator::with_tilt(params.common_mode_field_m),
+        (true, false) => FieldAccumulator::with_heading(params.common_mode_field_m),
+        (false, _) => FieldAccumulator::new(params.common_mode_field_m),
     });
 
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
@@ -572,7 +573,7 @@ fn estimate_tile_into<S: LatentSink>(
                     moments.add_weighted(&g, weighted, total, lambda, observations);
                     if let Some(field) = field.as_mut() {
                         let [x, y, share] = at.others;
-                        field.add(vehicle[a], [x, y], share, w, e, weight, g[5]);
+                        field.add(vehicle[a], [x, y], share, w, e, weight, [g[3], g[4], g[5]]);
                     }
                 }
             }

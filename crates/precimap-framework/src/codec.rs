@@ -11,6 +11,9 @@ const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
 /// With the field's heading (`Parameters::common_mode_heading`): version 1 followed by the
 /// heading's right-hand side per node and its seven terms per node pair.
 const FIELD_MAGIC_HEADING: &[u8; 8] = b"PMFIELD2";
+/// With the field's tilt too (`Parameters::common_mode_tilt`): version 2 followed by the tilt's
+/// right-hand side per node (2) and its twenty terms per node pair.
+const FIELD_MAGIC_TILT: &[u8; 8] = b"PMFIELD3";
 const CORRECTIONS_MAGIC: &[u8; 8] = b"PMCORR02";
 /// Posterior standard deviations only (before the exported corrections table needed the whole
 /// covariance to give them in the vehicle's frame).
@@ -137,11 +140,16 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
 }
 
 /// One tile's common-mode field equations: nodes, node-pair blocks, right-hand sides.
-/// Equations without the heading keep version 1, byte for byte.
+/// Equations without the heading keep version 1, byte for byte, and without the tilt version 2.
 pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
-    let heading = !f.heading_pairs.is_empty() || !f.heading_rhs.is_empty();
+    let tilt = !f.tilt_pairs.is_empty() || !f.tilt_rhs.is_empty();
+    let heading = tilt || !f.heading_pairs.is_empty() || !f.heading_rhs.is_empty();
     let mut out = Vec::with_capacity(28 + f.nodes.len() * 48 + f.pairs.len() * 136);
-    out.extend_from_slice(if heading { FIELD_MAGIC_HEADING } else { FIELD_MAGIC });
+    out.extend_from_slice(match (heading, tilt) {
+        (_, true) => FIELD_MAGIC_TILT,
+        (true, false) => FIELD_MAGIC_HEADING,
+        (false, false) => FIELD_MAGIC,
+    });
     out.extend_from_slice(&f.observations.to_le_bytes());
     out.extend_from_slice(&(f.nodes.len() as u32).to_le_bytes());
     for (node, rhs) in f.nodes.iter().zip(&f.rhs) {
@@ -164,13 +172,29 @@ pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
             put_f64s(&mut out, x);
         }
     }
+    if tilt {
+        out.extend_from_slice(&(f.tilt_rhs.len() as u32).to_le_bytes());
+        for r in &f.tilt_rhs {
+            put_f64s(&mut out, r);
+        }
+        out.extend_from_slice(&(f.tilt_pairs.len() as u32).to_le_bytes());
+        for y in &f.tilt_pairs {
+            put_f64s(&mut out, y);
+        }
+    }
     out
 }
 
 pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
     const WHAT: &str = "common-mode field equations";
-    let heading = bytes.starts_with(FIELD_MAGIC_HEADING);
-    let mut r = Reader::new(bytes, if heading { FIELD_MAGIC_HEADING } else { FIELD_MAGIC }, WHAT)?;
+    let tilt = bytes.starts_with(FIELD_MAGIC_TILT);
+    let heading = tilt || bytes.starts_with(FIELD_MAGIC_HEADING);
+    let magic = match (heading, tilt) {
+        (_, true) => FIELD_MAGIC_TILT,
+        (true, false) => FIELD_MAGIC_HEADING,
+        (false, false) => FIELD_MAGIC,
+    };
+    let mut r = Reader::new(bytes, magic, WHAT)?;
     let observations = r.u64()?;
     let n = r.count(40)?;
     let (mut nodes, mut rhs) = (Vec::with_capacity(n), Vec::with_capacity(n));
@@ -202,8 +226,23 @@ pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
             heading_pairs.push(r.f64s::<7>()?);
         }
     }
+    let (mut tilt_rhs, mut tilt_pairs) = (Vec::new(), Vec::new());
+    if tilt {
+        if r.count(16)? != n {
+            return Err(CodecError::Truncated { what: WHAT, at: r.at, len: bytes.len() });
+        }
+        for _ in 0..n {
+            tilt_rhs.push(r.f64s::<2>()?);
+        }
+        if r.count(160)? != m {
+            return Err(CodecError::Truncated { what: WHAT, at: r.at, len: bytes.len() });
+        }
+        for _ in 0..m {
+            tilt_pairs.push(r.f64s::<20>()?);
+        }
+    }
     r.finish()?;
-    Ok(FieldEquations { nodes, pairs, rhs, observations, heading_pairs, heading_rhs })
+    Ok(FieldEquations { nodes, pairs, rhs, observations, heading_pairs, heading_rhs, tilt_pairs, tilt_rhs })
 }
 
 /// Corrections with the optional posterior covariances of the final iteration.
@@ -342,6 +381,8 @@ mod tests {
             observations: 12,
             heading_pairs: vec![std::array::from_fn(|k| k as f64 - 0.5), [-0.0, 1e-300, 3.0, 4.0, 5.0, 6.0, 7.0]],
             heading_rhs: vec![0.25, -1e200],
+            tilt_pairs: Vec::new(),
+            tilt_rhs: Vec::new(),
         };
         let bytes = encode_field(&f);
         assert_eq!(&bytes[..8], FIELD_MAGIC_HEADING);
@@ -356,6 +397,23 @@ mod tests {
         let mut bad = bytes.clone();
         let at = bytes.len() - 2 * 56 - 4;
         bad[at..at + 4].copy_from_slice(&1u32.to_le_bytes());
+        assert!(decode_field(&bad).is_err());
+        // With the tilt: version 3, every term bit-exact, its counts checked.
+        let mut tilted = f.clone();
+        tilted.tilt_pairs = vec![std::array::from_fn(|k| k as f64 * 1e-7), std::array::from_fn(|k| -(k as f64))];
+        tilted.tilt_pairs[1][19] = -0.0;
+        tilted.tilt_rhs = vec![[1.5, -2.5], [f64::MAX, 1e-310]];
+        let bytes = encode_field(&tilted);
+        assert_eq!(&bytes[..8], FIELD_MAGIC_TILT);
+        let back = decode_field(&bytes).unwrap();
+        let tilt_bits = |e: &FieldEquations| -> Vec<u64> {
+            e.tilt_rhs.iter().flatten().chain(e.tilt_pairs.iter().flatten()).map(|v| v.to_bits()).collect()
+        };
+        assert_eq!((bits(&back), tilt_bits(&back)), (bits(&tilted), tilt_bits(&tilted)));
+        assert!(decode_field(&bytes[..bytes.len() - 8]).is_err());
+        let mut bad = bytes.clone();
+        let at = bytes.len() - 2 * 160 - 4;
+        bad[at..at + 4].copy_from_slice(&3u32.to_le_bytes());
         assert!(decode_field(&bad).is_err());
         // Without the heading: version 1, as every earlier field object.
         f.heading_pairs.clear();

@@ -430,15 +430,14 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                         &field_trajectories,
                         &before,
                         params.common_mode_field_m,
-                        params.common_mode_heading,
+                        precimap_estimate::field::rotation_axes(&params),
                     )?
                 } else {
                     before
                 };
                 let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
                 let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
-                let (max_m, heading_max_deg) = field.largest(&positions);
-                let figures = (max_m, field.rotation_deg(), heading_max_deg, field.nodes.len());
+                let figures = (field.largest(&positions), field.rotation_deg(), field.nodes.len());
                 Ok::<_, precimap_estimate::field::FieldError>((start, before, figures))
             })
             .await?
@@ -450,7 +449,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                     "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
                 )),
             })?;
-            let (start, before, (max_m, rotation_deg, heading_max_deg, nodes)) = solved;
+            let (start, before, (largest, rotation_deg, nodes)) = solved;
             let mut objects = Vec::with_capacity(start.len() + before.len());
             for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
                 for (t, c) in trajectories.iter().zip(list) {
@@ -460,7 +459,14 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             }
             outputs.extend(ctx.put_many(objects).await?);
             let seconds = started.elapsed().as_secs_f64();
-            let result = FieldResult { max_m, rotation_deg, heading_max_deg, nodes, seconds };
+            let result = FieldResult {
+                max_m: largest.translation_m,
+                rotation_deg,
+                heading_max_deg: largest.heading_deg,
+                tilt_max_deg: largest.tilt_deg,
+                nodes,
+                seconds,
+            };
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::SolveTrajectory {

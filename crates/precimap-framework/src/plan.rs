@@ -269,6 +269,9 @@ pub struct FieldResult {
     /// Largest heading the field gave an anchor (degrees; zero without it).
     #[serde(default)]
     pub heading_max_deg: f64,
+    /// Largest tilt the field gave an anchor (degrees; zero without it).
+    #[serde(default)]
+    pub tilt_max_deg: f64,
     pub nodes: usize,
     pub seconds: f64,
 }
@@ -344,6 +347,8 @@ pub struct PlanState {
     pub pending_campaign_rotation_deg: [f64; 3],
     #[serde(default)]
     pub pending_field_heading_max_deg: f64,
+    #[serde(default)]
+    pub pending_field_tilt_max_deg: f64,
     /// The settling iterations' corrections objects Anderson acceleration combines.
     #[serde(default)]
     pub anderson: AndersonHistory<Option<String>>,
@@ -438,6 +443,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         pending_field_max_m: 0.0,
         pending_campaign_rotation_deg: [0.0; 3],
         pending_field_heading_max_deg: 0.0,
+        pending_field_tilt_max_deg: 0.0,
         anderson: AndersonHistory::default(),
         pending_anderson_coefficients: Vec::new(),
         anchor_positions: None,
@@ -756,6 +762,7 @@ fn after_field(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next, St
     state.pending_field_max_m = r.max_m;
     state.pending_campaign_rotation_deg = r.rotation_deg;
     state.pending_field_heading_max_deg = r.heading_max_deg;
+    state.pending_field_tilt_max_deg = r.tilt_max_deg;
     let n = state.trajectories.len();
     let mut start = vec![None; n];
     let mut previous = vec![None; n];
@@ -887,6 +894,7 @@ fn after_solve(
     report.common_mode_field_max_m = std::mem::take(&mut state.pending_field_max_m);
     report.campaign_rotation_deg = std::mem::take(&mut state.pending_campaign_rotation_deg);
     report.common_mode_heading_max_deg = std::mem::take(&mut state.pending_field_heading_max_deg);
+    report.common_mode_tilt_max_deg = std::mem::take(&mut state.pending_field_tilt_max_deg);
     report.anderson_coefficients = std::mem::take(&mut state.pending_anderson_coefficients);
     state.histogram = stats.histogram.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();

@@ -649,6 +649,7 @@ mod tests {
                 iteration: i,
                 common_mode_field_max_m: 0.0,
                 common_mode_heading_max_deg: 0.0,
+                common_mode_tilt_max_deg: 0.0,
                 campaign_rotation_deg: [0.0; 3],
                 grid_m: 0.1,
                 threshold_m: 0.3 / i as f64,

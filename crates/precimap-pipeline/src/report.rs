@@ -65,6 +65,10 @@ pub struct IterationReport {
     /// (`parameters.common_mode_heading`; degrees): zero in steps without it.
     #[serde(default)]
     pub common_mode_heading_max_deg: f64,
+    /// Largest tilt (rotation about a horizontal axis) the common-mode field solved in this
+    /// iteration gave an anchor (`parameters.common_mode_tilt`; degrees): zero in steps without it.
+    #[serde(default)]
+    pub common_mode_tilt_max_deg: f64,
     pub grid_m: f64,
     pub threshold_m: f64,
     /// Points in tile cores (each point once).

@@ -30,6 +30,8 @@ pub struct RunOptions {
 }
 
 /// What the driver reports while it works.
+// A few events per iteration: the iteration's report unboxed costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Progress {
     Loaded { strips: usize, trajectories: usize },
@@ -181,7 +183,7 @@ pub fn iterate(
                     &trajectories,
                     p,
                     campaign.params.common_mode_field_m,
-                    campaign.params.common_mode_heading,
+                    precimap_estimate::field::rotation_axes(&campaign.params),
                 )
                 .map_err(PipelineError::Field)?;
             }
@@ -289,8 +291,10 @@ pub fn run_campaign(
         let mut report = iteration_report(iterations.len() + 1, step, &stats, max_change, &changes, seconds);
         report.max_correction_change_at = max_change_at;
         report.anderson_coefficients = std::mem::take(&mut anderson_coefficients);
-        (report.common_mode_field_max_m, report.common_mode_heading_max_deg) =
-            field.as_ref().map_or((0.0, 0.0), |f| f.largest(&prepared.anchor_positions));
+        let largest = field.as_ref().map(|f| f.largest(&prepared.anchor_positions)).unwrap_or_default();
+        report.common_mode_field_max_m = largest.translation_m;
+        report.common_mode_heading_max_deg = largest.heading_deg;
+        report.common_mode_tilt_max_deg = largest.tilt_deg;
         report.campaign_rotation_deg = field.as_ref().map_or([0.0; 3], FieldSolution::rotation_deg);
         progress(Progress::Iteration(report.clone(), schedule.len()));
         iterations.push(report);
@@ -476,6 +480,7 @@ pub fn iteration_report(
         iteration,
         common_mode_field_max_m: 0.0,
         common_mode_heading_max_deg: 0.0,
+        common_mode_tilt_max_deg: 0.0,
         campaign_rotation_deg: [0.0; 3],
         grid_m: step.grid_m,
         threshold_m: step.threshold_m,
