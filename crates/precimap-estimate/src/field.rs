@@ -988,8 +988,9 @@ impl FieldError {
 /// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this with three
 /// unknowns per node, so the limit lies near 290 km² of such a network; with the heading's
 /// fourth, 159 km² needs 89 % and the limit lies near 165 km²; with the tilt's six, 39.7 km²
-/// need 2.1× the entries of four, and the limit lies near 80 km² (`precimap bench field-solve
-/// --blocks N --per-node 3|4|6`; ARCHITECTURE.md, "The common-mode field's sparse solve").
+/// need 2.1× the entries of four and 89.3 km² need 1,096 MiB, so the limit lies near 85 km²
+/// (`precimap bench field-solve --blocks N --per-node 3|4|6`; ARCHITECTURE.md, "The
+/// common-mode field's sparse solve").
 pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,
