@@ -143,6 +143,21 @@ pub struct FieldAccumulator {
 /// The tilt's terms per node pair (row-major, as `h`) and its right-hand side per node.
 type TiltSums = (Vec<[f64; 20]>, Vec<[f64; 2]>);
 
+/// One observation row of the field: residual `e` and weight `weight`; the point's own scan head
+/// at `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
+/// `k` (`n/(n+1)` for `n` other passes); surface normal `w`; `lever` the point's own Jacobian for
+/// a rotation, `(p − v) × w`, which only the heading (its z component) and the tilt use.
+#[derive(Clone, Copy, Debug)]
+pub struct FieldRow {
+    pub vehicle: [f64; 2],
+    pub others: [f64; 2],
+    pub k: f64,
+    pub w: [f64; 3],
+    pub e: f64,
+    pub weight: f64,
+    pub lever: [f64; 3],
+}
+
 /// Most lever components a run sums per slot (the whole rotation's two).
 const LEVER_COMPONENTS: usize = 2;
 /// Rotation entries of a row: per slot, its lever components.
@@ -367,60 +382,27 @@ impl FieldAccumulator {
         }
     }
 
-    /// One observation with residual `e` and weight `weight`: the point's own scan head at
-    /// `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
-    /// `k` (`n/(n+1)` for `n` other passes), surface normal `w`; `lever` is the point's own
-    /// Jacobian for a rotation, `(p − v) × w`, which only the heading (its z component) and the
-    /// tilt use.
+    /// One observation (see [`FieldRow`]).
     #[inline]
-    #[allow(clippy::too_many_arguments)]
-    pub fn add(
-        &mut self,
-        vehicle: [f64; 2],
-        others: [f64; 2],
-        k: f64,
-        w: [f64; 3],
-        e: f64,
-        weight: f64,
-        lever: [f64; 3],
-    ) {
+    pub fn add(&mut self, row: FieldRow) {
         // Monomorphised per lever count; the whole rotation's out of line, so that the default's
         // inlined row loop stays as small as before the tilt.
         match self.lever_components() {
-            0 => self.add_with::<0>(vehicle, others, k, w, e, weight, lever),
-            1 => self.add_with::<1>(vehicle, others, k, w, e, weight, lever),
-            _ => self.add_with_tilt(vehicle, others, k, w, e, weight, lever),
+            0 => self.add_with::<0>(row),
+            1 => self.add_with::<1>(row),
+            _ => self.add_with_tilt(row),
         }
     }
 
     /// [`Self::add_with`] for the whole rotation, kept out of the callers' inlined loops.
     #[inline(never)]
-    #[allow(clippy::too_many_arguments)]
-    fn add_with_tilt(
-        &mut self,
-        vehicle: [f64; 2],
-        others: [f64; 2],
-        k: f64,
-        w: [f64; 3],
-        e: f64,
-        weight: f64,
-        lever: [f64; 3],
-    ) {
-        self.add_with::<2>(vehicle, others, k, w, e, weight, lever);
+    fn add_with_tilt(&mut self, row: FieldRow) {
+        self.add_with::<2>(row);
     }
 
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn add_with<const M: usize>(
-        &mut self,
-        vehicle: [f64; 2],
-        others: [f64; 2],
-        k: f64,
-        w: [f64; 3],
-        e: f64,
-        weight: f64,
-        lever: [f64; 3],
-    ) {
+    fn add_with<const M: usize>(&mut self, row: FieldRow) {
+        let FieldRow { vehicle, others, k, w, e, weight, lever } = row;
         let (own_cell, own) = cell_weights(vehicle[0], vehicle[1], self.spacing);
         let (other_cell, other) = cell_weights(others[0], others[1], self.spacing);
         let key = (own_cell, other_cell, w.map(f64::to_bits));
@@ -1298,12 +1280,20 @@ mod tests {
         let mut acc = FieldAccumulator::new(10.0);
         let w = [0.6, 0.0, 0.8];
         // Same position for the point and the other passes: the row is zero.
-        acc.add([3.0, 4.0], [3.0, 4.0], 2.0 / 3.0, w, 0.01, 5.0, [0.0; 3]);
+        acc.add(FieldRow {
+            vehicle: [3.0, 4.0],
+            others: [3.0, 4.0],
+            k: 2.0 / 3.0,
+            w,
+            e: 0.01,
+            weight: 5.0,
+            lever: [0.0; 3],
+        });
         let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
         assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
         // One row across two cells against a dense computation.
         let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
-        acc.add(v, o, n / (n + 1.0), w, e, weight, [0.0; 3]);
+        acc.add(FieldRow { vehicle: v, others: o, k: n / (n + 1.0), w, e, weight, lever: [0.0; 3] });
         let eq = acc.finish();
         let k = n / (n + 1.0);
         let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
@@ -1383,8 +1373,8 @@ mod tests {
             rhs: BTreeMap<FieldNode, [f64; 6]>,
         }
         impl Direct {
-            #[allow(clippy::too_many_arguments)]
-            fn add(&mut self, v: [f64; 2], o: [f64; 2], k: f64, w: [f64; 3], e: f64, weight: f64, lever: [f64; 3]) {
+            fn add(&mut self, row: FieldRow) {
+                let FieldRow { vehicle: v, others: o, k, w, e, weight, lever } = row;
                 // The other passes turn about their own mean scan head.
                 let d = [v[0] - o[0], v[1] - o[1], 0.0];
                 let turn = cross3(d, w);
@@ -1458,13 +1448,15 @@ mod tests {
             let lever = cross3(arm, w);
             last_lever = lever;
             let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
-            acc.add([x, y], o, k, w, e, 5.0, lever);
-            direct.add([x, y], o, k, w, e, 5.0, lever);
+            let row = FieldRow { vehicle: [x, y], others: o, k, w, e, weight: 5.0, lever };
+            acc.add(row);
+            direct.add(row);
         }
         // The same position for both: no node pair gets a non-zero translation block.
         let same = [500_003.0, 5_400_004.0];
-        acc.add(same, same, 0.5, w, 0.01, 5.0, last_lever);
-        direct.add(same, same, 0.5, w, 0.01, 5.0, last_lever);
+        let row = FieldRow { vehicle: same, others: same, k: 0.5, w, e: 0.01, weight: 5.0, lever: last_lever };
+        acc.add(row);
+        direct.add(row);
         let eq = acc.finish();
         assert_eq!(eq.observations, 2001);
         assert!(eq.nodes.len() >= 12, "{} nodes", eq.nodes.len());
@@ -1759,7 +1751,7 @@ mod tests {
             let w = [a / norm, b / norm, c / norm];
             // The point's own Jacobian for a rotation: (p − v) × w.
             let lever = cross3([p[0] - v[0], p[1] - v[1], p[2]], w);
-            acc.add(v, o, 0.5 + 0.4 * rand(), w, 0.0, 1.0, lever);
+            acc.add(FieldRow { vehicle: v, others: o, k: 0.5 + 0.4 * rand(), w, e: 0.0, weight: 1.0, lever });
         }
         let eq = acc.finish();
         // `uᵀ H u` over the unknowns `[t_x, t_y, t_z, ψ, τ_x, τ_y]` per node.

@@ -24,7 +24,7 @@
 
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
-use crate::field::{FieldAccumulator, FieldEquations};
+use crate::field::{FieldAccumulator, FieldEquations, FieldRow};
 use crate::latent::{LatentMapGrid, LatentRecord, LatentSample, LatentSink};
 use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
@@ -573,7 +573,15 @@ fn estimate_tile_into<S: LatentSink>(
                     moments.add_weighted(&g, weighted, total, lambda, observations);
                     if let Some(field) = field.as_mut() {
                         let [x, y, share] = at.others;
-                        field.add(vehicle[a], [x, y], share, w, e, weight, [g[3], g[4], g[5]]);
+                        field.add(FieldRow {
+                            vehicle: vehicle[a],
+                            others: [x, y],
+                            k: share,
+                            w,
+                            e,
+                            weight,
+                            lever: [g[3], g[4], g[5]],
+                        });
                     }
                 }
             }
