@@ -37,6 +37,8 @@
 //! the sparse system and are eliminated through its Schur complement.
 
 use precimap_core::corrections::TrajectoryCorrections;
+
+use crate::tile::{cross, dot, normalize};
 use precimap_core::geom::{floor, skew, Mat3, Vec3};
 use precimap_core::Parameters;
 use precimap_solve::sparse::{SparseError, SymmetricSparse};
@@ -300,16 +302,6 @@ fn cell_weights(x: f64, y: f64, spacing: f64) -> (FieldNode, [f64; 4]) {
     (weights[0].0, weights.map(|(_, phi)| phi))
 }
 
-#[inline]
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline]
-fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
 /// An orthonormal basis of the plane normal to the unit vector `w`.
 fn plane_basis(w: [f64; 3]) -> [[f64; 3]; 2] {
     // Crossed with the axis it is least aligned with, for a well-conditioned first vector.
@@ -320,10 +312,8 @@ fn plane_basis(w: [f64; 3]) -> [[f64; 3]; 2] {
     } else {
         [0.0, 0.0, 1.0]
     };
-    let u = cross3(w, axis);
-    let norm = dot(u, u).sqrt();
-    let u1 = u.map(|c| c / norm);
-    [u1, cross3(w, u1)]
+    let u1 = normalize(cross(w, axis));
+    [u1, cross(w, u1)]
 }
 
 impl FieldAccumulator {
@@ -509,23 +499,16 @@ impl FieldAccumulator {
             for c in 0..3 {
                 self.rhs[a][c] -= run.re[s] * w[c];
             }
-            match M {
-                1 => {
-                    if let Some((_, rhs)) = self.heading.as_mut() {
-                        rhs[a] -= run.he[s];
-                    }
+            if M > 0 {
+                // The rotation's right-hand side in the three axes (the heading alone: z only).
+                let he = if M == 1 { [0.0, 0.0, run.he[s]] } else { to_axes(&run.he[2 * s..2 * s + 2]) };
+                if let Some((_, rhs)) = self.heading.as_mut() {
+                    rhs[a] -= he[2];
                 }
-                2 => {
-                    let he = to_axes(&run.he[2 * s..2 * s + 2]);
-                    if let Some((_, rhs)) = self.heading.as_mut() {
-                        rhs[a] -= he[2];
-                    }
-                    if let Some((_, rhs)) = self.tilt.as_mut() {
-                        rhs[a][0] -= he[0];
-                        rhs[a][1] -= he[1];
-                    }
+                if let Some((_, rhs)) = self.tilt.as_mut() {
+                    rhs[a][0] -= he[0];
+                    rhs[a][1] -= he[1];
                 }
-                _ => {}
             }
             for t in s..SLOTS {
                 let (b, sum) = (node[t], run.rr[pair]);
@@ -537,36 +520,33 @@ impl FieldAccumulator {
                 for c in 0..6 {
                     block[c] += sum * ww[c];
                 }
-                if M == 1 {
-                    if let Some((pairs, _)) = self.heading.as_mut() {
-                        // The stored pair is (min, max): slot s's translation with t's heading is
-                        // its first part when a is the smaller node, its second otherwise.
-                        let (st, ts) = (run.rh[s * SLOTS + t], run.rh[t * SLOTS + s]);
-                        let (first, second) = if a <= b { (st, ts) } else { (ts, st) };
-                        let x = &mut pairs[a.min(b) * n + a.max(b)];
-                        for c in 0..3 {
-                            x[c] += first * w[c];
-                            x[3 + c] += second * w[c];
-                        }
-                        x[6] += run.hh[pair - 1];
-                    }
-                } else if M == 2 {
+                if M > 0 {
                     // Slot s's translation with t's rotation (`w cᵀ`), s's rotation with t's
-                    // translation, and rotation with rotation, each in the three axes.
-                    let st = to_axes(&run.rh[s * q_count + 2 * t..s * q_count + 2 * t + 2]);
-                    let ts = to_axes(&run.rh[t * q_count + 2 * s..t * q_count + 2 * s + 2]);
-                    let mut rr = [[0.0; 3]; 3];
-                    for (i, ui) in run.basis.iter().enumerate() {
-                        for (l, ul) in run.basis.iter().enumerate() {
-                            let v = hh(2 * s + i, 2 * t + l);
-                            for j in 0..3 {
-                                for o in 0..3 {
-                                    rr[j][o] += v * ui[j] * ul[o];
+                    // translation, and rotation with rotation, each in the three axes (the
+                    // heading alone: their z parts only).
+                    let (st, ts, rr) = if M == 1 {
+                        let mut rr = [[0.0; 3]; 3];
+                        rr[2][2] = hh(s, t);
+                        ([0.0, 0.0, run.rh[s * SLOTS + t]], [0.0, 0.0, run.rh[t * SLOTS + s]], rr)
+                    } else {
+                        let mut rr = [[0.0; 3]; 3];
+                        for (i, ui) in run.basis.iter().enumerate() {
+                            for (l, ul) in run.basis.iter().enumerate() {
+                                let v = hh(2 * s + i, 2 * t + l);
+                                for j in 0..3 {
+                                    for o in 0..3 {
+                                        rr[j][o] += v * ui[j] * ul[o];
+                                    }
                                 }
                             }
                         }
-                    }
-                    // Stored as (min, max): from the smaller node's side.
+                        (
+                            to_axes(&run.rh[s * q_count + 2 * t..s * q_count + 2 * t + 2]),
+                            to_axes(&run.rh[t * q_count + 2 * s..t * q_count + 2 * s + 2]),
+                            rr,
+                        )
+                    };
+                    // The stored pair is (min, max): seen from the smaller node's side.
                     let (first, second, rot) = if a <= b {
                         (st, ts, rr)
                     } else {
@@ -576,7 +556,7 @@ impl FieldAccumulator {
                     if let Some((pairs, _)) = self.heading.as_mut() {
                         let x = &mut pairs[at];
                         for c in 0..3 {
-                            x[c] += w[c] * first[2];
+                            x[c] += first[2] * w[c];
                             x[3 + c] += second[2] * w[c];
                         }
                         x[6] += rot[2][2];
@@ -585,7 +565,7 @@ impl FieldAccumulator {
                         let y = &mut pairs[at];
                         for j in 0..2 {
                             for c in 0..3 {
-                                y[c * 2 + j] += w[c] * first[j];
+                                y[c * 2 + j] += first[j] * w[c];
                                 y[6 + j * 3 + c] += second[j] * w[c];
                             }
                             y[12 + j] += rot[2][j];
@@ -1113,43 +1093,48 @@ fn solve_field_within<'a>(
         1 => &[(3, 2)],
         _ => &[(3, 2), (4, 0), (5, 1)],
     };
-    // One term of an anchor's prior, smoothness or curvature: on the translation, residual
-    // `Σ row·field + ω × d + value` of weight `weight`; with the field's rotation, also on each
-    // of its axes, residual `Σ row·ρ + value` of weight `rotation.1` (plus the campaign's
-    // rotation where `rotation.2`: only the prior sees it, a constant drops out of differences).
-    let mut add_term =
-        |row: &[(usize, f64)], d: [f64; 3], value: [f64; 3], weight: f64, rotation: ([f64; 3], [f64; 3], bool)| {
+    // One term of an anchor's prior, smoothness or curvature on `value` (a correction, or a
+    // difference of them): on the translation, residual `Σ row·field + ω × d + value[..3]` of
+    // weight `weight`; with the field's rotation, also on each of its axes, residual
+    // `Σ row·ρ + value[3..]` of weight `rotation_weight` (plus the campaign's rotation where
+    // `sees_motion`: only the prior sees it, a constant drops out of differences).
+    let mut add_term = |row: &[(usize, f64)],
+                        d: [f64; 3],
+                        value: [f64; 6],
+                        weight: f64,
+                        rotation_weight: [f64; 3],
+                        sees_motion: bool| {
+        for &(a, ra) in row {
+            for c in 0..3 {
+                rhs[per_node * a + c] -= weight * ra * value[c];
+            }
+            for &(b, rb) in row {
+                // Each unordered pair of nodes once.
+                if a >= b {
+                    for c in 0..3 {
+                        h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
+                    }
+                }
+            }
+        }
+        if let Some(m) = motion.as_mut() {
+            m.add(row, per_node, d, [value[0], value[1], value[2]], weight);
+        }
+        for &(unknown, axis) in rotation_unknowns {
+            let weight = rotation_weight[axis];
             for &(a, ra) in row {
-                for c in 0..3 {
-                    rhs[per_node * a + c] -= weight * ra * value[c];
-                }
+                rhs[per_node * a + unknown] -= weight * ra * value[3 + axis];
                 for &(b, rb) in row {
-                    // Each unordered pair of nodes once.
                     if a >= b {
-                        for c in 0..3 {
-                            h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
-                        }
+                        h.add(per_node * a + unknown, per_node * b + unknown, weight * ra * rb);
                     }
                 }
-            }
-            if let Some(m) = motion.as_mut() {
-                m.add(row, per_node, d, value, weight);
-            }
-            let (value, weight, sees_motion) = rotation;
-            for &(unknown, axis) in rotation_unknowns {
-                for &(a, ra) in row {
-                    rhs[per_node * a + unknown] -= weight[axis] * ra * value[axis];
-                    for &(b, rb) in row {
-                        if a >= b {
-                            h.add(per_node * a + unknown, per_node * b + unknown, weight[axis] * ra * rb);
-                        }
-                    }
-                    if let (true, Some(m)) = (sees_motion, motion.as_mut()) {
-                        m.coupling[per_node * a + unknown][axis] += weight[axis] * ra;
-                    }
+                if let (true, Some(m)) = (sees_motion, motion.as_mut()) {
+                    m.coupling[per_node * a + unknown][axis] += weight * ra;
                 }
             }
-        };
+        }
+    };
     let row_at = |p: &[f64; 3]| -> Vec<(usize, f64)> {
         bilinear(p[0], p[1], spacing).iter().filter(|(_, phi)| *phi > 0.0).map(|(n, phi)| (index[n], *phi)).collect()
     };
@@ -1158,8 +1143,7 @@ fn solve_field_within<'a>(
         let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
         let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
         for (k, row) in rows.iter().enumerate() {
-            let v = &values[k];
-            add_term(row, d[k], [v[0], v[1], v[2]], prior, ([v[3], v[4], v[5]], prior_rotation, true));
+            add_term(row, d[k], values[k], prior, prior_rotation, true);
             if k + 1 < rows.len() {
                 let mut diff = rows[k + 1].clone();
                 for &(a, ra) in row {
@@ -1167,13 +1151,7 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
                 let dd = std::array::from_fn(|a| d[k + 1][a] - d[k][a]);
-                add_term(
-                    &diff,
-                    dd,
-                    [dv[0], dv[1], dv[2]],
-                    smooth,
-                    ([dv[3], dv[4], dv[5]], [smooth_rotation; 3], false),
-                );
+                add_term(&diff, dd, dv, smooth, [smooth_rotation; 3], false);
             }
             if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
                 let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
@@ -1184,13 +1162,7 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
                 let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
-                add_term(
-                    &second,
-                    dd,
-                    [dv[0], dv[1], dv[2]],
-                    curvature,
-                    ([dv[3], dv[4], dv[5]], [curvature_rotation; 3], false),
-                );
+                add_term(&second, dd, dv, curvature, [curvature_rotation; 3], false);
             }
         }
     }
@@ -1377,7 +1349,7 @@ mod tests {
                 let FieldRow { vehicle: v, others: o, k, w, e, weight, lever } = row;
                 // The other passes turn about their own mean scan head.
                 let d = [v[0] - o[0], v[1] - o[1], 0.0];
-                let turn = cross3(d, w);
+                let turn = cross(d, w);
                 let lever_o = [lever[0] + turn[0], lever[1] + turn[1], lever[2] + turn[2]];
                 let mut row: BTreeMap<FieldNode, [f64; 6]> = BTreeMap::new();
                 for (sign, at, arm) in [(k, v, lever), (-k, o, lever_o)] {
@@ -1445,7 +1417,7 @@ mod tests {
             }
             // The point's own Jacobian for a rotation, `(p − v) × w`, from a lever arm of metres.
             let arm = [20.0 * (rand() - 0.5), 20.0 * (rand() - 0.5), 3.0 * (rand() - 0.5)];
-            let lever = cross3(arm, w);
+            let lever = cross(arm, w);
             last_lever = lever;
             let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
             let row = FieldRow { vehicle: [x, y], others: o, k, w, e, weight: 5.0, lever };
@@ -1750,7 +1722,7 @@ mod tests {
             let norm = (a * a + b * b + c * c).sqrt();
             let w = [a / norm, b / norm, c / norm];
             // The point's own Jacobian for a rotation: (p − v) × w.
-            let lever = cross3([p[0] - v[0], p[1] - v[1], p[2]], w);
+            let lever = cross([p[0] - v[0], p[1] - v[1], p[2]], w);
             acc.add(FieldRow { vehicle: v, others: o, k: 0.5 + 0.4 * rand(), w, e: 0.0, weight: 1.0, lever });
         }
         let eq = acc.finish();

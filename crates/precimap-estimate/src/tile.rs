@@ -172,17 +172,17 @@ impl Pixel {
 }
 
 #[inline]
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 #[inline]
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 #[inline]
-fn normalize(a: [f64; 3]) -> [f64; 3] {
+pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
     let n = dot(a, a).sqrt();
     if n > 0.0 {
         [a[0] / n, a[1] / n, a[2] / n]

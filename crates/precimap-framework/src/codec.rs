@@ -139,17 +139,22 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
     Ok(blocks)
 }
 
+/// The field object's version by what it carries (the tilt always comes with the heading).
+fn field_magic(heading: bool, tilt: bool) -> &'static [u8; 8] {
+    match (heading, tilt) {
+        (_, true) => FIELD_MAGIC_TILT,
+        (true, false) => FIELD_MAGIC_HEADING,
+        (false, false) => FIELD_MAGIC,
+    }
+}
+
 /// One tile's common-mode field equations: nodes, node-pair blocks, right-hand sides.
 /// Equations without the heading keep version 1, byte for byte, and without the tilt version 2.
 pub fn encode_field(f: &FieldEquations) -> Vec<u8> {
     let tilt = !f.tilt_pairs.is_empty() || !f.tilt_rhs.is_empty();
     let heading = tilt || !f.heading_pairs.is_empty() || !f.heading_rhs.is_empty();
     let mut out = Vec::with_capacity(28 + f.nodes.len() * 48 + f.pairs.len() * 136);
-    out.extend_from_slice(match (heading, tilt) {
-        (_, true) => FIELD_MAGIC_TILT,
-        (true, false) => FIELD_MAGIC_HEADING,
-        (false, false) => FIELD_MAGIC,
-    });
+    out.extend_from_slice(field_magic(heading, tilt));
     out.extend_from_slice(&f.observations.to_le_bytes());
     out.extend_from_slice(&(f.nodes.len() as u32).to_le_bytes());
     for (node, rhs) in f.nodes.iter().zip(&f.rhs) {
@@ -189,12 +194,7 @@ pub fn decode_field(bytes: &[u8]) -> Result<FieldEquations, CodecError> {
     const WHAT: &str = "common-mode field equations";
     let tilt = bytes.starts_with(FIELD_MAGIC_TILT);
     let heading = tilt || bytes.starts_with(FIELD_MAGIC_HEADING);
-    let magic = match (heading, tilt) {
-        (_, true) => FIELD_MAGIC_TILT,
-        (true, false) => FIELD_MAGIC_HEADING,
-        (false, false) => FIELD_MAGIC,
-    };
-    let mut r = Reader::new(bytes, magic, WHAT)?;
+    let mut r = Reader::new(bytes, field_magic(heading, tilt), WHAT)?;
     let observations = r.u64()?;
     let n = r.count(40)?;
     let (mut nodes, mut rhs) = (Vec::with_capacity(n), Vec::with_capacity(n));
