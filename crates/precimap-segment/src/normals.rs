@@ -146,6 +146,16 @@ impl Candidates {
         }
     }
 
+    /// Scatter sums of the centre and every neighbour: [`Self::scatter`] with every bit set (the
+    /// same sums in the same order), without walking a mask.
+    fn scatter_all(&self) -> Scatter {
+        let mut sums = Scatter::new();
+        for i in 0..self.m {
+            sums.add(self.point(i));
+        }
+        sums
+    }
+
     /// Scatter sums of the centre and the neighbours in `mask`.
     fn scatter(&self, mut mask: u64) -> Scatter {
         let mut sums = Scatter::new();
@@ -448,14 +458,15 @@ fn ransac(
     if inliers < min_inliers {
         return None;
     }
-    let (mask, _) = cand.inliers_counted(n, tol);
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
     let start = [n[0] / len, n[1] / len, n[2] / len].map(f64::from);
-    let fitted = cand.scatter(mask).plane_from(start)?;
     if inliers == all {
-        // Every neighbour already: the fit's inliers cannot be more.
-        return Some(fitted);
+        // Every neighbour already (the count is `inliers_counted`'s test, neighbour by
+        // neighbour): no mask to find, and the fit's inliers cannot be more.
+        return cand.scatter_all().plane_from(start);
     }
+    let (mask, _) = cand.inliers_counted(n, tol);
+    let fitted = cand.scatter(mask).plane_from(start)?;
     let (refined, count) = cand.inliers_counted(fitted.map(|v| v as f32), tol);
     if refined == mask || count < inliers {
         return Some(fitted);
@@ -772,6 +783,24 @@ mod tests {
                     "m {m}: {cost} against {expected}"
                 );
             }
+        }
+    }
+
+    /// The all-inlier shortcut of [`ransac`] sums every neighbour without a mask: the same sums,
+    /// bit for bit, as the mask with every bit set (the normals must not change with it).
+    #[test]
+    fn scatter_of_all_neighbours_equals_the_full_mask() {
+        let mut uniform = uniform(5);
+        for m in 1..=MAX_NEIGHBOURS {
+            let mut cand = Candidates::new();
+            for i in 0..m {
+                (cand.x[i], cand.y[i], cand.z[i]) = (uniform() as f32, uniform() as f32, 0.01 * uniform() as f32);
+            }
+            cand.m = m;
+            let (all, masked) = (cand.scatter_all(), cand.scatter((1u64 << m) - 1));
+            assert_eq!(all.count.to_bits(), masked.count.to_bits(), "m {m}");
+            assert_eq!(all.s.map(f64::to_bits), masked.s.map(f64::to_bits), "m {m}");
+            assert_eq!(all.ss.map(f64::to_bits), masked.ss.map(f64::to_bits), "m {m}");
         }
     }
 
