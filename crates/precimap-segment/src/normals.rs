@@ -222,13 +222,28 @@ pub fn estimate_normals(
     let steps_by_stride: Vec<Vec<isize>> = (1..=max_stride)
         .map(|stride| offsets.iter().map(|o| (o.dc * rows as i64 + o.dr * stride) as isize).collect())
         .collect();
-    let mut pixel = vec![OUTSIDE; offsets.len()];
+    // Per offset, as fixed-size arrays and bit sets (the gathering below indexes them without
+    // bounds checks): its window pixel, its ring, and whether it lies along the profile (same
+    // column) or across it (same row).
+    let count = offsets.len().min(MAX_NEIGHBOURS);
+    let mut pixel = [OUTSIDE; MAX_NEIGHBOURS];
+    let mut ring_of = [0usize; MAX_NEIGHBOURS];
+    let (mut along_bits, mut across_bits) = (0u64, 0u64);
+    for (index, o) in offsets.iter().enumerate().take(count) {
+        ring_of[index] = o.ring;
+        along_bits |= u64::from(o.dc == 0) << index;
+        across_bits |= u64::from(o.dr == 0) << index;
+    }
     let (rows_i, columns_i) = (rows as i64, columns as i64);
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = Candidates::new();
     let budget = Budget::new();
-    let mut reach2 = [0.0f64; 9];
-    for k in 0..geo.len() {
+    // Indexed by ring (≤ 8): sized to a power of two so that a masked ring needs no bounds check.
+    let mut reach2 = [0.0f64; 16];
+    // The coordinates as slices of one length: one bounds check covers all three.
+    let n = geo.len();
+    let (xs, ys, zs) = (&geo.x[..n], &geo.y[..n], &geo.z[..n]);
+    for k in 0..n {
         let c = image.column[k];
         if c == DROPPED {
             out.push(None);
@@ -249,17 +264,16 @@ pub fn estimate_normals(
         let tol = params.inlier_base_m + params.inlier_per_range * range;
         let stride = if along > 0.0 { ((2.0 * tol / along).ceil() as i64).clamp(1, max_stride) } else { 1 };
         cand.m = 0;
-        let (mut has_along, mut has_across) = (false, false);
         // The window's pixels: away from the image's edges (nearly every pixel) a fixed step from
         // the centre's, else with the columns checked and the rows wrapped.
         let centre = c as usize * rows + r as usize;
         let reach_rows = w * stride;
         if c >= w && c + w < columns_i && r >= reach_rows && r + reach_rows < rows_i {
-            for (px, &step) in pixel.iter_mut().zip(&steps_by_stride[stride as usize - 1]) {
+            for (px, &step) in pixel[..count].iter_mut().zip(&steps_by_stride[stride as usize - 1]) {
                 *px = centre.wrapping_add_signed(step);
             }
         } else {
-            for (px, o) in pixel.iter_mut().zip(&offsets) {
+            for (px, o) in pixel[..count].iter_mut().zip(&offsets) {
                 let cc = c + o.dc;
                 let mut rr = r + o.dr * stride;
                 if rr < 0 {
@@ -270,29 +284,33 @@ pub fn estimate_normals(
                 *px = if cc < 0 || cc >= columns_i { OUTSIDE } else { cc as usize * rows + rr as usize };
             }
         }
-        for (index, o) in offsets.iter().enumerate() {
-            if pixel[index] == OUTSIDE {
+        // Offsets kept, as bits.
+        let mut kept = 0u64;
+        for index in 0..count {
+            let px = pixel[index];
+            if px == OUTSIDE {
                 cand.slot[index] = ABSENT;
                 continue;
             }
             // Without branches on the data (holes and gaps are hard to predict): a hole reads the
             // centre itself, and every neighbour is written, but only a kept one advances `m`.
-            let j = grid[pixel[index]];
+            let j = grid[px];
             let present = j != NO_POINT;
             let j = if present { j as usize } else { k };
-            let d = [geo.x[j] - p[0], geo.y[j] - p[1], geo.z[j] - p[2]];
+            let d = [xs[j] - p[0], ys[j] - p[1], zs[j] - p[2]];
             let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-            let keep = present & (len2 <= reach2[o.ring]);
-            let i = cand.m;
+            let keep = present & (len2 <= reach2[ring_of[index] & 15]);
+            // `m` ≤ `index` < MAX_NEIGHBOURS: the bound only spares the compiler's checks.
+            let i = cand.m.min(MAX_NEIGHBOURS - 1);
             cand.slot[index] = if keep { i as u8 } else { ABSENT };
             cand.x[i] = d[0] as f32;
             cand.y[i] = d[1] as f32;
             cand.z[i] = d[2] as f32;
             cand.len2[i] = len2 as f32;
             cand.m += keep as usize;
-            has_along |= keep & (o.dc == 0);
-            has_across |= keep & (o.dr == 0);
+            kept |= u64::from(keep) << index;
         }
+        let (has_along, has_across) = (kept & along_bits != 0, kept & across_bits != 0);
         if cand.m + 1 < params.min_inliers as usize || !(has_along && has_across) {
             out.push(None);
             continue;
