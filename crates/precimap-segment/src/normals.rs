@@ -83,6 +83,13 @@ impl Candidates {
         }
     }
 
+    /// The number of candidates, as a bound the compiler can see (`m` never exceeds it): the
+    /// loops over them index the arrays without bounds checks.
+    #[inline]
+    fn len(&self) -> usize {
+        self.m.min(MAX_NEIGHBOURS)
+    }
+
     #[inline]
     fn point(&self, i: usize) -> [f32; 3] {
         [self.x[i], self.y[i], self.z[i]]
@@ -97,7 +104,7 @@ impl Candidates {
     fn inliers_counted(&self, n: [f32; 3], tol: f32) -> (u64, u32) {
         let limit = tol * tol * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
         let (mut mask, mut count) = (0u64, 1u32);
-        for i in 0..self.m {
+        for i in 0..self.len() {
             let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
             let inlier = d * d <= limit;
             mask |= (inlier as u64) << i;
@@ -122,7 +129,7 @@ impl Candidates {
         let limit = tol * tol * norm2;
         let mut count = [0u32; LANES];
         let mut cost = [0.0f32; LANES];
-        for group in 0..self.m.div_ceil(LANES) {
+        for group in 0..self.len().div_ceil(LANES) {
             for lane in 0..LANES {
                 let i = group * LANES + lane;
                 let d = n[0] * self.x[i] + n[1] * self.y[i] + n[2] * self.z[i];
@@ -150,7 +157,7 @@ impl Candidates {
     /// same sums in the same order), without walking a mask.
     fn scatter_all(&self) -> Scatter {
         let mut sums = Scatter::new();
-        for i in 0..self.m {
+        for i in 0..self.len() {
             sums.add(self.point(i));
         }
         sums
