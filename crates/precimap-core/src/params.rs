@@ -139,7 +139,8 @@ pub struct Parameters {
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
-    /// by orders of magnitude. 3 cm was measured better on every metric (docs/estimation.md, "Effective σ 3 cm").
+    /// by orders of magnitude. 3 cm was measured better on every metric (docs/estimation.md,
+    /// "Effective σ 3 cm").
     pub sigma_distance_m: f64,
     /// σ of the prior on the total position correction, per anchor. Not the GNSS/IMU accuracy
     /// itself: the prior holds every anchor independently, so over a stretch of `n` anchors it
