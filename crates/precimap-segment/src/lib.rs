@@ -235,28 +235,18 @@ fn segment(
     let mut uf = UnionFind::new(n);
     let mut edges: Vec<(f32, u32, u32)> = Vec::with_capacity(n / 2);
     let constants = EdgeConstants::new(params);
-    // The normals and coordinates as slices of one length: one bounds check covers all four.
-    let (normals, xs, ys, zs) = (&normals[..n], &geo.x[..n], &geo.y[..n], &geo.z[..n]);
-    let point = |k: usize| [xs[k], ys[k], zs[k]];
-    // The pixel's column and row, counted along (a division per pixel showed in the profile).
-    let (mut next_c, mut next_r) = (0usize, 0usize);
     for (pixel, &k) in grid.iter().enumerate() {
-        let (c, r) = (next_c, next_r);
-        next_r += 1;
-        if next_r == rows {
-            (next_c, next_r) = (c + 1, 0);
-        }
         if k == NO_POINT {
             continue;
         }
         let Some(nk) = &normals[k as usize] else { continue };
-        let pk = point(k as usize);
+        let (c, r) = (pixel / rows, pixel % rows);
         let mut link = |j: u32| {
             if j == NO_POINT {
                 return;
             }
             if let Some(nj) = &normals[j as usize] {
-                if let Some(w) = edge_weight(pk, point(j as usize), nk, nj, &constants) {
+                if let Some(w) = edge_weight(geo.point(k as usize), geo.point(j as usize), nk, nj, &constants) {
                     if w == 0.0 && weightless {
                         uf.join_weightless(k, j);
                     } else {

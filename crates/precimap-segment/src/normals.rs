@@ -156,22 +156,18 @@ impl Candidates {
     /// Scatter sums of the centre and every neighbour: [`Self::scatter`] with every bit set (the
     /// same sums in the same order), without walking a mask.
     fn scatter_all(&self) -> Scatter {
-        let mut sums = Scatter::new();
-        for i in 0..self.len() {
-            sums.add(self.point(i));
-        }
-        sums
+        Scatter::of((0..self.len()).map(|i| self.point(i)))
     }
 
     /// Scatter sums of the centre and the neighbours in `mask`.
     fn scatter(&self, mut mask: u64) -> Scatter {
-        let mut sums = Scatter::new();
-        while mask != 0 {
-            let i = mask.trailing_zeros() as usize;
-            mask &= mask - 1;
-            sums.add(self.point(i));
-        }
-        sums
+        Scatter::of(std::iter::from_fn(|| {
+            (mask != 0).then(|| {
+                let i = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                self.point(i)
+            })
+        }))
     }
 }
 
@@ -547,6 +543,16 @@ impl Scatter {
         Self { count: 1.0, s: [0.0; 3], ss: [0.0; 6] }
     }
 
+    /// The centre and `points`, added in order.
+    #[inline]
+    fn of(points: impl Iterator<Item = [f32; 3]>) -> Self {
+        let mut sums = Self::new();
+        for q in points {
+            sums.add(q);
+        }
+        sums
+    }
+
     #[inline]
     fn add(&mut self, q: [f32; 3]) {
         let q = q.map(f64::from);
@@ -640,11 +646,7 @@ fn planar(l0: f64, l1: f64, l2: f64) -> bool {
 /// the given points by the closed-form eigen-solver; `None` unless clearly planar (not a line,
 /// not a blob). The [`NormalMethod::LeastSquares`] comparison.
 fn plane_fit(pts: impl Iterator<Item = [f32; 3]>) -> Option<[f64; 3]> {
-    let mut sums = Scatter::new();
-    for q in pts {
-        sums.add(q);
-    }
-    let (l0, l1, l2, n) = smallest_eigen(sums.covariance())?;
+    let (l0, l1, l2, n) = smallest_eigen(Scatter::of(pts).covariance())?;
     planar(l0, l1, l2).then_some(n)
 }
 
