@@ -229,7 +229,7 @@ pub fn estimate_normals(
     // bounds checks): its window pixel, its ring, and whether it lies along the profile (same
     // column) or across it (same row).
     let count = offsets.len().min(MAX_NEIGHBOURS);
-    let mut pixel = [OUTSIDE; MAX_NEIGHBOURS];
+    let mut pixel = [grid.len(); MAX_NEIGHBOURS];
     let mut ring_of = [0usize; MAX_NEIGHBOURS];
     let (mut along_bits, mut across_bits) = (0u64, 0u64);
     for (index, o) in offsets.iter().enumerate().take(count) {
@@ -238,14 +238,25 @@ pub fn estimate_normals(
         across_bits |= u64::from(o.dr == 0) << index;
     }
     let (rows_i, columns_i) = (rows as i64, columns as i64);
+    // The coordinates in pixel order, holes NaN, and one NaN entry past the end that window
+    // pixels outside the image read. A neighbour is then one load away from its pixel (not two,
+    // through the grid) and a profile's neighbours are adjacent in memory; a hole's NaN gap fails
+    // the reach test, so holes need no test of their own.
+    let n = geo.len();
+    let (xs, ys, zs) = (&geo.x[..n], &geo.y[..n], &geo.z[..n]);
+    let mut coords = vec![[f64::NAN; 3]; grid.len() + 1];
+    for (q, &j) in coords.iter_mut().zip(grid) {
+        if j != NO_POINT {
+            let j = j as usize;
+            *q = [xs[j], ys[j], zs[j]];
+        }
+    }
+    let outside = grid.len();
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = Candidates::new();
     let budget = Budget::new();
     // Indexed by ring (≤ 8): sized to a power of two so that a masked ring needs no bounds check.
     let mut reach2 = [0.0f64; 16];
-    // The coordinates as slices of one length: one bounds check covers all three.
-    let n = geo.len();
-    let (xs, ys, zs) = (&geo.x[..n], &geo.y[..n], &geo.z[..n]);
     for k in 0..n {
         let c = image.column[k];
         if c == DROPPED {
@@ -284,25 +295,19 @@ pub fn estimate_normals(
                 } else if rr >= rows_i {
                     rr -= rows_i;
                 }
-                *px = if cc < 0 || cc >= columns_i { OUTSIDE } else { cc as usize * rows + rr as usize };
+                *px = if cc < 0 || cc >= columns_i { outside } else { cc as usize * rows + rr as usize };
             }
         }
         // Offsets kept, as bits.
         let mut kept = 0u64;
         for index in 0..count {
-            let px = pixel[index];
-            if px == OUTSIDE {
-                cand.slot[index] = ABSENT;
-                continue;
-            }
-            // Without branches on the data (holes and gaps are hard to predict): a hole reads the
-            // centre itself, and every neighbour is written, but only a kept one advances `m`.
-            let j = grid[px];
-            let present = j != NO_POINT;
-            let j = if present { j as usize } else { k };
-            let d = [xs[j] - p[0], ys[j] - p[1], zs[j] - p[2]];
+            // Without branches on the data (holes and gaps are hard to predict): every neighbour
+            // is written, but only a kept one advances `m`; a hole's or an outside pixel's NaN
+            // gap is never within reach.
+            let q = coords[pixel[index]];
+            let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
             let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-            let keep = present & (len2 <= reach2[ring_of[index] & 15]);
+            let keep = len2 <= reach2[ring_of[index] & 15];
             // `m` ≤ `index` < MAX_NEIGHBOURS: the bound only spares the compiler's checks.
             let i = cand.m.min(MAX_NEIGHBOURS - 1);
             cand.slot[index] = if keep { i as u8 } else { ABSENT };
@@ -497,8 +502,6 @@ fn ransac(
 
 /// Marks an offset of the window without a candidate.
 const ABSENT: u8 = u8::MAX;
-/// Marks a window pixel outside the image (its column does not exist).
-const OUTSIDE: usize = usize::MAX;
 
 /// Well-conditioned pairs of window offsets for the first hypotheses, as indices into `offsets`:
 /// one neighbour along the profile (same column) and one across (same row), at distance 2 (the
