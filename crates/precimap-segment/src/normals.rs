@@ -225,19 +225,6 @@ pub fn estimate_normals(
     let steps_by_stride: Vec<Vec<isize>> = (1..=max_stride)
         .map(|stride| offsets.iter().map(|o| (o.dc * rows as i64 + o.dr * stride) as isize).collect())
         .collect();
-    // Per offset, as fixed-size arrays and bit sets (the gathering below indexes them without
-    // bounds checks): its window pixel, its ring, and whether it lies along the profile (same
-    // column) or across it (same row).
-    let count = offsets.len().min(MAX_NEIGHBOURS);
-    let mut pixel = [grid.len(); MAX_NEIGHBOURS];
-    let mut ring_of = [0usize; MAX_NEIGHBOURS];
-    let (mut along_bits, mut across_bits) = (0u64, 0u64);
-    for (index, o) in offsets.iter().enumerate().take(count) {
-        ring_of[index] = o.ring;
-        along_bits |= u64::from(o.dc == 0) << index;
-        across_bits |= u64::from(o.dr == 0) << index;
-    }
-    let (rows_i, columns_i) = (rows as i64, columns as i64);
     // The coordinates in pixel order, holes NaN, and one NaN entry past the end that window
     // pixels outside the image read. A neighbour is then one load away from its pixel (not two,
     // through the grid) and a profile's neighbours are adjacent in memory; a hole's NaN gap fails
@@ -252,6 +239,19 @@ pub fn estimate_normals(
         }
     }
     let outside = grid.len();
+    // Per offset, as fixed-size arrays and bit sets (the gathering below indexes them without
+    // bounds checks): its window pixel, its ring, and whether it lies along the profile (same
+    // column) or across it (same row).
+    let count = offsets.len().min(MAX_NEIGHBOURS);
+    let mut pixel = [outside; MAX_NEIGHBOURS];
+    let mut ring_of = [0usize; MAX_NEIGHBOURS];
+    let (mut along_bits, mut across_bits) = (0u64, 0u64);
+    for (index, o) in offsets.iter().enumerate().take(count) {
+        ring_of[index] = o.ring;
+        along_bits |= u64::from(o.dc == 0) << index;
+        across_bits |= u64::from(o.dr == 0) << index;
+    }
+    let (rows_i, columns_i) = (rows as i64, columns as i64);
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = Candidates::new();
     let budget = Budget::new();
