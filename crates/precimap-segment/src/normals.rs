@@ -229,13 +229,10 @@ pub fn estimate_normals(
     // pixels outside the image read. A neighbour is then one load away from its pixel (not two,
     // through the grid) and a profile's neighbours are adjacent in memory; a hole's NaN gap fails
     // the reach test, so holes need no test of their own.
-    let n = geo.len();
-    let (xs, ys, zs) = (&geo.x[..n], &geo.y[..n], &geo.z[..n]);
     let mut coords = vec![[f64::NAN; 3]; grid.len() + 1];
     for (q, &j) in coords.iter_mut().zip(grid) {
         if j != NO_POINT {
-            let j = j as usize;
-            *q = [xs[j], ys[j], zs[j]];
+            *q = geo.point(j as usize);
         }
     }
     let outside = grid.len();
@@ -257,7 +254,7 @@ pub fn estimate_normals(
     let budget = Budget::new();
     // Indexed by ring (≤ 8): sized to a power of two so that a masked ring needs no bounds check.
     let mut reach2 = [0.0f64; 16];
-    for k in 0..n {
+    for k in 0..geo.len() {
         let c = image.column[k];
         if c == DROPPED {
             out.push(None);
