@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 4's acceptance run, rerunnable: a simulated campaign (default: small) through
+# The service's acceptance run, rerunnable: a simulated campaign (default: small) through
 # `precimap serve` on PostgreSQL + Garage with 4 separate `precimap work` processes, compared
 # byte for byte with `precimap run --in-process`. Usage: scripts/serve-acceptance.sh [SCALE] [SEED]
 set -euo pipefail

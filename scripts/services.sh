@@ -2,7 +2,7 @@
 # Starts what the integration tests talk to, when it is not running yet, and prints the
 # environment they read (source it: `eval "$(scripts/services.sh)"`):
 #   - PostgreSQL on 127.0.0.1:5432 (the machine's cluster);
-#   - Garage, a single-node S3-compatible server on 127.0.0.1:3900 (DESIGN §5), installed with
+#   - Garage, a single-node S3-compatible server on 127.0.0.1:3900, installed with
 #     `cargo install garage` on first use (~8 min on a fast machine; 65-77 min on this project's
 #     2-core machine beside other builds; the binary is cached in ~/.cargo/bin);
 #   - headless Chromium for the dashboard test (Debian's package, installed on first use).

@@ -81,7 +81,7 @@ fn tiny_campaign_is_adjusted_towards_the_truth() {
         assert!(m.after < 0.006, "{name} error without the datum in the run-up and run-out {m:?}");
     }
     // The attitude per axis of the vehicle (seed 3: roll 10.4 → 9.1, pitch 8.9 → 7.9, heading
-    // 17.4 → 8.2 mdeg; 12.7 with the heading's prior as tight as the tilt's, before stop 46): the heading is what the strips' agreement corrects most, and the three
+    // 17.4 → 8.2 mdeg; 12.7 with the heading's prior as tight as the tilt's): the heading is what the strips' agreement corrects most, and the three
     // axes make up the angle's RMS (weighted by arc length, not per sample: within 10 %).
     let attitude = &e.trajectory_attitude_error_rms_deg;
     assert!(attitude.heading.after < 0.85 * attitude.heading.before, "heading {:?}", attitude.heading);

@@ -166,7 +166,7 @@ fn main() {
 
 /// glibc gives a thread that meets contention an arena of its own, up to eight per core, and keeps
 /// what is freed in each: without a limit ~40 % of `bench estimate`'s peak RSS on medium was such
-/// kept memory, and one arena per core cost no speed (docs/figures.md, "Allocator arenas"). glibc reads
+/// kept memory, and one arena per core cost no speed (docs/design/estimation.md, "Throughput"). glibc reads
 /// its settings once, at its first allocation, so the process executes itself again (same pid,
 /// arguments and streams) with that limit and the command's [`MallocTuning`] in its environment,
 /// keeping any of the tuning's variables the user set. A limit already set (by the user, who then
@@ -206,16 +206,14 @@ enum MallocTuning {
     /// `evaluate`: blocks from [`EVALUATE_MMAP_THRESHOLD`] up are mapped on their own and returned
     /// when freed. glibc's own threshold rises to the size of the largest block freed (up to
     /// 32 MiB), so a strip's arrays (tens of MB) would come from the heap after the first strip,
-    /// and the heap would keep them; the latent map is then read on top of every strip's arrays
-    /// (docs/figures.md, "`evaluate` in less memory"). On large s1 (stop 33): peak 2.52 → 1.64 GB,
-    /// time unchanged.
+    /// and the heap would keep them; the latent map is then read on top of every strip's arrays.
+    /// On large s1: peak 2.52 → 1.64 GB, time unchanged.
     ReturnLargeBlocks,
     /// Everything else (the tasks): freed memory stays in the heap for the next task. With
     /// glibc's defaults the heap is trimmed whenever 128 KiB–64 MiB lie free at its top, and the
-    /// next tile faults every page of it in again, zeroed by the kernel: on large s1 (stop 38)
-    /// 27 % of a 2 cm pass's CPU was the kernel's, 6 % with this tuning, and the pass ran
-    /// 1.36× the points per CPU-second at a 3 % higher peak (docs/figures.md, "Allocator
-    /// arenas").
+    /// next tile faults every page of it in again, zeroed by the kernel: on large s1 27 % of a
+    /// 2 cm pass's CPU was the kernel's, 6 % with this tuning, and the pass ran 1.36× the points
+    /// per CPU-second at a 3 % higher peak (docs/design/estimation.md, "Throughput").
     KeepFreedMemory,
 }
 

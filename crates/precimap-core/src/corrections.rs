@@ -1,6 +1,6 @@
-//! Pose corrections at anchors (DESIGN §2). Anchor `i` sits at arc length `i·Δ` along its
-//! trajectory; a measurement at anchor coordinate `u = s/Δ` takes the linear interpolation of the
-//! corrections at `⌊u⌋` and `⌊u⌋+1`. A correction moves a point as
+//! Pose corrections at anchors (docs/design/estimation.md, "Unknowns"). Anchor `i` sits at arc
+//! length `i·Δ` along its trajectory; a measurement at anchor coordinate `u = s/Δ` takes the
+//! linear interpolation of the corrections at `⌊u⌋` and `⌊u⌋+1`. A correction moves a point as
 //! `p' = t0 + δt + Exp(δθ)·r` (t0 scan-head position, r measurement vector).
 
 use crate::geom::rotate_small;

@@ -1,6 +1,6 @@
 //! Rotations and small-angle algebra.
 //!
-//! Conventions (DESIGN §1): body frame x forward, y left, z up;
+//! Conventions (as in the manifest's formats): body frame x forward, y left, z up;
 //! `R_world_body = Rz(yaw) · Ry(pitch) · Rx(roll)`, angles in degrees at the file boundary and
 //! radians everywhere else.
 

@@ -21,8 +21,8 @@ pub struct IterationStep {
     /// Capture cells: columns unbounded along the dominant axis of each point's normal (vertical
     /// for a road, horizontal for a façade), with surfaces told apart by normal only, so strips
     /// decimetres apart along a surface's normal are never split by a cell face. Vertical
-    /// columns (until stop 43) split the passes over a façade that lay near a cell face, and
-    /// those groups then never met (docs/estimation.md, "Capture cells along the normal").
+    /// columns split the passes over a façade that lay near a cell face, and those groups then
+    /// never met (docs/design/estimation.md, "The latent map").
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub column_cells: bool,
     /// Momentum ([`Parameters::momentum`]) may carry the previous step into this one. Heavy-ball
@@ -30,8 +30,7 @@ pub struct IterationStep {
     /// iteration); steps without it settle. The default schedule's last six steps (thresholds
     /// under 2 cm) settle: with the consistent gradient, the largest anchor change of the last
     /// iteration falls 2.2–2.6 → 0.4–0.8 mm (median 0.40 → 0.13 mm) on small seeds 1, 2 and
-    /// medium, the spreads within −6 … +5 % (docs/estimation.md, "Settling in the last six steps";
-    /// changes then measured from the solves' start, see "The change between iterations").
+    /// medium, the spreads within −6 … +5 % (docs/design/estimation.md, "Momentum and settling").
     #[serde(default = "default_true")]
     pub momentum: bool,
 }
@@ -109,8 +108,8 @@ pub struct Parameters {
     /// after the last (the run-up and run-out) take what the smoothness and curvature terms
     /// predict from the estimated corrections, which carries their trend on, instead of the end
     /// anchor's correction held. Beyond it the correction is held; 0 holds it from the end
-    /// anchors on. Estimation does not see these anchors. 10 m since stop 44: the simulator's
-    /// run-ups are 4–5 m, and the prediction fades over ~25 m (docs/estimation.md, "The run-up and
+    /// anchors on. Estimation does not see these anchors. 10 m: the simulator's run-ups are
+    /// 4–5 m, and the prediction fades over ~25 m (docs/design/estimation.md, "Run-up and
     /// run-out").
     pub end_extension_m: f64,
     /// Edge of a square map tile (paper: 15 m).
@@ -130,48 +129,48 @@ pub struct Parameters {
     pub normal_group_angle_deg: f64,
     /// Form a cell's surface models per scan-image segment (another segment of the same strip
     /// pass joins only if coplanar; segments of different strips join by normal and plane
-    /// distance) instead of by normal alone. On by default since the common-mode field: the
-    /// residual σ falls 3.5 % and 1.2–1.6 points more of the surface points are used, with the
-    /// strip offset spread within ±2 % (docs/estimation.md, "Surface models"). A triangle of another
-    /// pass then also gives a point its latent height only if its corners lie in one segment of
-    /// their pass (docs/estimation.md, "Covering triangles lie within one segment").
+    /// distance) instead of by normal alone. On by default: on medium seed 1 the datum-free
+    /// spreads are 4–10 % smaller, the latent map 13 % closer to the truth and 2.5 points more
+    /// of the surface points are used. A triangle of another pass then also gives a point its
+    /// latent height only if its corners lie in one segment of their pass
+    /// (docs/design/estimation.md, "The latent map").
     pub segment_surfaces: bool,
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
-    /// by orders of magnitude. 3 cm was measured better on every metric (docs/estimation.md,
-    /// "Effective σ 3 cm").
+    /// by orders of magnitude. 3 cm was measured better on every metric
+    /// (docs/design/estimation.md, "Observations").
     pub sigma_distance_m: f64,
     /// σ of the prior on the total position correction, per anchor. Not the GNSS/IMU accuracy
     /// itself: the prior holds every anchor independently, so over a stretch of `n` anchors it
-    /// holds their mean to σ/√n, while the real error is correlated over hundreds of metres.
-    /// 1 m since stop 40 (0.3 m before; docs/estimation.md, "A looser attitude model").
+    /// holds their mean to σ/√n, while the real error is correlated over hundreds of metres
+    /// (docs/design/estimation.md, "The per-trajectory solve").
     pub sigma_prior_position_m: f64,
     /// σ of the prior on the total attitude correction, per anchor (as for the position, an
-    /// independent prior per anchor holds a stretch's mean far tighter than its σ reads). Kept
-    /// at 0.02° at stop 40: 0.05° made small and medium agree better still, but at a real
-    /// scanner's 0.3° step one stretch of street then swung by centimetres (docs/estimation.md, "A
-    /// looser attitude model"). The heading has its own since stop 46
-    /// (`sigma_prior_heading_deg`): this is the tilt's.
+    /// independent prior per anchor holds a stretch's mean far tighter than its σ reads). 0.02°:
+    /// 0.05° makes small and medium agree better still, but at a real scanner's 0.3° step one
+    /// stretch of street then swings by centimetres (docs/design/estimation.md, "The
+    /// per-trajectory solve"). The heading has its own (`sigma_prior_heading_deg`): this is the
+    /// tilt's.
     pub sigma_prior_rotation_deg: f64,
     /// σ of that prior about the vertical (the heading, for a vehicle that is nearly level); 0:
-    /// `sigma_prior_rotation_deg` on all three axes. 0.05° since stop 46: the tilt's 0.02° held
-    /// every pass to its own GNSS/IMU heading, so passes through one place kept different
-    /// headings and the strips disagreed (docs/estimation.md, "The heading's own prior"). The
-    /// tilt keeps 0.02°, which a real scanner's 0.3° step needs.
+    /// `sigma_prior_rotation_deg` on all three axes. 0.05°: the tilt's 0.02° holds every pass to
+    /// its own GNSS/IMU heading, so passes through one place keep different headings and the
+    /// strips disagree (docs/design/estimation.md, "The per-trajectory solve"). The tilt keeps
+    /// 0.02°, which a real scanner's 0.3° step needs.
     pub sigma_prior_heading_deg: f64,
     /// σ of the change in position correction between neighbouring anchors.
     pub sigma_smooth_position_m: f64,
-    /// σ of the change in attitude correction between neighbouring anchors. 0.004° since stop 40
-    /// (0.001° before): attitude errors with periods from ~5 s change by up to ~0.0016° per
-    /// 0.5 m at 8 m/s, and the stiffer term made strips disagree where the attitude had to bend.
+    /// σ of the change in attitude correction between neighbouring anchors. 0.004°: attitude
+    /// errors with periods from ~5 s change by up to ~0.0016° per 0.5 m at 8 m/s, and a stiffer
+    /// term (0.001°) makes strips disagree where the attitude has to bend.
     pub sigma_smooth_rotation_deg: f64,
     /// σ of the second difference of the position correction over three neighbouring anchors
     /// (curvature). GNSS/IMU errors bend over hundreds of metres; a kink within metres is an
     /// artefact. 0 disables the term.
     pub sigma_curvature_position_m: f64,
-    /// σ of the second difference of the attitude correction; 0 disables the term. 0.0003°
-    /// since stop 40 (0.0001° before), with the smoothness above.
+    /// σ of the second difference of the attitude correction; 0 disables the term. 0.0003°,
+    /// loose enough for the smoothness above.
     pub sigma_curvature_rotation_deg: f64,
     /// An anchor's own observations are trusted only in directions carrying at least this share
     /// of its strongest direction's information (rotations compared as displacements at 10 m).
@@ -188,12 +187,11 @@ pub struct Parameters {
     /// grid), so that each triangle covers about one centre and the cost is O(points) instead of
     /// O(points × passes over a place). A point reads its own pixel: the other passes' heights
     /// at the centre, carried to the point along their mean slope, and its own pass by its own
-    /// height. 0 evaluates every covering triangle exactly at the points (the route before stop
-    /// 25). At 0.7 every datum-free figure on small seeds 1–2 and medium seed 1 is within
-    /// ±0.02 mm of the exact route's, the latent map is closer to the truth, and the 2 cm
-    /// iteration is 1.4× (small) to 1.7× (medium) faster (docs/estimation.md, "Sampled at pixel
-    /// centres"). With a consensus gate ([`Self::cover_agreement_thresholds`]) the exact route
-    /// runs.
+    /// height. 0 evaluates every covering triangle exactly at the points (the exact route). At
+    /// 0.7 every datum-free figure on small seeds 1–2 and medium seed 1 is within ±0.02 mm of the
+    /// exact route's, the latent map is closer to the truth, and the 2 cm iteration is 1.4×
+    /// (small) to 1.7× (medium) faster (docs/design/estimation.md, "The latent map"). With a
+    /// consensus gate ([`Self::cover_agreement_thresholds`]) the exact route runs.
     pub latent_pixel_share: f64,
     /// Every step's outlier threshold is at least this many robust σ (1.4826 × median |e|) of the
     /// previous iteration's point-to-map distances; 0 keeps the schedule's thresholds as they are.
@@ -210,7 +208,7 @@ pub struct Parameters {
     /// agreeing among themselves. Off by default: at 2 the datum-free spreads improve 0.1–2.5 % and
     /// points used rise ~0.5 points, but every covering pair is held until the consensus is
     /// known, and the largest anchor change of the last iteration grows on medium seed 2
-    /// (docs/estimation.md, "Covering triangles lie within one segment").
+    /// (docs/design/estimation.md, "The latent map").
     pub cover_agreement_thresholds: f64,
     /// Heavy-ball momentum β of the alternating least squares: each trajectory step adds
     /// β × its previous step, between the fine, point-sampled iterations whose steps allow it
@@ -224,40 +222,38 @@ pub struct Parameters {
     /// campaign (bilinear between nodes this far apart) is solved with the latent map moving
     /// along, and added to every trajectory at its anchors. It moves the shift every pass at a
     /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
-    /// 7.5 m since stop 40 (15 m since stop 12, 30 m before): with the looser attitude model and
-    /// Anderson, medium seed 1's latent map lies 4.27 mm from the truth without the campaign's
+    /// 7.5 m: medium seed 1's latent map lies 4.27 mm from the truth without the campaign's
     /// shift at 7.5 m against 5.52 mm at 15 m and 4.48 mm at 5 m. The field's sparse solve takes
     /// a street network of ~40 km² at 7.5 m with the heading (~165 km² at 15 m; without the
     /// heading ~70 and ~290 km²: `MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
-    /// docs/estimation.md, "The common-mode field's sparse solve" and "The common-mode field's
-    /// heading").
+    /// docs/design/estimation.md, "The common-mode field").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step
     /// that no field on the same nodes represents (the field re-solves the rest itself, so
     /// carrying it too makes the two levels fight). Off by default: it halves the last
     /// iterations' changes and makes small campaigns agree better without the campaign's shift
     /// (seed 1: 1.199 → 1.131 mm, seed 2: 0.621 → 0.572 mm), but medium agrees worse (2.90 →
-    /// 2.99 mm; docs/estimation.md, "Field-free momentum").
+    /// 2.99 mm; docs/design/estimation.md, "The common-mode field").
     pub field_free_momentum: bool,
     /// In steps that solve the common-mode field, solve with it one rotation of the whole
     /// campaign about its centre (the field's constant part is the translation): the rigid
     /// motion the strips' agreement cannot see, as the latent map moves with the strips.
     /// Alternation relaxes it only through the prior, by a share per iteration that shrinks as
-    /// the data grow, so the campaign kept the tilt its first iterations gave it. Solved with the
-    /// field, the prior and smoothness decide it at once. On by default since stop 42: at a real
+    /// the data grow, so the campaign would keep the tilt its first iterations gave it. Solved
+    /// with the field, the prior and smoothness decide it at once. On by default: at a real
     /// scanner's 0.3° step the campaign's tilt falls 4.6–6× and the latent map comes 18–27 %
     /// closer to the truth without the campaign's shift; at 1.5° the figures move by 2 % or less
-    /// (docs/estimation.md, "The campaign's rotation").
+    /// (docs/design/estimation.md, "The campaign's rotation").
     pub campaign_motion: bool,
     /// Give the common-mode field a heading too: a rotation about the vertical, bilinear between
     /// the same nodes, added to every anchor's attitude correction. Every pass through a place
     /// turning with the map about a point near them (the translation field's gradient carrying
     /// the positions round) changes no residual, only the prior and smoothness see it, so
     /// alternation relaxes it slowly, and more slowly the looser the heading's prior
-    /// (`sigma_prior_heading_deg`). Solved with the field, they decide it at once. On by default
-    /// since stop 47: iteration 18 comes within 0.12 mm RMS of the fixed point on small s1
-    /// (0.95 mm without), and the latent map 1.5–12 % closer to the truth (docs/estimation.md, "The
-    /// common-mode field's heading").
+    /// (`sigma_prior_heading_deg`). Solved with the field, they decide it at once. On by default:
+    /// iteration 18 comes within 0.12 mm RMS of the fixed point on small s1 (0.95 mm without),
+    /// and the latent map 1.5–12 % closer to the truth (docs/design/estimation.md, "The
+    /// common-mode field").
     pub common_mode_heading: bool,
     /// Give the common-mode field a tilt too (needs `common_mode_heading`): rotations about the
     /// two horizontal axes, bilinear between the same nodes, added to every anchor's attitude
@@ -265,10 +261,10 @@ pub struct Parameters {
     /// through a place tilting with the map (the translation field's vertical gradient carrying
     /// the heights along) is as invisible to the strips as the shared heading, and the denser
     /// the scanner, the smaller the prior's share of the information and the slower alternation
-    /// relaxes it. Off by default since it came in (stop 48): at a real scanner's 0.3° step
-    /// iteration 18 has 28 % less vertical error, but the iteration settles at a less accurate
-    /// point than the default reaches by running on, and the 1.5° campaigns lose 0.3–4.5 %
-    /// (docs/estimation.md, "The common-mode field's tilt").
+    /// relaxes it. Off by default: at a real scanner's 0.3° step iteration 18 has 28 % less
+    /// vertical error, but the iteration settles at a less accurate point than the default
+    /// reaches by running on, and the 1.5° campaigns lose 0.3–4.5 % (docs/design/estimation.md,
+    /// "The common-mode field").
     pub common_mode_tilt: bool,
     /// In point-sampled steps, give each pass the gradient of the cost the common-mode field
     /// minimises: a point's own pass is weighted by its share `c/(c+1)` in the latent height
@@ -276,20 +272,19 @@ pub struct Parameters {
     /// is pulled by the point's residual with weight `1/(c+1)` (the transpose of the latent
     /// height's dependence on that triangle). Without it the per-trajectory solves hold the map
     /// fixed, and their fixed point differs from the field's wherever passes sample a place
-    /// with different densities (docs/estimation.md, "Consistent gradient and 15 m field nodes").
-    /// On by default since stop 12: the median anchor's last change falls ~3× (to 0.4 mm) and
-    /// the datum-free spreads improve on small, at ~1.2× the map task's CPU.
+    /// with different densities (docs/design/estimation.md, "The consistent gradient"). On by
+    /// default: the median anchor's last change falls ~3× (to 0.4 mm) and the datum-free spreads
+    /// improve on small, at ~1.2× the map task's CPU.
     pub consistent_gradient: bool,
     /// Anderson acceleration over the settling iterations: each of them (point-sampled, no
     /// momentum carried into it) records where it started and where it ended, and the next one
     /// starts from the combination of the last `anderson_depth` + 1 results that best cancels
-    /// their steps (`precimap_estimate::anderson`). The fixed point does not move. Measured with
-    /// depth 5 (stop 29): the 48-step schedule converges in 19 / 20 / 25 iterations instead of
-    /// 26 / 29 / 44 on small seeds 1, 2 and medium seed 1, to the same figures (≤ 0.01 mm). On
-    /// (5) by default since stop 40: with the looser attitude model it changes small seeds 1 and
-    /// 2's figures by 1.3 % or less either way, and iteration 18's largest change falls 2.8–3.8×
-    /// (docs/estimation.md, "Anderson acceleration over the settling steps" and "A looser attitude
-    /// model"). 0 turns it off.
+    /// their steps (`precimap_estimate::anderson`). The fixed point does not move. With depth 5
+    /// a 48-step schedule (under a stiffer attitude prior) converged in 19 / 20 / 25 iterations
+    /// instead of 26 / 29 / 44 on small seeds 1, 2 and medium seed 1, to the same figures
+    /// (≤ 0.01 mm). Within the default schedule it changes small seeds 1 and 2's figures by 1.3 %
+    /// or less either way, and iteration 18's largest change falls 2.8–3.8×
+    /// (docs/design/estimation.md, "Anderson acceleration"). 0 turns it off.
     pub anderson_depth: usize,
     /// Iterations in order; estimation stops early once converged on the last step's settings.
     pub schedule: Vec<IterationStep>,

@@ -1,5 +1,5 @@
 //! A GNSS/IMU trajectory: poses at (typically 200 Hz) time stamps, interpolated in between, with
-//! the cumulative arc length that places anchors (DESIGN §2).
+//! the cumulative arc length that places anchors.
 
 use crate::geom::{rot_from_rpy, so3_exp, so3_log, Mat3, Vec3};
 

@@ -1,5 +1,5 @@
 //! Normal-equation blocks of one trajectory, keyed by anchor (the values a tile's map task emits
-//! and a trajectory's reduce task sums, DESIGN §3).
+//! and a trajectory's reduce task sums).
 //!
 //! Each observation adds `w·JJᵀ` with `J = [(1−λ)g, λg]` to the 12×12 block of anchors i, i+1.
 //! Because `ggᵀ` is symmetric all three 6×6 blocks are symmetric, so they travel as their 21

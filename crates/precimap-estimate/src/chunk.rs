@@ -2,10 +2,10 @@
 //! order, with everything estimation needs and nothing else.
 //!
 //! Encoded little-endian behind a versioned header (`PMCHUNK` + version byte), so chunks can live
-//! in files or an object store (DESIGN §3: `tiles/{tx}_{ty}/{strip}.chunk`).
+//! in files or an object store (`tiles/{tx}_{ty}/{strip}.chunk`).
 //! Version 2 added the segment id, version 3 the point's index in its strip file (so that what
 //! estimation does with a point can be traced back to it: QC per point, the assignment audit);
-//! both are 64 bytes per point. Version 4 (written since stop 35) holds the same values bit for
+//! both are 64 bytes per point. Version 4 (the one written) holds the same values bit for
 //! bit in about 60 % of the bytes: each column stores the zigzagged difference from the point
 //! before (for `f32`s, of their bit patterns, which for nearby values of one sign differ in the
 //! low bits only), and scan-image neighbours as their offset from the point, in blocks of 64

@@ -1,5 +1,5 @@
-//! The common-mode field: the coarse level of a two-level estimation (docs/estimation.md,
-//! "Estimation robustness").
+//! The common-mode field: the coarse level of a two-level estimation (docs/design/estimation.md,
+//! "The common-mode field").
 //!
 //! Alternating least squares moves a correction that every pass at a place shares by only a
 //! few per cent per iteration: the latent map follows the strips, so only the GNSS/IMU prior and
@@ -951,8 +951,8 @@ impl FieldError {
 /// unknowns per node, so the limit lies near 290 km² of such a network; with the heading's
 /// fourth, 159 km² needs 89 % and the limit lies near 165 km²; with the tilt's six, 39.7 km²
 /// need 2.1× the entries of four and 89.3 km² need 1,096 MiB, so the limit lies near 85 km²
-/// (`precimap bench field-solve --blocks N --per-node 3|4|6`; docs/estimation.md, "The
-/// common-mode field's sparse solve").
+/// (`precimap bench field-solve --blocks N --per-node 3|4|6`; docs/design/estimation.md, "The
+/// common-mode field").
 pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,

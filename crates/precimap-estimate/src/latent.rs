@@ -28,7 +28,7 @@ pub struct LatentSample {
 
 /// Where the latent map's samples go. The estimation's iterations pass `()`, which compiles to
 /// nothing: gathering inside every iteration made the covering loop 5–9 % slower through its
-/// code generation alone (stop 22), so only the iterations whose map is kept run the recording
+/// code generation alone, so only the iterations whose map is kept run the recording
 /// copy.
 pub(crate) trait LatentSink {
     const RECORDS: bool;

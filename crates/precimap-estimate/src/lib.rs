@@ -1,4 +1,4 @@
-//! Strip adjustment numerics (paper §5–6, DESIGN §2–3), pure and free of I/O:
+//! Strip adjustment numerics (paper §5–6, docs/design/estimation.md), pure and free of I/O:
 //!
 //! - [`prepare`]: per strip — point geometry against the trajectory, scan image, normals,
 //!   points keyed into tiles ([`chunk::TileChunk`]);

@@ -1,4 +1,4 @@
-//! Per-strip preparation (the `segment_strip` map task of DESIGN §3): point geometry against the
+//! Per-strip preparation (the `segment_strip` map task): point geometry against the
 //! trajectory, the scan image (rows = measurement within a scanner revolution, columns =
 //! revolutions, per channel; [`precimap_segment::ScanImage`]), RANSAC normals and the
 //! Felzenszwalb–Huttenlocher segmentation ([`precimap_segment::segment_strip`]), and the
@@ -47,7 +47,7 @@ pub enum PrepareError {
     Shape(String),
 }
 
-/// Geometry of one measurement relative to its trajectory (DESIGN §2).
+/// Geometry of one measurement relative to its trajectory.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MeasurementGeometry {
     /// Scan-head position `t0 = c + R·ℓ` (absolute).

@@ -1,4 +1,4 @@
-//! `solve_trajectory`: the reduce task of one iteration (paper Eq. 6, DESIGN §2). Sums the
+//! `solve_trajectory`: the reduce task of one iteration (paper Eq. 6). Sums the
 //! blocks all tiles emitted for one trajectory, adds the prior on the total correction (Eq. 2)
 //! and the smoothness between neighbouring anchors (Eq. 3), and solves the block-tridiagonal
 //! Gauss–Newton system exactly in linear time.

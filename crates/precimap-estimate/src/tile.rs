@@ -1,4 +1,5 @@
-//! `estimate_tile`: the map task of one estimation iteration (paper §6.3, DESIGN §2–3).
+//! `estimate_tile`: the map task of one estimation iteration (paper §6.3,
+//! docs/design/estimation.md).
 //!
 //! 1. Every point of the tile is corrected with the current trajectory corrections.
 //! 2. The latent map is built: points fall into voxel-hashed cells (columns along the point's
@@ -7,7 +8,7 @@
 //!    surface model (LSM: plane with normal `w`, origin `o`, and a height raster of pixel size
 //!    `grid_m`). Each strip's surface (the triangles of its scan image) is rasterised into the
 //!    LSM pixels, so a pixel knows every strip's surface height there even when the points are
-//!    sparser than the pixels (DESIGN §2 "Density matters").
+//!    sparser than the pixels.
 //!    Steps with pixels finer than `point_latent_below_grid_m` skip the raster and sample the
 //!    other passes' triangles for each point instead, at a cost that does not grow with the
 //!    pixel count: at pixel centres that follow the point spacing ([`pixels`], the default,
@@ -1769,7 +1770,7 @@ mod tests {
 
     /// A capture step's cells are columns along the normal too. Two passes 10 cm apart on either
     /// side of a façade parallel to a 3 m cell face (x = 9 m) meet in one model per cell; in
-    /// vertical columns (until stop 43) they fell into two cells that never met, and small s3
+    /// vertical columns they fell into two cells that never met, and small s3
     /// at a 0.3° step kept one street's passes in two groups 0.3 m apart along the track.
     #[test]
     fn capture_passes_either_side_of_a_cell_face_meet_in_one_model() {

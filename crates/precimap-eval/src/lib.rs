@@ -208,7 +208,7 @@ pub struct Evaluation {
     /// opposite sides move apart by twice the shared shift along the line of sight.
     pub same_surface_spread_m: Metric,
     /// `same_surface_spread_m` after removing the campaign's shift (`campaign_shift_m`) from every
-    /// point, which takes the datum out on poles and cars too. Measured at stop 39: with real
+    /// point, which takes the datum out on poles and cars too. Measured: with real
     /// scanners' angular steps (small seed 3 at 0.3° instead of 1.5°) poles reach the 200 points
     /// per strip and tile, and the 56 mm datum made the same-surface spread 4.6 mm (poles 25 mm)
     /// where it is 0.5 mm without (poles 1.7 mm, every other class 0.4–0.6 mm).
@@ -275,8 +275,9 @@ pub struct Evaluation {
     /// Tilt of the least-squares plane through all trajectories' vertical position error over
     /// the true horizontal position (degrees; NaN where the trajectories lie on one line). A
     /// campaign tilted as a whole, every pass and the map together, changes no residual, so the
-    /// strips' agreement cannot fix it; the GNSS/IMU prior should (stop 41 measured it following
-    /// the attitude prior, and 5–6× larger at a 0.3° scanner step than at 1.5°).
+    /// strips' agreement cannot fix it; the GNSS/IMU prior should (measured: it follows the
+    /// attitude prior, and is 5–6× larger at a 0.3° scanner step than at 1.5° without the
+    /// campaign's rotation solved with the field).
     pub trajectory_tilt_deg: Metric,
     /// RMS of the vertical position error about that plane (weighted by arc length): the
     /// vertical accuracy the strips' agreement decides.

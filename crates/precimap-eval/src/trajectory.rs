@@ -32,7 +32,7 @@ pub struct TrajectoryErrors {
     pub rotation_sum_by_length: [f64; 3],
 }
 
-/// An attitude error's components about the true vehicle's axes (DESIGN §1: body x forward,
+/// An attitude error's components about the true vehicle's axes (body x forward,
 /// y left, z up), in this order. Relative data see them differently: a heading error moves a
 /// façade at range r along the track by r·δ, a roll error tilts the road across it.
 pub const ATTITUDE_COMPONENTS: [&str; 3] = ["roll", "pitch", "heading"];

@@ -1,4 +1,4 @@
-//! Campaign manifest (DESIGN §1): which trajectories and strips form a campaign, the scanners'
+//! Campaign manifest (README, "A manifest"): which trajectories and strips form a campaign, the scanners'
 //! mounting, and optional parameter overrides.
 //!
 //! Validation walks the JSON value before deserializing so that a user sees *every* problem at

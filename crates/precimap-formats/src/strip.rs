@@ -1,4 +1,4 @@
-//! Strips: LAS 1.2–1.4 and LAZ point clouds in acquisition order (DESIGN §1), via the `las` crate.
+//! Strips: LAS 1.2–1.4 and LAZ point clouds in acquisition order, via the `las` crate.
 //!
 //! Points are handled as raw records in batches (`PointData`) rather than as `las::Point`s: reading
 //! decodes only the fields estimation needs, and rewriting patches x/y/z in place so every other

@@ -1,4 +1,4 @@
-//! Trajectory CSV (DESIGN §1): header `time,x,y,z,roll,pitch,yaw`, one pose per line, angles in
+//! Trajectory CSV: header `time,x,y,z,roll,pitch,yaw`, one pose per line, angles in
 //! degrees. Writing uses Rust's shortest round-trip float formatting, so reading back what was
 //! written gives the same bits.
 

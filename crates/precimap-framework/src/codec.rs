@@ -306,8 +306,8 @@ pub fn encode_positions(positions: &[Vec<[f64; 3]>]) -> Vec<u8> {
     out
 }
 
-/// [`encode_positions`]' objects, and the horizontal ones a campaign's first field task wrote
-/// before stop 42: their anchors all get height 0, so the campaign's motion turns them about
+/// [`encode_positions`]' objects, and the horizontal ones of version 1 (without heights):
+/// their anchors all get height 0, so the campaign's motion turns them about
 /// their common height (what a campaign on level ground needs).
 pub fn decode_positions(bytes: &[u8]) -> Result<Vec<Vec<[f64; 3]>>, CodecError> {
     let horizontal = bytes.starts_with(POSITIONS_MAGIC_HORIZONTAL);

@@ -1,4 +1,4 @@
-//! precimap's serverless job framework (DESIGN §3): a campaign becomes stages of tasks in the job
+//! precimap's serverless job framework (docs/design/framework.md): a campaign becomes stages of tasks in the job
 //! store's queue table; stateless executors claim one task at a time, run the same functions as
 //! the in-process driver over objects in the object store, and commit their outputs through the
 //! database, whose completing transaction also plans the next stage.

@@ -1,5 +1,6 @@
 //! The campaign's stage graph, as a pure state machine the job store runs inside the transaction
-//! that completes a stage's last task (DESIGN §3: barriers without a coordinator):
+//! that completes a stage's last task (docs/design/framework.md, "The barrier, without a
+//! coordinator"):
 //!
 //! `prepare` (one `segment_strip` per strip) → { `estimate` k (one `estimate_tile` per tile) →
 //! [`field` k (one `solve_field`, in steps that solve the common-mode field)] →

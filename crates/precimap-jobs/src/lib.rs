@@ -1,4 +1,4 @@
-//! Job store and queue table of precimap's serverless job framework (issue 4, DESIGN §3).
+//! Job store and queue table of precimap's serverless job framework (docs/design/framework.md).
 //!
 //! The database is the commit point: a task writes its objects under keys of its own attempt,
 //! then [`JobStore::complete`] records the keys and marks it done in one transaction guarded by

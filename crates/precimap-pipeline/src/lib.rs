@@ -1,4 +1,4 @@
-//! In-process orchestration of a campaign (DESIGN §3 on one machine): load and validate the
+//! In-process orchestration of a campaign (the task graph on one machine): load and validate the
 //! manifest, prepare every strip into tile chunks, iterate map (tiles) and reduce (trajectories)
 //! on the paper's schedule, export corrected strips and trajectories and `report.json`.
 //! The task functions in [`tasks`] are the units a job framework invokes one at a time.

@@ -1,4 +1,4 @@
-//! The four tasks of DESIGN §3 as functions over files: each reads its inputs, calls the pure
+//! The tasks of the task graph (ARCHITECTURE.md) as functions over files: each reads its inputs, calls the pure
 //! numeric function of `precimap-estimate`, and writes its outputs. The in-process driver calls
 //! them directly; a job framework can call the same functions one task per invocation.
 

@@ -6,7 +6,7 @@
 //! edge (curb, façade corner) the pixel's own side of the edge wins, so the normal stays that
 //! side's normal; a least-squares fit to the whole window (the [`NormalMethod::LeastSquares`]
 //! variant, kept for comparison) tilts towards the other side. Scoring by the inlier count alone
-//! (before stop 16) let a plane tilted across a step tie with the pixel's own plane: at the
+//! (instead of MSAC's cost) lets a plane tilted across a step tie with the pixel's own plane: at the
 //! simulator's 1.5° angular step a curb seen at grazing incidence is a 13 cm rise over metres
 //! between two profile samples, and both planes can hold as many neighbours within the tolerance;
 //! the tilted one holds them worse.

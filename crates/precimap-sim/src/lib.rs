@@ -3,7 +3,7 @@
 //! [`simulate`] builds a small town ([`town`]) on a gentle slope, drives a two-headed
 //! VMX-250-like scanner through it on figure-8 passes ([`drive`]), georeferences every laser hit
 //! with an erroneous GNSS/IMU trajectory ([`gnss`]) and writes a campaign in the public formats
-//! (DESIGN §1) plus everything the estimation must never see:
+//! plus everything the estimation must never see:
 //!
 //! ```text
 //! DIR/manifest.json                    scanners left/right, one trajectory per pass, two strips each

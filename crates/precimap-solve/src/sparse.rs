@@ -9,7 +9,7 @@
 //! knows its nodes' positions and cuts the network straight where the cut crosses the fewest
 //! couplings ([`SymmetricSparse::factorise_at`]); without positions the separators are level
 //! sets of a breadth-first search ([`SymmetricSparse::factorise`]). The reverse Cuthill–McKee
-//! envelope this replaced (stops 13–33) held O(n × network width) entries: 1 GiB at ~40 km² of
+//! envelope this replaced held O(n × network width) entries: 1 GiB at ~40 km² of
 //! 15 m nodes, where a city campaign had to coarsen its field.
 
 use std::collections::HashMap;
@@ -838,7 +838,7 @@ mod tests {
     #[test]
     fn nested_dissection_keeps_a_grid_factor_far_below_its_envelope() {
         // A 60 × 60 grid in shuffled numbering. Reverse Cuthill–McKee's envelope (the solver
-        // before stop 34) is about n × side entries; nested dissection's factor grows as
+        // it replaced) is about n × side entries; nested dissection's factor grows as
         // n log n, and the factor must still solve the system exactly.
         let side = 60;
         let (sparse, dense, coordinates) = grid_system(side, 7);
