@@ -1068,7 +1068,10 @@ fn an_executor_stops_on_sigterm_without_losing_or_repeating_a_task() {
         assert_eq!(done + released, mine.len(), "each claimed task was completed or handed back: {}", read_log());
     }
 
-    let workers = LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"));
+    let workers = {
+        let _runtime = rt.enter();
+        LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"))
+    };
     let finished = rt.block_on(wait_finished(&jobs, id, Duration::from_secs(600)));
     rt.block_on(workers.stop());
     assert_eq!(finished.state, CampaignState::Succeeded, "{:?}", finished.error);
