@@ -1079,3 +1079,54 @@ fn an_executor_stops_on_sigterm_without_losing_or_repeating_a_task() {
     rt.block_on(framework.download_results(id, &out)).unwrap();
     assert_same_results(&reference, &out);
 }
+
+/// `precimap serve` stopped by SIGTERM: it stops accepting connections at once, finishes the
+/// request in flight (an upload whose second half arrives after the signal) and exits 0.
+#[cfg(unix)]
+#[test]
+fn the_server_finishes_its_requests_on_sigterm_and_exits() {
+    use std::io::{Read as _, Write as _};
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let log = dir.path().join("serve.log");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}")])
+        .args(["--db", &format!("sqlite://{}", dir.path().join("jobs.db").display())])
+        .args(["--store", &format!("file://{}", dir.path().join("store").display())])
+        .current_dir(dir.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .expect("spawn precimap serve");
+    let mut server = Worker { child };
+    let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
+    server.wait_until_serving(port, read_log);
+
+    let body = vec![b'x'; 64 * 1024];
+    let mut upload = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    upload.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    let head = format!(
+        "PUT /v1/objects/inputs/shutdown/half.bin HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n",
+        body.len()
+    );
+    upload.write_all(head.as_bytes()).unwrap();
+    upload.write_all(&body[..body.len() / 2]).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+
+    send_signal(&server.child, "TERM");
+    // New connections are refused once the server has stopped accepting.
+    let started = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+        assert!(started.elapsed() < Duration::from_secs(10), "still accepting after SIGTERM: {}", read_log());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(server.child.try_wait().unwrap().is_none(), "exited with a request in flight: {}", read_log());
+    upload.write_all(&body[body.len() / 2..]).unwrap();
+    let mut answer = String::new();
+    upload.read_to_string(&mut answer).unwrap();
+    assert!(answer.starts_with("HTTP/1.1 201"), "the upload in flight completes: {answer}");
+    let status = exit_within(&mut server.child, Duration::from_secs(20), read_log);
+    assert!(status.success(), "exit status {status}: {}", read_log());
+    assert_eq!(std::fs::metadata(dir.path().join("store/inputs/shutdown/half.bin")).unwrap().len(), body.len() as u64);
+}
