@@ -978,3 +978,155 @@ fn the_dashboard_cancels_a_campaign_only_with_the_writer_token() {
         browser.quit().await;
     });
 }
+
+/// Sends `signal` (e.g. "TERM") to a child process.
+#[cfg(unix)]
+fn send_signal(child: &std::process::Child, signal: &str) {
+    let status = std::process::Command::new("kill")
+        .args([&format!("-{signal}"), &child.id().to_string()])
+        .status()
+        .expect("kill");
+    assert!(status.success(), "kill -{signal} {}", child.id());
+}
+
+/// Waits at most `limit` for a child to exit; panics with `log()` if it does not.
+fn exit_within(child: &mut std::process::Child, limit: Duration, log: impl Fn() -> String) -> std::process::ExitStatus {
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        assert!(started.elapsed() < limit, "still running {limit:?} after the signal: {}", log());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `precimap work` stopped by SIGTERM, as Kubernetes or Docker stop it: given time (its grace),
+/// it completes the task it runs, claims nothing more and exits 0; with no grace it hands that
+/// task back to the queue at once and exits 0. Each executor runs in its own working directory.
+/// Either way the campaign then completes under other executors with exactly the in-process
+/// result: no task lost, none completed twice.
+#[cfg(unix)]
+#[test]
+fn an_executor_stops_on_sigterm_without_losing_or_repeating_a_task() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 8);
+    let reference = dir.path().join("in-process");
+    in_process(&campaign.join("manifest.json"), &reference);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let (jobs, objects, framework) = rt.block_on(local_framework(dir.path()));
+    let manifest = rt.block_on(upload_local_inputs(&objects, &campaign.join("manifest.json"))).unwrap();
+    let id = rt.block_on(framework.submit(&manifest)).unwrap();
+    let db = format!("sqlite://{}", dir.path().join("jobs.db").display());
+    let store = format!("file://{}", dir.path().join("store").display());
+    let events = |kind: &str| -> Vec<precimap_jobs::EventRecord> {
+        let all = rt.block_on(jobs.events(id, 0, 100_000)).unwrap();
+        all.into_iter().filter(|e| e.kind == kind).collect()
+    };
+
+    for (grace_s, hands_back) in [("60", false), ("0", true)] {
+        let workdir = dir.path().join(format!("executor-grace-{grace_s}"));
+        std::fs::create_dir_all(&workdir).unwrap();
+        let log = workdir.join("stderr.log");
+        let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+            .args(["work", "--db", &db, "--store", &store, "--lease-s", "30", "--concurrency", "1"])
+            .args(["--shutdown-grace-s", grace_s])
+            .current_dir(&workdir)
+            .env("PRECIMAP_LOG", "warn")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .expect("spawn precimap work");
+        let mut worker = Worker { child };
+        let me = format!("-{}-0", worker.child.id());
+        let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
+        // Wait until this executor has claimed a task, then stop it while the task runs.
+        let started = Instant::now();
+        let claimed = loop {
+            let mine = events("claimed").into_iter().find(|e| e.message.ends_with(&me));
+            if let Some(e) = mine {
+                break e.task_id.unwrap();
+            }
+            assert!(started.elapsed() < Duration::from_secs(60), "no task claimed: {}", read_log());
+            std::thread::sleep(Duration::from_millis(10));
+        };
+        send_signal(&worker.child, "TERM");
+        let status = exit_within(&mut worker.child, Duration::from_secs(50), read_log);
+        assert!(status.success(), "exit status {status}: {}", read_log());
+        assert_eq!(rt.block_on(jobs.task_counts(id)).unwrap().leased, 0, "nothing stays leased: {}", read_log());
+        // What became of every task this executor claimed (a completion may claim the next).
+        let mine: Vec<i64> =
+            events("claimed").iter().filter(|e| e.message.ends_with(&me)).filter_map(|e| e.task_id).collect();
+        assert!(mine.contains(&claimed));
+        let count = |kind: &str| events(kind).iter().filter(|e| e.task_id.is_some_and(|t| mine.contains(&t))).count();
+        let (done, released) = (count("done"), count("released"));
+        if hands_back {
+            assert!(released >= 1, "the running task was handed back: {}", read_log());
+        } else {
+            assert_eq!(released, 0, "given time, tasks are finished, not handed back: {}", read_log());
+        }
+        assert_eq!(done + released, mine.len(), "each claimed task was completed or handed back: {}", read_log());
+    }
+
+    let workers = {
+        let _runtime = rt.enter();
+        LocalExecutors::start(&jobs, &objects, &dir.path().join("scratch"))
+    };
+    let finished = rt.block_on(wait_finished(&jobs, id, Duration::from_secs(600)));
+    rt.block_on(workers.stop());
+    assert_eq!(finished.state, CampaignState::Succeeded, "{:?}", finished.error);
+    let out = dir.path().join("results");
+    rt.block_on(framework.download_results(id, &out)).unwrap();
+    assert_same_results(&reference, &out);
+}
+
+/// `precimap serve` stopped by SIGTERM: it stops accepting connections at once, finishes the
+/// request in flight (an upload whose second half arrives after the signal) and exits 0.
+#[cfg(unix)]
+#[test]
+fn the_server_finishes_its_requests_on_sigterm_and_exits() {
+    use std::io::{Read as _, Write as _};
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let log = dir.path().join("serve.log");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}")])
+        .args(["--db", &format!("sqlite://{}", dir.path().join("jobs.db").display())])
+        .args(["--store", &format!("file://{}", dir.path().join("store").display())])
+        .current_dir(dir.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .expect("spawn precimap serve");
+    let mut server = Worker { child };
+    let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
+    server.wait_until_serving(port, read_log);
+
+    let body = vec![b'x'; 64 * 1024];
+    let mut upload = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    upload.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    let head = format!(
+        "PUT /v1/objects/inputs/shutdown/half.bin HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n",
+        body.len()
+    );
+    upload.write_all(head.as_bytes()).unwrap();
+    upload.write_all(&body[..body.len() / 2]).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+
+    send_signal(&server.child, "TERM");
+    // New connections are refused once the server has stopped accepting.
+    let started = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+        assert!(started.elapsed() < Duration::from_secs(10), "still accepting after SIGTERM: {}", read_log());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(server.child.try_wait().unwrap().is_none(), "exited with a request in flight: {}", read_log());
+    upload.write_all(&body[body.len() / 2..]).unwrap();
+    let mut answer = String::new();
+    upload.read_to_string(&mut answer).unwrap();
+    assert!(answer.starts_with("HTTP/1.1 201"), "the upload in flight completes: {answer}");
+    let status = exit_within(&mut server.child, Duration::from_secs(20), read_log);
+    assert!(status.success(), "exit status {status}: {}", read_log());
+    assert_eq!(std::fs::metadata(dir.path().join("store/inputs/shutdown/half.bin")).unwrap().len(), body.len() as u64);
+}

@@ -125,6 +125,11 @@ pub struct ServeArgs {
     /// Largest accepted upload in bytes.
     #[arg(long, env = "PRECIMAP_MAX_UPLOAD_BYTES", default_value_t = 64 << 30)]
     pub max_upload_bytes: u64,
+    /// On SIGTERM or SIGINT the server stops accepting, finishes its requests, and gives its
+    /// in-process executors (--workers) this many seconds to finish their tasks before handing
+    /// the unfinished ones back to the queue.
+    #[arg(long, env = "PRECIMAP_SHUTDOWN_GRACE_S", default_value_t = 90)]
+    pub shutdown_grace_s: u64,
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -150,8 +155,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         );
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let executor = args.backends.executor(&framework);
+        let in_process = executor.clone();
         let workers = args.workers;
-        let background = tokio::spawn(async move {
+        let mut background = tokio::spawn(async move {
             if workers > 0 {
                 executor.work_loop(workers, stop_rx).await
             } else {
@@ -168,11 +174,18 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         });
         axum::serve(listener, precimap_api::app(state))
             .with_graceful_shutdown(async {
-                let _ = tokio::signal::ctrl_c().await;
+                shutdown_signal().await;
             })
             .await?;
         let _ = stop_tx.send(true);
-        background.await??;
+        tokio::select! {
+            finished = &mut background => finished??,
+            () = tokio::time::sleep(Duration::from_secs(args.shutdown_grace_s)) => {
+                background.abort();
+                let _ = background.await;
+                hand_back(&in_process, workers).await?;
+            }
+        }
         Ok(())
     })
 }
@@ -191,15 +204,73 @@ pub struct WorkArgs {
     /// Exit after this many seconds without any runnable task (default: run until stopped).
     #[arg(long)]
     pub idle_exit_s: Option<u64>,
+    /// On SIGTERM or SIGINT: claim nothing more and let running tasks finish for at most this
+    /// many seconds, then hand the unfinished ones back to the queue and exit 0. Keep it below
+    /// the platform's kill deadline (Kubernetes' terminationGracePeriodSeconds).
+    #[arg(long, env = "PRECIMAP_SHUTDOWN_GRACE_S", default_value_t = 90)]
+    pub shutdown_grace_s: u64,
+}
+
+/// Resolves on SIGINT (Ctrl-C) or SIGTERM (what Kubernetes, Docker and systemd send to stop).
+pub async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot listen for SIGTERM; stopping on Ctrl-C only");
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+/// Resolves `grace` after `stop` turns true.
+async fn grace_after(mut stop: tokio::sync::watch::Receiver<bool>, grace: Duration) {
+    if stop.wait_for(|stopped| *stopped).await.is_err() {
+        // The sender is gone without a stop: never.
+        std::future::pending::<()>().await;
+    }
+    tokio::time::sleep(grace).await;
+}
+
+/// After a shutdown's grace has run out: hands the unfinished tasks back (their futures are
+/// dropped by then) and says so.
+async fn hand_back(executor: &Executor, concurrency: usize) -> Result<()> {
+    let released = executor.release_held(concurrency).await.context("handing unfinished tasks back")?;
+    eprintln!("stopping: {released} unfinished task(s) handed back to the queue");
+    Ok(())
 }
 
 pub fn work(args: WorkArgs) -> Result<i32> {
     runtime()?.block_on(async move {
         let framework = args.backends.connect().await?;
         let executor = args.backends.executor(&framework);
+        let grace = Duration::from_secs(args.shutdown_grace_s);
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         if args.once {
             executor.reconcile().await?;
-            let outcome = executor.work_once().await?;
+            let signalled = async {
+                shutdown_signal().await;
+                tokio::time::sleep(grace).await;
+            };
+            let outcome = tokio::select! {
+                outcome = executor.work_once() => outcome?,
+                () = signalled => {
+                    hand_back(&executor, 1).await?;
+                    return Ok(0);
+                }
+            };
             eprintln!("{outcome:?}");
             return Ok(match outcome {
                 WorkOutcome::Done { .. } => 0,
@@ -208,14 +279,19 @@ pub fn work(args: WorkArgs) -> Result<i32> {
                 WorkOutcome::LeaseLost { .. } => 5,
             });
         }
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let idle_exit = args.idle_exit_s.map(Duration::from_secs);
         let jobs = framework.jobs.clone();
         tokio::spawn(async move {
             let mut idle_since = std::time::Instant::now();
+            // One listener for the whole loop: a signal must not fall between two of them.
+            let signal = shutdown_signal();
+            tokio::pin!(signal);
             loop {
                 tokio::select! {
-                    _ = tokio::signal::ctrl_c() => break,
+                    () = &mut signal => {
+                        eprintln!("stopping: no new tasks; running ones have {} s to finish", grace.as_secs());
+                        break;
+                    }
                     _ = tokio::time::sleep(Duration::from_millis(500)) => {}
                 }
                 if let Some(limit) = idle_exit {
@@ -232,7 +308,10 @@ pub fn work(args: WorkArgs) -> Result<i32> {
             }
             let _ = stop_tx.send(true);
         });
-        executor.work_loop(args.concurrency, stop_rx).await?;
+        tokio::select! {
+            finished = executor.work_loop(args.concurrency, stop_rx.clone()) => finished?,
+            () = grace_after(stop_rx, grace) => hand_back(&executor, args.concurrency).await?,
+        }
         Ok(0)
     })
 }

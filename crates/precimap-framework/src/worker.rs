@@ -198,7 +198,9 @@ impl Executor {
             }
         };
         let (lost_tx, mut lost_rx) = watch::channel(false);
-        let heartbeat = {
+        // Aborted on drop, too: an executor shutting down drops this future mid-task, and a
+        // heartbeat left running would keep the lease it hands back alive.
+        let heartbeat = AbortOnDrop({
             let jobs = self.jobs.clone();
             let task = task.clone();
             let lease = self.config.lease;
@@ -216,12 +218,12 @@ impl Executor {
                     }
                 }
             })
-        };
+        });
         let result = tokio::select! {
             r = execute(&self.ctx, input, task.lease_token) => Some(r),
             _ = lost_rx.wait_for(|lost| *lost) => None,
         };
-        heartbeat.abort();
+        drop(heartbeat);
         let Some(result) = result else {
             warn!(%kind, %key, "lease lost while running; abandoning this attempt");
             return Ok((WorkOutcome::LeaseLost { kind, key }, None));
@@ -316,6 +318,25 @@ impl Executor {
         }
     }
 
+    /// Hands every task this executor holds back to the queue (see [`JobStore::release`]): what
+    /// an executor that stops before its tasks are done does, after dropping their futures, so
+    /// that another executor runs them at once. `concurrency` is the loop count `work_loop` ran
+    /// with (each loop claims under its own worker id). Returns how many were handed back.
+    pub async fn release_held(&self, concurrency: usize) -> Result<usize, FrameworkError> {
+        let id = &self.config.worker_id;
+        let workers = std::iter::once(id.clone()).chain((0..concurrency.max(1)).map(|i| format!("{id}-{i}")));
+        let mut released = 0;
+        for worker in workers {
+            for task in self.jobs.leased_by(&worker).await? {
+                if self.jobs.release(&task).await? {
+                    info!(kind = %task.kind, key = %task.key, attempt = task.attempt, "task handed back");
+                    released += 1;
+                }
+            }
+        }
+        Ok(released)
+    }
+
     /// Runs `concurrency` executor loops until `stop` turns true. Idle loops poll with back-off
     /// (a remote database) and wake at once when a sibling completes a task. A loop that is not
     /// stopping claims its next task in the transaction that completes the current one; a task
@@ -366,5 +387,15 @@ impl Executor {
             }
         }
         first_error.map_or(Ok(()), Err)
+    }
+}
+
+/// Aborts a spawned task when dropped.
+#[derive(Debug)]
+struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
+
+impl<T> Drop for AbortOnDrop<T> {
+    fn drop(&mut self) {
+        self.0.abort();
     }
 }

@@ -1301,6 +1301,27 @@ impl JobStore {
         Ok(rows.into_iter().map(|r| claimed_task(r, worker)).collect())
     }
 
+    /// Hands a leased task back to the queue at once (an executor shutting down before the task
+    /// is done): runnable again now, by any executor, without waiting for the lease to expire.
+    /// The attempt still counts towards the campaign's maximum, as an expired lease does, so the
+    /// next attempt writes under keys of its own. `Ok(false)` if the token no longer holds it.
+    pub async fn release(&self, task: &ClaimedTask) -> Result<bool, JobError> {
+        let q = self.sql(
+            "UPDATE tasks SET state = 'queued', lease_token = NULL, lease_expires_at_ms = NULL, \
+             not_before_ms = NOW_MS, updated_at_ms = NOW_MS WHERE id = $1 AND lease_token = $2 AND state = 'leased'",
+        );
+        let released = with_tx!(self, tx => {
+            let n = sqlx::query(&q).bind(task.id).bind(task.lease_token).execute(&mut *tx).await?.rows_affected();
+            if n > 0 {
+                let msg = format!("{} {} attempt {} handed back by its executor", task.kind, task.key, task.attempt);
+                event!(self, tx, task.campaign, "released", Some(task.id), &msg);
+            }
+            n > 0
+        });
+        debug!(task = task.id, released, "lease handed back");
+        Ok(released)
+    }
+
     /// Lease tokens of the campaign's running attempts (their objects must not be cleaned up).
     pub async fn live_lease_tokens(&self, campaign: Uuid) -> Result<Vec<Uuid>, JobError> {
         let q = "SELECT lease_token FROM tasks WHERE campaign = $1 AND state = 'leased' AND lease_token IS NOT NULL";

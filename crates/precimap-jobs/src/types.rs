@@ -351,7 +351,7 @@ pub struct EventRecord {
     pub id: i64,
     pub campaign: Uuid,
     pub at_ms: i64,
-    /// `campaign_created`, `claimed`, `done`, `retry`, `dead`, `lease_expired`, `stage_rescued`,
+    /// `campaign_created`, `claimed`, `done`, `retry`, `dead`, `lease_expired`, `released`, `stage_rescued`,
     /// `stage`, `succeeded`, `failed`, `cancelled`.
     pub kind: String,
     pub task_id: Option<i64>,
