@@ -1130,3 +1130,165 @@ fn the_server_finishes_its_requests_on_sigterm_and_exits() {
     assert!(status.success(), "exit status {status}: {}", read_log());
     assert_eq!(std::fs::metadata(dir.path().join("store/inputs/shutdown/half.bin")).unwrap().len(), body.len() as u64);
 }
+
+/// A scrape of `GET /metrics` on 127.0.0.1:`port`: each sample line's series (name and labels)
+/// with its value. Empty when the endpoint does not answer.
+fn scrape(port: u16) -> Vec<(String, f64)> {
+    let Some(answer) = http_get(port, "/metrics") else { return Vec::new() };
+    let Some((_, body)) = answer.split_once("\r\n\r\n") else { return Vec::new() };
+    body.lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .filter_map(|l| {
+            let (series, value) = l.rsplit_once(' ')?;
+            Some((series.to_string(), value.parse().ok()?))
+        })
+        .collect()
+}
+
+/// The sum of the samples of metric `name` whose labels include every one of `labels`
+/// (`kind="estimate_tile"`).
+fn metric(samples: &[(String, f64)], name: &str, labels: &[&str]) -> f64 {
+    samples
+        .iter()
+        .filter(|(series, _)| {
+            let metric_name = series.split('{').next().unwrap_or_default();
+            metric_name == name && labels.iter().all(|l| series.contains(l))
+        })
+        .map(|(_, v)| v)
+        .sum()
+}
+
+/// `GET /metrics` of `precimap serve` and of a separate `precimap work --metrics-listen`, scraped
+/// while a campaign runs: the queue, the executors, claims, task durations, points, object-store
+/// bytes, the campaign's iteration and residual each change; an executor SIGKILLed while it
+/// holds a task shows up as a lease expiry and a retry once its lease has run out. `GET /readyz`
+/// is ready with both stores answering, and not with an object store that does not answer.
+#[cfg(unix)]
+#[test]
+fn metrics_follow_a_campaign_and_readiness_checks_both_stores() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 9);
+    let (port, executor_port) = (free_port(), free_port());
+    let db = format!("sqlite://{}", dir.path().join("jobs.db").display());
+    let store = format!("file://{}", dir.path().join("store").display());
+    let log = dir.path().join("serve.log");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--no-auth", "--workers", "2", "--lease-s", "2", "--listen", &format!("127.0.0.1:{port}")])
+        .args(["--db", &db, "--store", &store])
+        .current_dir(dir.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .expect("spawn precimap serve");
+    let mut server = Worker { child };
+    let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
+    server.wait_until_serving(port, read_log);
+    let ready = http_get(port, "/readyz").unwrap();
+    assert!(ready.contains(" 200 ") && ready.contains("\"ready\""), "{ready}");
+    let idle = scrape(port);
+    assert_eq!(metric(&idle, "precimap_executor_loops", &[]), 2.0, "{idle:?}");
+    assert_eq!(metric(&idle, "precimap_queue_tasks", &[]), 0.0);
+
+    let executor_dir = dir.path().join("executor");
+    std::fs::create_dir_all(&executor_dir).unwrap();
+    let executor_log = executor_dir.join("stderr.jsonl");
+    let executor = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["--log-format", "json", "work", "--db", &db, "--store", &store, "--lease-s", "2"])
+        .args(["--concurrency", "1", "--metrics-listen", &format!("127.0.0.1:{executor_port}")])
+        .env("PRECIMAP_LOG", "precimap_framework=debug")
+        .current_dir(&executor_dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&executor_log).unwrap())
+        .spawn()
+        .expect("spawn precimap work");
+    let mut executor = Worker { child: executor };
+    let executor_id = format!(
+        "{}-{}-0",
+        std::fs::read_to_string("/etc/hostname").map(|s| s.trim().to_string()).unwrap_or_else(|_| "executor".into()),
+        executor.child.id()
+    );
+
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let client = Client::new(&format!("http://127.0.0.1:{port}"), None);
+    let id = rt.block_on(async { client.submit_local(&campaign.join("manifest.json"), |_, _| {}).await.unwrap().id });
+    let jobs = rt.block_on(JobStore::connect(&db)).unwrap();
+    let (mut most_queued, mut most_busy, mut last_iteration, mut residual_seen) = (0.0f64, 0.0f64, 0.0f64, false);
+    let mut executor_samples = Vec::new();
+    let started = Instant::now();
+    loop {
+        let samples = scrape(port);
+        most_queued = most_queued.max(metric(&samples, "precimap_queue_tasks", &[]));
+        most_busy = most_busy.max(metric(&samples, "precimap_executors_busy", &[]));
+        let campaign_label = format!("campaign=\"{id}\"");
+        last_iteration = last_iteration.max(metric(&samples, "precimap_campaign_iteration", &[&campaign_label]));
+        residual_seen |= metric(&samples, "precimap_campaign_residual_std_metres", &[&campaign_label]) > 0.0;
+        // Kill the separate executor once it holds a task (its lease then expires).
+        if executor_samples.is_empty() && !rt.block_on(jobs.leased_by(&executor_id)).unwrap().is_empty() {
+            executor_samples = scrape(executor_port);
+            executor.child.kill().unwrap();
+            executor.child.wait().unwrap();
+        }
+        let status = rt.block_on(client.status(id)).unwrap();
+        if status.campaign.state != "running" {
+            assert_eq!(status.campaign.state, "succeeded", "{:?}", status.campaign.error);
+            break;
+        }
+        assert!(started.elapsed() < Duration::from_secs(600), "campaign stuck: {}", read_log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let done = scrape(port);
+
+    assert!(!executor_samples.is_empty(), "the separate executor never held a task");
+    assert_eq!(metric(&executor_samples, "precimap_executor_loops", &[]), 1.0, "{executor_samples:?}");
+    assert!(metric(&executor_samples, "precimap_claim_duration_seconds_count", &["found=\"yes\""]) >= 1.0);
+    assert!(most_queued > 0.0 && most_busy > 0.0, "queue {most_queued}, busy {most_busy}");
+    assert_eq!(metric(&done, "precimap_queue_tasks", &[]), 0.0, "the queue drained");
+    assert!(last_iteration >= 1.0 && residual_seen, "iteration {last_iteration}, residual seen {residual_seen}");
+    for kind in ["segment_strip", "estimate_tile", "solve_trajectory", "export_strip"] {
+        let kind = format!("kind=\"{kind}\"");
+        let n = metric(&done, "precimap_task_duration_seconds_count", &[&kind, "outcome=\"done\""]);
+        assert!(n >= 1.0, "{kind}: {n} task durations");
+        assert_eq!(n, metric(&done, "precimap_tasks_finished_total", &[&kind, "outcome=\"done\""]));
+    }
+    assert!(metric(&done, "precimap_points_processed_total", &["kind=\"estimate_tile\""]) > 0.0);
+    assert!(metric(&done, "precimap_object_store_read_bytes_total", &[]) > 0.0);
+    assert!(metric(&done, "precimap_object_store_written_bytes_total", &[]) > 0.0);
+    assert!(metric(&done, "precimap_claim_duration_seconds_count", &[]) > 0.0);
+    assert!(metric(&done, "precimap_lease_expiries_total", &[]) >= 1.0, "the killed executor's lease: {done:?}");
+    assert!(metric(&done, "precimap_task_retries_total", &["reason=\"lease_expired\""]) >= 1.0);
+    assert_eq!(metric(&done, "precimap_campaigns", &["state=\"succeeded\""]), 1.0);
+    rt.block_on(jobs.close());
+    drop(server);
+
+    // The executor's logs are JSON lines; those of a task carry its campaign, id and attempt.
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&executor_log)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not a JSON line ({e}): {l}")))
+        .collect();
+    let in_task = lines.iter().find(|l| l["span"]["name"] == "task").unwrap_or_else(|| panic!("{lines:?}"));
+    assert_eq!(in_task["span"]["campaign"], id.to_string(), "{in_task}");
+    assert!(in_task["span"]["task"].is_u64() && in_task["span"]["attempt"].is_u64(), "{in_task}");
+
+    // An object store that does not answer: not ready, and the answer names no address.
+    let port = free_port();
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}"), "--db", &db])
+        .args(["--store", "s3://precimap/readyz"])
+        .env("AWS_ENDPOINT", format!("http://127.0.0.1:{}", free_port()))
+        .env("AWS_ALLOW_HTTP", "true")
+        .env("AWS_ACCESS_KEY_ID", "readyz")
+        .env("AWS_SECRET_ACCESS_KEY", "readyz")
+        .env("AWS_REGION", "readyz")
+        .current_dir(dir.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn precimap serve");
+    let mut unready = Worker { child };
+    unready.wait_until_serving(port, String::new);
+    let answer = http_get(port, "/readyz").unwrap();
+    assert!(answer.contains(" 503 ") && answer.contains("object store"), "{answer}");
+    assert!(!answer.contains("127.0.0.1"), "{answer}");
+}

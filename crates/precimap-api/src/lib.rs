@@ -3,9 +3,11 @@
 
 pub mod client;
 pub mod dashboard;
+pub mod ops;
 pub mod server;
 pub mod types;
 
 pub use client::{Client, ClientError};
+pub use ops::MetricsRenderer;
 pub use server::{app, ApiState, Auth};
 pub use types::{CampaignStatus, ErrorBody, Problem, ResultEntry, Submitted};

@@ -33,11 +33,13 @@ pub struct ApiState {
     pub auth: Auth,
     pub max_manifest_bytes: usize,
     pub max_upload_bytes: u64,
+    /// `GET /metrics` renders these (404 without a recorder).
+    pub metrics: Option<crate::ops::MetricsRenderer>,
 }
 
 impl ApiState {
     pub fn new(framework: Framework, auth: Auth) -> Self {
-        Self { framework, auth, max_manifest_bytes: 4 << 20, max_upload_bytes: 64 << 30 }
+        Self { framework, auth, max_manifest_bytes: 4 << 20, max_upload_bytes: 64 << 30, metrics: None }
     }
 }
 
@@ -57,6 +59,7 @@ pub fn app(state: ApiState) -> Router {
         // Uploads stream to the store with their own limit (checked while streaming).
         .route("/v1/objects/{*key}", put(upload_object).layer(DefaultBodyLimit::disable()))
         .merge(crate::dashboard::routes())
+        .merge(crate::ops::routes())
         .with_state(state)
 }
 

@@ -23,6 +23,10 @@ struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true, env = "PRECIMAP_THREADS")]
     threads: Option<usize>,
+    /// Log lines as text, or as JSON objects (one a line, with a task's campaign, task id, kind,
+    /// key and attempt as fields) for a log collector. The filter is PRECIMAP_LOG (default warn).
+    #[arg(long, global = true, env = "PRECIMAP_LOG_FORMAT", default_value = "text")]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
 }
@@ -265,11 +269,20 @@ fn error_chain(e: &anyhow::Error) -> String {
     out
 }
 
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
 fn real_main(cli: Cli) -> Result<()> {
-    tracing_subscriber::fmt()
+    let logs = tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("PRECIMAP_LOG").unwrap_or_else(|_| "warn".into()))
-        .with_writer(std::io::stderr)
-        .init();
+        .with_writer(std::io::stderr);
+    match cli.log_format {
+        LogFormat::Text => logs.init(),
+        LogFormat::Json => logs.json().with_current_span(true).with_span_list(false).init(),
+    }
     if let Some(n) = cli.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting up the thread pool")?;
     }

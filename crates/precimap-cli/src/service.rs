@@ -60,6 +60,50 @@ impl Backends {
     }
 }
 
+/// Installs the process's Prometheus recorder (once; `serve` and `work` call it) and returns
+/// what renders its series.
+fn install_metrics() -> Result<precimap_api::MetricsRenderer> {
+    use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
+    use metrics_util::MetricKindMask;
+    // Seconds: a claim takes milliseconds, a task up to minutes.
+    const BUCKETS: [f64; 16] =
+        [0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 300.0];
+    let handle = PrometheusBuilder::new()
+        .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &BUCKETS)
+        .context("setting the metrics' histogram buckets")?
+        // A finished campaign's gauges stop being set; drop them after a while.
+        .idle_timeout(MetricKindMask::GAUGE, Some(Duration::from_secs(600)))
+        .install_recorder()
+        .context("installing the metrics recorder")?;
+    precimap_framework::metrics::describe();
+    Ok(precimap_api::MetricsRenderer(std::sync::Arc::new(move || handle.render())))
+}
+
+/// Serves `GET /metrics` (this process's series) and `GET /healthz` on `address`, for an
+/// executor running as its own process.
+async fn serve_executor_metrics(address: &str, render: precimap_api::MetricsRenderer) -> Result<()> {
+    use axum::routing::get;
+    let listener =
+        tokio::net::TcpListener::bind(address).await.with_context(|| format!("listening for metrics on {address}"))?;
+    let app = axum::Router::new()
+        .route(
+            "/metrics",
+            get(move || {
+                let render = render.clone();
+                async move {
+                    ([(axum::http::header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")], (render.0)())
+                }
+            }),
+        )
+        .route("/healthz", get(|| async { "ok" }));
+    tokio::spawn(async move {
+        if let Err(e) = axum::serve(listener, app).await {
+            tracing::warn!(error = %e, "the metrics endpoint stopped");
+        }
+    });
+    Ok(())
+}
+
 fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")
 }
@@ -144,6 +188,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let framework = args.backends.connect().await?;
         let mut state = ApiState::new(framework.clone(), auth);
         state.max_upload_bytes = args.max_upload_bytes;
+        state.metrics = Some(install_metrics()?);
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
@@ -209,6 +254,10 @@ pub struct WorkArgs {
     /// the platform's kill deadline (Kubernetes' terminationGracePeriodSeconds).
     #[arg(long, env = "PRECIMAP_SHUTDOWN_GRACE_S", default_value_t = 90)]
     pub shutdown_grace_s: u64,
+    /// Serve this executor's metrics (`GET /metrics`, Prometheus text format) and a liveness
+    /// probe (`GET /healthz`) on this address, e.g. 0.0.0.0:9184.
+    #[arg(long, env = "PRECIMAP_METRICS_LISTEN")]
+    pub metrics_listen: Option<String>,
 }
 
 /// Resolves on SIGINT (Ctrl-C) or SIGTERM (what Kubernetes, Docker and systemd send to stop).
@@ -255,6 +304,9 @@ async fn hand_back(executor: &Executor, concurrency: usize) -> Result<()> {
 pub fn work(args: WorkArgs) -> Result<i32> {
     runtime()?.block_on(async move {
         let framework = args.backends.connect().await?;
+        if let Some(address) = &args.metrics_listen {
+            serve_executor_metrics(address, install_metrics()?).await?;
+        }
         let executor = args.backends.executor(&framework);
         let grace = Duration::from_secs(args.shutdown_grace_s);
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);

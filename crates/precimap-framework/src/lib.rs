@@ -8,6 +8,7 @@ pub mod codec;
 mod cpu;
 pub mod error;
 pub mod exec;
+pub mod metrics;
 pub mod objects;
 pub mod plan;
 pub mod worker;

@@ -6,6 +6,7 @@
 //! it reaches the store.
 
 use crate::error::FrameworkError;
+use crate::metrics;
 use bytes::Bytes;
 use futures::{StreamExt, TryStreamExt};
 use object_store::aws::AmazonS3Builder;
@@ -112,14 +113,18 @@ impl Objects {
 
     pub async fn put(&self, key: &str, bytes: Bytes) -> Result<(), FrameworkError> {
         let path = store_path(key)?;
+        let n = bytes.len() as u64;
         self.inner.put(&path, PutPayload::from_bytes(bytes)).await.map_err(|e| FrameworkError::store(key, e))?;
+        metrics::store_written(n);
         Ok(())
     }
 
     pub async fn get(&self, key: &str) -> Result<Bytes, FrameworkError> {
         let path = store_path(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
-        result.bytes().await.map_err(|e| FrameworkError::store(key, e))
+        let bytes = result.bytes().await.map_err(|e| FrameworkError::store(key, e))?;
+        metrics::store_read(bytes.len() as u64);
+        Ok(bytes)
     }
 
     /// The file of `key` in a `file://` store; a key outside the store is `BadKey`.
@@ -141,7 +146,10 @@ impl Objects {
                 paths
                     .into_iter()
                     .map(|(key, path)| match std::fs::read(&path) {
-                        Ok(bytes) => Ok(Bytes::from(bytes)),
+                        Ok(bytes) => {
+                            metrics::store_read(bytes.len() as u64);
+                            Ok(Bytes::from(bytes))
+                        }
                         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(FrameworkError::store(
                             &key,
                             object_store::Error::NotFound { path: key.clone(), source: Box::new(e) },
@@ -184,6 +192,7 @@ impl Objects {
                     let tmp = path.with_file_name(name);
                     std::fs::write(&tmp, &bytes).map_err(|e| FrameworkError::io(&tmp, e))?;
                     std::fs::rename(&tmp, &path).map_err(|e| FrameworkError::io(&path, e))?;
+                    metrics::store_written(bytes.len() as u64);
                 }
                 Ok(())
             })
@@ -220,6 +229,7 @@ impl Objects {
             let tmp = dst.with_extension("upload-partial");
             let n = tokio::fs::copy(file, &tmp).await.map_err(|e| FrameworkError::io(file, e))?;
             tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
+            metrics::store_written(n);
             return Ok(n);
         }
         let mut upload = object_store::WriteMultipart::new_with_chunk_size(
@@ -240,6 +250,7 @@ impl Objects {
             total += n as u64;
         }
         upload.finish().await.map_err(|e| FrameworkError::store(key, e))?;
+        metrics::store_written(total);
         Ok(total)
     }
 
@@ -276,6 +287,7 @@ impl Objects {
                 return Err(e);
             }
             tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
+            metrics::store_written(total);
             return Ok(total);
         }
         let mut upload = object_store::WriteMultipart::new_with_chunk_size(
@@ -297,6 +309,7 @@ impl Objects {
         match result {
             Ok(()) => {
                 upload.finish().await.map_err(|e| FrameworkError::store(key, e))?;
+                metrics::store_written(total);
                 Ok(total)
             }
             Err(e) => {
@@ -321,6 +334,7 @@ impl Objects {
             total += chunk.len() as u64;
         }
         out.flush().await.map_err(|e| FrameworkError::io(file, e))?;
+        metrics::store_read(total);
         Ok(total)
     }
 
@@ -332,6 +346,7 @@ impl Objects {
         let path = store_path(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
         let size = result.meta.size;
+        metrics::store_read(size);
         Ok((size, result.into_stream()))
     }
 

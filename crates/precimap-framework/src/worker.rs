@@ -5,6 +5,7 @@
 use crate::campaigns::clean_orphans;
 use crate::error::{FrameworkError, TaskError};
 use crate::exec::{execute, TaskContext};
+use crate::metrics;
 use crate::plan::{CampaignPlanner, TaskInput};
 use precimap_jobs::{CampaignState, ClaimedTask, FailOutcome, JobError, JobStore};
 use serde::Deserialize;
@@ -13,7 +14,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{watch, Notify};
-use tracing::{debug, info, warn};
+use tracing::{debug, info, warn, Instrument as _};
 
 /// What one round of an executor did.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -96,6 +97,8 @@ impl Executor {
     pub async fn reconcile(&self) -> Result<(), FrameworkError> {
         let planner = CampaignPlanner;
         let report = retry_transient(self.config.database_patience, || self.jobs.reconcile(&planner)).await?;
+        metrics::leases_expired(report.requeued + report.dead);
+        metrics::retried("lease_expired", report.requeued);
         if report.requeued + report.dead + report.advanced > 0 {
             info!(
                 requeued = report.requeued,
@@ -151,12 +154,20 @@ impl Executor {
 
     /// Claims and runs at most one task.
     pub async fn work_once(&self) -> Result<WorkOutcome, FrameworkError> {
-        let patience = self.config.database_patience;
-        let claimed = retry_transient(patience, || self.jobs.claim(&self.config.worker_id, self.config.lease)).await?;
+        let claimed = self.claim().await?;
         match claimed {
             None => Ok(WorkOutcome::NoWork),
             Some(task) => Ok(self.run_claimed(task, false).await?.0),
         }
+    }
+
+    /// Claims the oldest runnable task, riding out a database restart.
+    async fn claim(&self) -> Result<Option<ClaimedTask>, FrameworkError> {
+        let started = Instant::now();
+        let claim = || self.jobs.claim(&self.config.worker_id, self.config.lease);
+        let claimed = retry_transient(self.config.database_patience, claim).await?;
+        metrics::claimed(started.elapsed(), claimed.is_some());
+        Ok(claimed)
     }
 
     /// Runs `held` (a task claimed by the previous round) or else a newly claimed task; with
@@ -169,20 +180,45 @@ impl Executor {
     ) -> Result<(WorkOutcome, Option<ClaimedTask>), FrameworkError> {
         let task = match held {
             Some(task) => task,
-            None => {
-                let patience = self.config.database_patience;
-                let claim = || self.jobs.claim(&self.config.worker_id, self.config.lease);
-                match retry_transient(patience, claim).await? {
-                    None => return Ok((WorkOutcome::NoWork, None)),
-                    Some(task) => task,
-                }
-            }
+            None => match self.claim().await? {
+                None => return Ok((WorkOutcome::NoWork, None)),
+                Some(task) => task,
+            },
         };
         self.run_claimed(task, claim_next).await
     }
 
-    /// Runs a claimed task; with `claim_next`, the completion also claims the next task.
+    /// Runs a claimed task; with `claim_next`, the completion also claims the next task. Its
+    /// logs carry the campaign, task and attempt; its time and outcome go to the metrics.
     async fn run_claimed(
+        &self,
+        task: ClaimedTask,
+        claim_next: bool,
+    ) -> Result<(WorkOutcome, Option<ClaimedTask>), FrameworkError> {
+        let started = Instant::now();
+        let kind = task.kind.clone();
+        let span = tracing::info_span!(
+            "task",
+            campaign = %task.campaign,
+            task = task.id,
+            kind = %task.kind,
+            key = %task.key,
+            attempt = task.attempt
+        );
+        let result = self.run_task(task, claim_next).instrument(span).await;
+        if let Ok((outcome, _)) = &result {
+            let outcome = match outcome {
+                WorkOutcome::Done { .. } => "done",
+                WorkOutcome::Failed { .. } => "failed",
+                WorkOutcome::LeaseLost { .. } => "lease_lost",
+                WorkOutcome::NoWork => "no_work",
+            };
+            metrics::task_finished(&kind, outcome, started.elapsed());
+        }
+        result
+    }
+
+    async fn run_task(
         &self,
         task: ClaimedTask,
         claim_next: bool,
@@ -247,6 +283,7 @@ impl Executor {
                 match retry_transient(patience, complete).await {
                     Ok((completion, mut next)) => {
                         self.wake.notify_waiters();
+                        metrics::points_processed(&kind, &outcome.result);
                         if completion.campaign_state != CampaignState::Running {
                             self.clean_up(task.campaign).await;
                             // The clean-up may take a while on a remote store: renew the lease of
@@ -301,6 +338,8 @@ impl Executor {
                 self.wake.notify_waiters();
                 if outcome == FailOutcome::Dead {
                     self.clean_up(task.campaign).await;
+                } else {
+                    metrics::retried("failed", 1);
                 }
                 Ok(WorkOutcome::Failed { kind, key, error: error.message })
             }
@@ -330,6 +369,7 @@ impl Executor {
             for task in self.jobs.leased_by(&worker).await? {
                 if self.jobs.release(&task).await? {
                     info!(kind = %task.kind, key = %task.key, attempt = task.attempt, "task handed back");
+                    metrics::handed_back(&task.kind);
                     released += 1;
                 }
             }
@@ -348,6 +388,7 @@ impl Executor {
             me.config.worker_id = format!("{}-{i}", self.config.worker_id);
             let mut stop = stop.clone();
             loops.spawn(async move {
+                let _running = LoopGauge::start();
                 let mut idle = Duration::from_millis(20);
                 let mut last_reconcile = Instant::now() - me.config.lease;
                 let mut held: Option<ClaimedTask> = None;
@@ -397,5 +438,22 @@ struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
 impl<T> Drop for AbortOnDrop<T> {
     fn drop(&mut self) {
         self.0.abort();
+    }
+}
+
+/// Counts an executor loop in the `precimap_executor_loops` gauge while it lives.
+#[derive(Debug)]
+struct LoopGauge;
+
+impl LoopGauge {
+    fn start() -> Self {
+        metrics::executor_loops(1.0);
+        LoopGauge
+    }
+}
+
+impl Drop for LoopGauge {
+    fn drop(&mut self) {
+        metrics::executor_loops(-1.0);
     }
 }

@@ -1322,6 +1322,17 @@ impl JobStore {
         Ok(released)
     }
 
+    /// The queue across campaigns, for monitoring: open tasks per kind and state (`queued`,
+    /// `leased`) and how many executors hold a lease. Reads the open tasks' partial index only.
+    pub async fn queue_depth(&self) -> Result<QueueDepth, JobError> {
+        let per_kind =
+            "SELECT kind, state, count(*) FROM tasks WHERE state IN ('queued', 'leased') GROUP BY kind, state";
+        let busy = "SELECT count(DISTINCT worker) FROM tasks WHERE state IN ('queued', 'leased') AND state = 'leased'";
+        let open: Vec<(String, String, i64)> = with_pool!(self, p => sqlx::query_as(per_kind).fetch_all(p).await?);
+        let busy_executors: i64 = with_pool!(self, p => sqlx::query_scalar(busy).fetch_one(p).await?);
+        Ok(QueueDepth { open, busy_executors })
+    }
+
     /// Lease tokens of the campaign's running attempts (their objects must not be cleaned up).
     pub async fn live_lease_tokens(&self, campaign: Uuid) -> Result<Vec<Uuid>, JobError> {
         let q = "SELECT lease_token FROM tasks WHERE campaign = $1 AND state = 'leased' AND lease_token IS NOT NULL";

@@ -357,3 +357,12 @@ pub struct EventRecord {
     pub task_id: Option<i64>,
     pub message: String,
 }
+
+/// The queue across campaigns ([`crate::JobStore::queue_depth`]).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct QueueDepth {
+    /// (task kind, state, count) for the open states `queued` and `leased`.
+    pub open: Vec<(String, String, i64)>,
+    /// Executor loops holding at least one lease.
+    pub busy_executors: i64,
+}
