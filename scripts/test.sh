@@ -5,7 +5,7 @@
 #                               integration tests (scripts/services.sh installs what is missing)
 #   ./scripts/test.sh --garage  the same against Garage instead of s3s-fs
 #   ./scripts/test.sh --quick   formatting, lints and the unit tests only: no services
-# Each step's wall time is printed to stderr as it ends.
+# Each step's wall and CPU time is printed to stderr as it ends.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -22,12 +22,14 @@ for arg in "$@"; do
 done
 
 started=$(date +%s)
+# Runs a step, then prints its wall and CPU time (its child processes' user + system) and the
+# machine's load average, so that a slow run shows where its time went.
 step() {
-    local name=$1 t0
+    local name=$1
     shift
-    t0=$(date +%s)
-    "$@"
-    echo "test.sh: $name took $(($(date +%s) - t0)) s (load $(cut -d' ' -f1-3 /proc/loadavg))" >&2
+    local TIMEFORMAT="test.sh: $name: %0R s wall, %0U s user + %0S s system CPU"
+    time "$@"
+    echo "test.sh: load average $(cut -d' ' -f1-3 /proc/loadavg)" >&2
 }
 
 step fmt cargo fmt --all -- --check
