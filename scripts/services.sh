@@ -2,13 +2,14 @@
 # Starts what the integration tests talk to, when it is not running yet, and prints the
 # environment they read (source it: `eval "$(scripts/services.sh)"`):
 #   - PostgreSQL on 127.0.0.1:5432 (the machine's cluster);
-#   - an S3-compatible server, chosen by PRECIMAP_S3_SERVER:
-#       s3s-fs (default): a single-process S3 server storing objects as files, on a free port
-#         of 127.0.0.1; installed with `cargo install s3s-fs` on first use (about 2 min of build
-#         on an idle 2-core machine, 4 min beside another build; cached in ~/.cargo/bin);
+#   - an S3-compatible server, chosen by PRECIMAP_S3_SERVER (both cached in $CARGO_HOME/bin,
+#     ~/.cargo/bin by default, once installed):
+#       s3s-fs (default): a single-process S3 server storing objects as files, on a port of
+#         127.0.0.1 that the kernel picks; `cargo install s3s-fs` on first use (4 CPU-minutes:
+#         about 2.5 min on an idle 2-core machine);
 #       garage: Garage, a distributed S3 server run as a single node on 127.0.0.1:3900;
-#         installed with `cargo install garage` on first use (8 min on a fast machine, 28-77 min
-#         on a shared 2-core one; cached in ~/.cargo/bin);
+#         `cargo install garage` on first use (8 min on a fast machine, 28-77 min on a shared
+#         2-core one);
 #   - headless Chromium for the dashboard test (Debian's package, installed on first use).
 # `--install-only` installs what is missing and starts nothing.
 set -euo pipefail
@@ -20,7 +21,7 @@ GARAGE_VERSION=2.5.0
 ACCESS_KEY=GK0123456789abcdef01234567
 SECRET_KEY=0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef
 BUCKET=precimap
-export PATH="$HOME/.cargo/bin:$PATH"
+export PATH="${CARGO_HOME:-$HOME/.cargo}/bin:$PATH"
 
 port_open() { (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null; }
 
