@@ -38,7 +38,10 @@ if [ $mode = quick ]; then
     step "unit tests" cargo test --workspace --locked --lib --bins
 else
     step "services install" ./scripts/services.sh --install-only
-    eval "$(./scripts/services.sh)"
+    # Assigned first: a failing services.sh then stops the run (inside `eval "$(…)"` its exit
+    # status would be lost and the integration tests would skip instead of failing).
+    services_env=$(./scripts/services.sh)
+    eval "$services_env"
     step "test build" cargo test --workspace --locked --no-run
     step "tests" cargo test --workspace --locked
 fi
