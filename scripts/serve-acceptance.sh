@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The service's acceptance run, rerunnable: a simulated campaign (default: small) through
-# `precimap serve` on PostgreSQL + Garage with 4 separate `precimap work` processes, compared
+# `precimap serve` on PostgreSQL + S3 (scripts/services.sh's server) with 4 separate `precimap work` processes, compared
 # byte for byte with `precimap run --in-process`. Usage: scripts/serve-acceptance.sh [SCALE] [SEED]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SCALE=${1:-small}; SEED=${2:-1}
+export PRECIMAP_S3_SERVER=${PRECIMAP_S3_SERVER:-s3s-fs}
 eval "$(./scripts/services.sh)"
 cargo build --release -p precimap-cli >&2
 BIN=$PWD/target/release/precimap
@@ -35,4 +36,4 @@ for f in $(cd "$WORK/in-process" && find strips trajectories segments -type f | 
     cmp -s "$WORK/in-process/$f" "$WORK/served/$f" || { echo "DIFFERENT: $f"; exit 1; }
 done
 echo "identical results (strips, trajectories, segments) for $SCALE seed $SEED"
-echo "in-process $inproc s; serve + 4 work processes on PostgreSQL + Garage $served s"
+echo "in-process $inproc s; serve + 4 work processes on PostgreSQL + $PRECIMAP_S3_SERVER S3 $served s"

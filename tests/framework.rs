@@ -1,5 +1,5 @@
 //! The job framework end to end: the embedded default, the REST API over a real port with
-//! in-process executors, separate `precimap work` processes on PostgreSQL + an S3 store (Garage)
+//! in-process executors, separate `precimap work` processes on PostgreSQL + an S3 server
 //! with executors killed at random and the database restarted — each must give exactly the
 //! in-process driver's result — and a corrupt strip failing only its own campaign.
 
