@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # The project's test command (README).
-#   ./scripts/test.sh           formatting, lints, and every test of the workspace, with
-#                               PostgreSQL, an S3 server (s3s-fs) and Chromium started for the
-#                               integration tests (scripts/services.sh installs what is missing)
+#   ./scripts/test.sh           formatting, lints, the deployment files against their schemas,
+#                               and every test of the workspace, with PostgreSQL, an S3 server
+#                               (s3s-fs) and Chromium started for the integration tests
+#                               (scripts/services.sh installs what is missing)
 #   ./scripts/test.sh --garage  the same against Garage instead of s3s-fs
 #   ./scripts/test.sh --quick   formatting, lints and the unit tests only: no services
 # Each step's wall and CPU time is printed to stderr as it ends.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-usage() { sed -n '2,8s/^# \{0,1\}//p' "$0"; }
+usage() { sed -n '2,9s/^# \{0,1\}//p' "$0"; }
 mode=full
 export PRECIMAP_S3_SERVER=${PRECIMAP_S3_SERVER:-s3s-fs}
 for arg in "$@"; do
@@ -42,6 +43,7 @@ else
     # status would be lost and the integration tests would skip instead of failing).
     services_env=$(./scripts/services.sh)
     eval "$services_env"
+    step "deployment files" ./scripts/validate-deploy.sh
     step "test build" cargo test --workspace --locked --no-run
     step "tests" cargo test --workspace --locked
 fi
