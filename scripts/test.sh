@@ -34,6 +34,7 @@ step() {
 }
 
 step fmt cargo fmt --all -- --check
+step "doc links" python3 scripts/check-links.py
 step clippy cargo clippy --workspace --all-targets --locked -- -D warnings
 if [ $mode = quick ]; then
     step "unit tests" cargo test --workspace --locked --lib --bins
