@@ -3,29 +3,26 @@
 //! are bounded: manifests by `max_manifest_bytes`, uploads by `max_upload_bytes`. Uploads may only
 //! create objects under `inputs/`, so a client can never overwrite a campaign's work or results.
 
-use crate::types::{CampaignStatus, CampaignSummary, ErrorBody, Events, Problem, ResultEntry, Submitted, Uploaded};
+use crate::admission::{admit, authorize, overloaded, Admission, AdmissionLimits, Auth};
+use crate::errors::{json_errors, no_route, panicked, scrub, ApiError};
+use crate::types::{CampaignStatus, CampaignSummary, Events, Problem, ResultEntry, Submitted, Uploaded};
 use axum::body::Body;
+use axum::error_handling::HandleErrorLayer;
 use axum::extract::{DefaultBodyLimit, Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use axum::routing::{get, post, put};
-use axum::{Json, Router};
+use axum::{middleware, Json, Router};
 use futures::TryStreamExt;
 use precimap_formats::ManifestError;
 use precimap_framework::{validate_key, Framework, FrameworkError, SubmitError};
-use precimap_jobs::JobError;
+use precimap_jobs::EventRecord;
 use serde::Deserialize;
 use std::sync::Arc;
+use tower::limit::GlobalConcurrencyLimitLayer;
+use tower::ServiceBuilder;
+use tower_http::catch_panic::CatchPanicLayer;
 use uuid::Uuid;
-
-/// How writers prove who they are.
-#[derive(Clone, Debug)]
-pub enum Auth {
-    /// Writes need `Authorization: Bearer <token>`.
-    Token(String),
-    /// No authentication (only for a server bound to loopback in tests and the embedded mode).
-    Disabled,
-}
 
 #[derive(Clone, Debug)]
 pub struct ApiState {
@@ -35,22 +32,40 @@ pub struct ApiState {
     pub max_upload_bytes: u64,
     /// `GET /metrics` renders these (404 without a recorder).
     pub metrics: Option<crate::ops::MetricsRenderer>,
+    pub admission: Arc<Admission>,
 }
 
 impl ApiState {
     pub fn new(framework: Framework, auth: Auth) -> Self {
-        Self { framework, auth, max_manifest_bytes: 4 << 20, max_upload_bytes: 64 << 30, metrics: None }
+        Self {
+            framework,
+            auth,
+            max_manifest_bytes: 4 << 20,
+            max_upload_bytes: 64 << 30,
+            admission: Arc::new(Admission::new(AdmissionLimits::default())),
+            metrics: None,
+        }
+    }
+
+    pub fn with_admission(mut self, limits: AdmissionLimits) -> Self {
+        self.admission = Arc::new(Admission::new(limits));
+        self
     }
 }
 
-/// The API's router.
+/// The API's router: its routes behind the admission checks (see [`crate::admission`]), every
+/// error answered in the JSON error shape.
 pub fn app(state: ApiState) -> Router {
-    let manifest_limit = state.max_manifest_bytes;
+    let max_in_flight = state.admission.limits.max_in_flight.max(1);
     let state = Arc::new(state);
+    let shed = ServiceBuilder::new()
+        .layer(HandleErrorLayer::new(overloaded))
+        .load_shed()
+        .layer(GlobalConcurrencyLimitLayer::new(max_in_flight));
     Router::new()
         .route("/healthz", get(healthz))
         .route("/v1/token", get(check_token))
-        .route("/v1/campaigns", get(list_campaigns).post(submit_campaign).layer(DefaultBodyLimit::max(manifest_limit)))
+        .route("/v1/campaigns", get(list_campaigns).post(submit_campaign))
         .route("/v1/campaigns/{id}", get(campaign_status).delete(delete_campaign))
         .route("/v1/campaigns/{id}/cancel", post(cancel_campaign))
         .route("/v1/campaigns/{id}/events", get(campaign_events))
@@ -60,82 +75,12 @@ pub fn app(state: ApiState) -> Router {
         .route("/v1/objects/{*key}", put(upload_object).layer(DefaultBodyLimit::disable()))
         .merge(crate::dashboard::routes())
         .merge(crate::ops::routes())
+        .fallback(no_route)
+        .layer(shed)
+        .layer(middleware::from_fn_with_state(state.clone(), admit))
+        .layer(CatchPanicLayer::custom(panicked))
+        .layer(middleware::from_fn(json_errors))
         .with_state(state)
-}
-
-/// An error response: a status and a JSON body saying what is wrong and what to do.
-#[derive(Debug)]
-pub struct ApiError {
-    status: StatusCode,
-    body: ErrorBody,
-}
-
-impl ApiError {
-    fn new(status: StatusCode, error: impl Into<String>) -> Self {
-        Self { status, body: ErrorBody { error: error.into(), problems: Vec::new() } }
-    }
-
-    fn not_found(id: Uuid) -> Self {
-        Self::new(StatusCode::NOT_FOUND, format!("no campaign {id}"))
-    }
-}
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        let mut response = (self.status, Json(self.body)).into_response();
-        if self.status == StatusCode::UNAUTHORIZED {
-            response.headers_mut().insert(header::WWW_AUTHENTICATE, header::HeaderValue::from_static("Bearer"));
-        }
-        response
-    }
-}
-
-impl From<JobError> for ApiError {
-    fn from(e: JobError) -> Self {
-        let status = if e.is_transient() { StatusCode::SERVICE_UNAVAILABLE } else { StatusCode::INTERNAL_SERVER_ERROR };
-        tracing::error!(error = %e, "job store");
-        Self::new(status, format!("job store: {e}"))
-    }
-}
-
-impl From<FrameworkError> for ApiError {
-    fn from(e: FrameworkError) -> Self {
-        match e {
-            FrameworkError::Jobs(j) => j.into(),
-            FrameworkError::BadKey { .. } | FrameworkError::Invalid(_) => {
-                Self::new(StatusCode::BAD_REQUEST, e.to_string())
-            }
-            FrameworkError::TooLarge { .. } => Self::new(StatusCode::PAYLOAD_TOO_LARGE, e.to_string()),
-            ref other if other.is_not_found() => Self::new(StatusCode::NOT_FOUND, e.to_string()),
-            other => {
-                tracing::error!(error = %other, "object store");
-                Self::new(StatusCode::BAD_GATEWAY, format!("object store: {other}"))
-            }
-        }
-    }
-}
-
-fn authorize(state: &ApiState, headers: &HeaderMap) -> Result<(), ApiError> {
-    let Auth::Token(expected) = &state.auth else { return Ok(()) };
-    let given = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::trim);
-    match given {
-        Some(token) if constant_time_eq(token.as_bytes(), expected.as_bytes()) => Ok(()),
-        Some(_) => Err(ApiError::new(StatusCode::UNAUTHORIZED, "wrong bearer token")),
-        None => Err(ApiError::new(
-            StatusCode::UNAUTHORIZED,
-            "writes need `Authorization: Bearer <token>` (the server's PRECIMAP_TOKEN)",
-        )),
-    }
-}
-
-/// Compares without an early exit, so response time does not reveal how much of a guess was
-/// right (the length may leak; the token's entropy does not depend on it).
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 fn parse_id(id: &str) -> Result<Uuid, ApiError> {
@@ -144,7 +89,8 @@ fn parse_id(id: &str) -> Result<Uuid, ApiError> {
 
 async fn healthz(State(state): State<Arc<ApiState>>) -> Result<Json<serde_json::Value>, ApiError> {
     state.framework.jobs.list_campaigns(1).await?;
-    Ok(Json(serde_json::json!({ "status": "ok", "store": state.framework.objects.url() })))
+    // Where the stores are is the operator's business: the answer names neither.
+    Ok(Json(serde_json::json!({ "status": "ok" })))
 }
 
 /// Lets a client check its token before it streams gigabytes of input (a server that rejects an
@@ -165,39 +111,68 @@ async fn list_campaigns(
 ) -> Result<Json<Vec<CampaignSummary>>, ApiError> {
     let limit = q.limit.unwrap_or(100).clamp(1, 1000);
     let campaigns = state.framework.jobs.list_campaigns(limit).await?;
-    Ok(Json(campaigns.iter().map(CampaignSummary::from).collect()))
+    Ok(Json(campaigns.iter().map(|c| scrubbed(CampaignSummary::from(c))).collect()))
 }
 
 async fn submit_campaign(
     State(state): State<Arc<ApiState>>,
     headers: HeaderMap,
-    body: bytes::Bytes,
+    body: Body,
 ) -> Result<(StatusCode, Json<Submitted>), ApiError> {
     authorize(&state, &headers)?;
+    let limit = state.max_manifest_bytes;
+    let too_large = || {
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!("the manifest exceeds {limit} bytes, the most this server accepts; split the campaign"),
+        )
+    };
+    if content_length(&headers).is_some_and(|len| len > limit as u64) {
+        return Err(too_large());
+    }
+    // Read up to the limit and no further: a longer body fails as soon as it passes it.
+    let mut body = body.into_data_stream();
+    let mut manifest_bytes = Vec::new();
+    while let Some(chunk) = body.try_next().await.map_err(|e| {
+        ApiError::new(StatusCode::BAD_REQUEST, format!("the manifest did not arrive whole: {}", root_cause(&e)))
+    })? {
+        if manifest_bytes.len() + chunk.len() > limit {
+            return Err(too_large());
+        }
+        manifest_bytes.extend_from_slice(&chunk);
+    }
+    let body = manifest_bytes;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, "the manifest must be UTF-8 JSON"))?;
     let manifest = precimap_formats::parse_manifest(text).map_err(|e| match e {
-        ManifestError::Invalid { problems, .. } => ApiError {
-            status: StatusCode::UNPROCESSABLE_ENTITY,
-            body: ErrorBody {
-                error: format!("the manifest has {} problem(s)", problems.len()),
-                problems: problems.into_iter().map(|p| Problem { path: p.path, message: p.message }).collect(),
-            },
-        },
+        ManifestError::Invalid { problems, .. } => ApiError::with_problems(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            problems.into_iter().map(|p| Problem { path: p.path, message: p.message }).collect(),
+        ),
         other => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, other.to_string()),
     })?;
     let id = state.framework.submit(&manifest).await.map_err(|e| match e {
-        SubmitError::Invalid { problems } => ApiError {
-            status: StatusCode::UNPROCESSABLE_ENTITY,
-            body: ErrorBody {
-                error: format!("the manifest has {} problem(s)", problems.len()),
-                problems: problems.into_iter().map(|p| Problem { path: p.path, message: p.message }).collect(),
-            },
-        },
+        SubmitError::Invalid { problems } => ApiError::with_problems(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            problems.into_iter().map(|p| Problem { path: p.path, message: p.message }).collect(),
+        ),
         SubmitError::Framework(f) => f.into(),
     })?;
     tracing::info!(%id, name = %manifest.name, "campaign submitted");
     Ok((StatusCode::CREATED, Json(Submitted { id, href: format!("/v1/campaigns/{id}") })))
+}
+
+fn content_length(headers: &HeaderMap) -> Option<u64> {
+    headers.get(header::CONTENT_LENGTH)?.to_str().ok()?.parse().ok()
+}
+
+/// The innermost cause of a body error (the outer layers only say "error reading a body").
+fn root_cause(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut inner = e;
+    while let Some(next) = inner.source() {
+        inner = next;
+    }
+    inner.to_string()
 }
 
 async fn campaign_status(
@@ -209,7 +184,9 @@ async fn campaign_status(
     let campaign = jobs.campaign(id).await?.ok_or_else(|| ApiError::not_found(id))?;
     let counts = jobs.task_counts(id).await?;
     let iterations = jobs.iterations(id).await?;
-    Ok(Json(CampaignStatus::new(&campaign, counts, &iterations)))
+    let mut status = CampaignStatus::new(&campaign, counts, &iterations);
+    status.campaign = scrubbed(status.campaign);
+    Ok(Json(status))
 }
 
 async fn cancel_campaign(
@@ -275,7 +252,14 @@ async fn campaign_events(
             ))
         }
     };
+    let events = events.into_iter().map(|e| EventRecord { message: scrub(&e.message), ..e }).collect();
     Ok(Json(Events { events }))
+}
+
+/// A campaign's error as a client may see it (task errors can quote local paths).
+fn scrubbed(mut summary: CampaignSummary) -> CampaignSummary {
+    summary.error = summary.error.as_deref().map(scrub);
+    summary
 }
 
 async fn list_results(
@@ -347,9 +331,7 @@ async fn upload_object(
         ));
     }
     let limit = state.max_upload_bytes;
-    if let Some(len) =
-        headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok())
-    {
+    if let Some(len) = content_length(&headers) {
         if len > limit {
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,
@@ -357,7 +339,34 @@ async fn upload_object(
             ));
         }
     }
-    let stream = body.into_data_stream().map_err(|e| e.to_string());
-    let bytes = state.framework.objects.put_stream(&key, stream, limit).await?;
+    let stream = body.into_data_stream().map_err(|e| root_cause(&e));
+    let bytes = state.framework.objects.put_stream(&key, stream, limit).await.map_err(|e| upload_error(&key, e))?;
     Ok((StatusCode::CREATED, Json(Uploaded { key, bytes })))
+}
+
+/// An upload that names a folder, or a file where it needs a folder, conflicts with what the
+/// store holds: the client's to fix, and said without the store's own paths.
+fn upload_error(key: &str, e: FrameworkError) -> ApiError {
+    use std::io::ErrorKind;
+    match &e {
+        FrameworkError::Io { source, .. }
+            if matches!(
+                source.kind(),
+                ErrorKind::AlreadyExists
+                    | ErrorKind::NotADirectory
+                    | ErrorKind::IsADirectory
+                    | ErrorKind::DirectoryNotEmpty
+            ) =>
+        {
+            tracing::info!(key, error = %e, "upload conflicts with the store's contents");
+            ApiError::new(
+                StatusCode::CONFLICT,
+                format!(
+                    "{key} conflicts with an object or folder the store holds (a key cannot be both an object and \
+                     the folder of others); upload under another key"
+                ),
+            )
+        }
+        _ => e.into(),
+    }
 }

@@ -174,6 +174,84 @@ pub struct ServeArgs {
     /// the unfinished ones back to the queue.
     #[arg(long, env = "PRECIMAP_SHUTDOWN_GRACE_S", default_value_t = 90)]
     pub shutdown_grace_s: u64,
+    /// Largest accepted manifest in bytes (read no further than this).
+    #[arg(long, env = "PRECIMAP_MAX_MANIFEST_BYTES", default_value_t = 4 << 20)]
+    pub max_manifest_bytes: usize,
+    #[command(flatten)]
+    pub limits: HttpLimits,
+}
+
+/// What clients may hold open and ask for at once; every wait has a timeout.
+#[derive(Args, Debug, Clone)]
+pub struct HttpLimits {
+    /// Open connections at most; more clients wait in the listen backlog.
+    #[arg(long, env = "PRECIMAP_MAX_CONNECTIONS", default_value_t = 1024)]
+    pub max_connections: usize,
+    /// Seconds from a request's first byte until its header must be complete.
+    #[arg(long, env = "PRECIMAP_HEADER_TIMEOUT_S", default_value_t = 20.0)]
+    pub header_timeout_s: f64,
+    /// Seconds a connection may sit idle (before its first request or between requests).
+    #[arg(long, env = "PRECIMAP_IDLE_TIMEOUT_S", default_value_t = 60.0)]
+    pub idle_timeout_s: f64,
+    /// Longest wait in seconds for the next part of a request body; also the grace period
+    /// before --body-min-rate applies.
+    #[arg(long, env = "PRECIMAP_BODY_TIMEOUT_S", default_value_t = 30.0)]
+    pub body_timeout_s: f64,
+    /// Bytes per second a request body must average while the server waits for it (0: off).
+    #[arg(long, env = "PRECIMAP_BODY_MIN_RATE", default_value_t = 1024)]
+    pub body_min_rate: u64,
+    /// Requests handled at once; more are answered 503 with Retry-After.
+    #[arg(long, env = "PRECIMAP_MAX_IN_FLIGHT", default_value_t = 256)]
+    pub max_in_flight: usize,
+    /// Authorised writes (submissions, uploads, cancels, deletes) handled at once; more get 503.
+    #[arg(long, env = "PRECIMAP_MAX_IN_FLIGHT_WRITES", default_value_t = 16)]
+    pub max_in_flight_writes: usize,
+    /// Sustained reads per second per client address; more get 429 (0: unlimited).
+    #[arg(long, env = "PRECIMAP_READS_PER_S", default_value_t = 20.0)]
+    pub reads_per_s: f64,
+    /// Reads a client may make in a burst above --reads-per-s.
+    #[arg(long, env = "PRECIMAP_READ_BURST", default_value_t = 100.0)]
+    pub read_burst: f64,
+}
+
+impl HttpLimits {
+    fn seconds(name: &str, value: f64) -> Result<Duration> {
+        Duration::try_from_secs_f64(value)
+            .ok()
+            .filter(|d| !d.is_zero())
+            .with_context(|| format!("--{name} must be a positive number of seconds, not {value}"))
+    }
+
+    fn connection(&self) -> Result<precimap_api::ConnectionLimits> {
+        if self.max_connections == 0 {
+            bail!("--max-connections must be at least 1");
+        }
+        Ok(precimap_api::ConnectionLimits {
+            max_connections: self.max_connections,
+            header_timeout: Self::seconds("header-timeout-s", self.header_timeout_s)?,
+            idle_timeout: Self::seconds("idle-timeout-s", self.idle_timeout_s)?,
+            body_timeout: Self::seconds("body-timeout-s", self.body_timeout_s)?,
+            body_min_rate: self.body_min_rate,
+        })
+    }
+
+    fn admission(&self) -> Result<precimap_api::AdmissionLimits> {
+        if self.max_in_flight == 0 || self.max_in_flight_writes == 0 {
+            bail!("--max-in-flight and --max-in-flight-writes must be at least 1");
+        }
+        if !(self.reads_per_s.is_finite() && self.reads_per_s >= 0.0) {
+            bail!("--reads-per-s must be 0 (unlimited) or a positive number, not {}", self.reads_per_s);
+        }
+        if !(self.read_burst.is_finite() && self.read_burst >= 1.0) {
+            bail!("--read-burst must be at least 1, not {}", self.read_burst);
+        }
+        Ok(precimap_api::AdmissionLimits {
+            max_in_flight: self.max_in_flight,
+            max_in_flight_writes: self.max_in_flight_writes,
+            reads_per_s: self.reads_per_s,
+            read_burst: self.read_burst,
+        })
+    }
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -184,11 +262,14 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             bail!("set PRECIMAP_TOKEN (or --token) so that only authorised clients can write; --no-auth disables this")
         }
     };
+    let connection_limits = args.limits.connection()?;
+    let admission_limits = args.limits.admission()?;
     runtime()?.block_on(async move {
         let framework = args.backends.connect().await?;
-        let mut state = ApiState::new(framework.clone(), auth);
+        let mut state = ApiState::new(framework.clone(), auth).with_admission(admission_limits);
         state.max_upload_bytes = args.max_upload_bytes;
         state.metrics = Some(install_metrics()?);
+        state.max_manifest_bytes = args.max_manifest_bytes;
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
@@ -217,11 +298,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 Ok(())
             }
         });
-        axum::serve(listener, precimap_api::app(state))
-            .with_graceful_shutdown(async {
-                shutdown_signal().await;
-            })
-            .await?;
+        let shutdown = shutdown_signal();
+        precimap_api::serve(listener, precimap_api::app(state), connection_limits, shutdown).await?;
         let _ = stop_tx.send(true);
         tokio::select! {
             finished = &mut background => finished??,

@@ -249,6 +249,13 @@ struct Checker {
     problems: Vec<ManifestProblem>,
 }
 
+/// The longest campaign name, in characters.
+pub const MAX_NAME_CHARS: usize = 200;
+/// The largest lever-arm component in metres (a scan head is on the vehicle).
+pub const MAX_LEVER_ARM_M: f64 = 100.0;
+/// The most iteration steps a schedule may list.
+pub const MAX_SCHEDULE_STEPS: usize = 1000;
+
 const TOP_FIELDS: [&str; 5] = ["name", "scanners", "trajectories", "strips", "parameters"];
 const SCANNER_FIELDS: [&str; 2] = ["lever_arm_m", "boresight_deg"];
 const TRAJECTORY_FIELDS: [&str; 2] = ["id", "uri"];
@@ -264,6 +271,14 @@ impl Checker {
         if let Some(v) = c.required("$", top, "name", "a short campaign name, e.g. \"hannover-double-8\"") {
             match v.as_str() {
                 Some(s) if s.trim().is_empty() => c.push("$.name", "is empty; give the campaign a name"),
+                Some(s) if s.chars().count() > MAX_NAME_CHARS => c.push(
+                    "$.name",
+                    format!("is {} characters long; shorten it to at most {MAX_NAME_CHARS}", s.chars().count()),
+                ),
+                Some(s) if s.chars().any(char::is_control) => c.push(
+                    "$.name",
+                    "contains a control character (NUL, newline, tab...); use printable characters only",
+                ),
                 Some(_) => {}
                 None => c.wrong_type("$.name", v, "a string"),
             }
@@ -342,12 +357,21 @@ impl Checker {
         }
     }
 
-    fn vec3(&mut self, path: &str, v: &Value, unit: &str) {
+    /// Three finite numbers, each of magnitude at most `bound`.
+    fn vec3(&mut self, path: &str, v: &Value, unit: &str, bound: f64) {
         let numbers: Option<Vec<f64>> = v.as_array().and_then(|a| a.iter().map(Value::as_f64).collect());
         match numbers {
             Some(n) if n.len() == 3 => {
                 if n.iter().any(|x| !x.is_finite()) {
                     self.push(path, format!("values must be finite numbers ({unit})"));
+                }
+                for (i, x) in n.iter().enumerate() {
+                    if x.is_finite() && x.abs() > bound {
+                        self.push(
+                            &format!("{path}[{i}]"),
+                            format!("{x} is out of range: use a value from {} to {bound} ({unit})", -bound),
+                        );
+                    }
                 }
             }
             _ => self.push(path, format!("expected an array of 3 numbers [x, y, z] ({unit}), found {}", describe(v))),
@@ -379,10 +403,15 @@ impl Checker {
                 "lever_arm_m",
                 "the scan head's offset [x, y, z] in metres in the body frame",
             ) {
-                self.vec3(&child(&path, "lever_arm_m"), la, "metres, body frame x forward, y left, z up");
+                self.vec3(
+                    &child(&path, "lever_arm_m"),
+                    la,
+                    "metres, body frame x forward, y left, z up",
+                    MAX_LEVER_ARM_M,
+                );
             }
             if let Some(b) = fields.get("boresight_deg") {
-                self.vec3(&child(&path, "boresight_deg"), b, "roll, pitch, yaw in degrees");
+                self.vec3(&child(&path, "boresight_deg"), b, "roll, pitch, yaw in degrees", 360.0);
             }
         }
         Some(map.keys().cloned().collect())
@@ -483,6 +512,7 @@ impl Checker {
         if self.problems.len() > before {
             return;
         }
+        self.parameter_ranges("$.parameters", v);
         match serde_json::from_value::<Parameters>(v.clone()) {
             Ok(p) => {
                 for pp in p.problems() {
@@ -493,6 +523,63 @@ impl Checker {
                 }
             }
             Err(e) => self.push("$.parameters", e.to_string()),
+        }
+    }
+
+    /// Bounds no sensible campaign comes near, so that a typo (a value in millimetres, an
+    /// exponent too many) is refused at submission rather than found hours into a run, or never:
+    /// lengths within ±10 km, angles within ±360°, anything else within ±10⁶; the spacings that
+    /// set how much work there is (anchors, tiles, cells, grids) at least 1 mm or 1 cm; at most
+    /// `MAX_SCHEDULE_STEPS` iterations. The core's own checks (positive, in [0, 1)...) follow.
+    fn parameter_ranges(&mut self, path: &str, v: &Value) {
+        match v {
+            Value::Object(map) => {
+                for (key, x) in map {
+                    let here = child(path, key);
+                    if let Some(x) = x.as_f64() {
+                        self.parameter_range(&here, key, x);
+                    } else {
+                        self.parameter_ranges(&here, x);
+                    }
+                }
+            }
+            Value::Array(items) => {
+                if items.len() > MAX_SCHEDULE_STEPS {
+                    self.push(
+                        path,
+                        format!("has {} steps; a campaign runs at most {MAX_SCHEDULE_STEPS} iterations", items.len()),
+                    );
+                }
+                for (i, x) in items.iter().enumerate() {
+                    self.parameter_ranges(&format!("{path}[{i}]"), x);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn parameter_range(&mut self, path: &str, field: &str, x: f64) {
+        let (bound, unit) = if field.ends_with("_m") {
+            (10_000.0, " m")
+        } else if field.ends_with("_deg") {
+            (360.0, "°")
+        } else {
+            (1e6, "")
+        };
+        let least = match field {
+            "anchor_spacing_m" | "tile_size_m" => Some(0.01),
+            "cell_size_m" | "grid_m" | "cell_m" => Some(0.001),
+            _ => None,
+        };
+        if x.abs() > bound {
+            self.push(path, format!("{x} is out of range: use a value within ±{bound}{unit}"));
+        } else if let Some(least) = least.filter(|least| x > 0.0 && x < *least) {
+            self.push(
+                path,
+                format!(
+                    "{x}{unit} is too fine: at least {least}{unit} (finer spacings multiply the work without bound)"
+                ),
+            );
         }
     }
 
@@ -725,6 +812,29 @@ mod tests {
         assert!(has(&problems("[]"), "$", "expected an object, found an array"));
         let long = "a".repeat(65);
         assert!(has(&problems(&with(|v| v["strips"][0]["id"] = Value::from(long))), "$.strips[0].id", "1–64"));
+    }
+
+    #[test]
+    fn absurd_numbers_and_names_are_refused_with_their_path() {
+        let text = with(|v| {
+            v["name"] = Value::from("a\u{0}b");
+            v["scanners"]["left"]["lever_arm_m"][1] = Value::from(1e308);
+            v["scanners"]["right"]["boresight_deg"] = serde_json::json!([0, -720, 0]);
+            v["parameters"]["anchor_spacing_m"] = Value::from(1e-9);
+            v["parameters"]["max_range_m"] = Value::from(1e300);
+            v["parameters"]["schedule"][0]["threshold_m"] = Value::from(5e4);
+        });
+        let p = problems(&text);
+        assert!(has(&p, "$.name", "control character"), "{p:#?}");
+        assert!(has(&p, "$.scanners.left.lever_arm_m[1]", "out of range"), "{p:#?}");
+        assert!(has(&p, "$.scanners.right.boresight_deg[1]", "out of range"), "{p:#?}");
+        assert!(has(&p, "$.parameters.anchor_spacing_m", "too fine"), "{p:#?}");
+        assert!(has(&p, "$.parameters.max_range_m", "out of range"), "{p:#?}");
+        assert!(has(&p, "$.parameters.schedule[0].threshold_m", "out of range"), "{p:#?}");
+        assert_eq!(p.len(), 6, "{p:#?}");
+        let long = with(|v| v["name"] = Value::from("x".repeat(MAX_NAME_CHARS + 1)));
+        assert!(has(&problems(&long), "$.name", "at most 200"));
+        assert!(parse_manifest(GOOD).is_ok());
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //!
 //! Keys are relative, `/`-separated paths. Nothing outside the configured store can be named: a
 //! key with `..`, a scheme, a leading `/`, a backslash or control characters is rejected before
-//! it reaches the store.
+//! it reaches the store. A `file://` store also refuses any key whose file or folder is a
+//! symbolic link leading outside its root: it neither reads, writes, lists nor deletes through
+//! such a link.
 
 use crate::error::FrameworkError;
 use crate::metrics;
@@ -52,8 +54,44 @@ pub fn validate_key(key: &str) -> Result<(), String> {
         if part.is_empty() || part == "." || part == ".." {
             return Err(format!("key {key:?} has an empty, '.' or '..' component; name an object inside the store"));
         }
+        // File systems limit a name to 255 bytes; the same rule holds for every store.
+        if part.len() > MAX_KEY_COMPONENT_BYTES {
+            return Err(format!(
+                "a component of key {key:?} is {} bytes long; at most {MAX_KEY_COMPONENT_BYTES} are allowed",
+                part.len()
+            ));
+        }
     }
     Ok(())
+}
+
+/// The longest `/`-separated component of a key, in bytes.
+pub const MAX_KEY_COMPONENT_BYTES: usize = 255;
+
+/// Refuses `path` (the file of `key` under `root`) when it, or the deepest folder of it that
+/// exists, resolves outside `root` through a symbolic link. A path that does not exist yet
+/// (nor its folders) is inside: creating it creates real folders.
+fn confined(root: &Path, key: &str, path: &Path) -> Result<(), FrameworkError> {
+    let mut existing = path;
+    let resolved = loop {
+        match existing.canonicalize() {
+            Ok(resolved) => break resolved,
+            Err(_) => match existing.parent() {
+                Some(parent) if parent.starts_with(root) && parent != root => existing = parent,
+                _ => return Ok(()),
+            },
+        }
+    };
+    if resolved.starts_with(root) {
+        Ok(())
+    } else {
+        // The target stays in the log; the error (which may reach a client) names the key only.
+        tracing::warn!(key, target = %resolved.display(), "refused a symbolic link leading outside the file store");
+        Err(FrameworkError::BadKey {
+            key: key.to_string(),
+            message: "leads outside the store through a symbolic link, which the file store does not follow".into(),
+        })
+    }
 }
 
 fn store_path(key: &str) -> Result<StorePath, FrameworkError> {
@@ -104,15 +142,29 @@ impl Objects {
         &self.url
     }
 
-    /// Where `key` lives on disk, for a `file://` store.
+    /// Where `key` lives on disk, for a `file://` store. `None` for other stores, and for a key
+    /// the file store refuses (one leading outside it through a link): the store's own methods
+    /// then report why.
     pub fn local_path(&self, key: &str) -> Option<PathBuf> {
         let root = self.local_root.as_ref()?;
         validate_key(key).ok()?;
-        Some(root.join(key))
+        let path = root.join(key);
+        confined(root, key, &path).ok()?;
+        Some(path)
+    }
+
+    /// Checks that a `file://` store may touch `key` (see [`confined`]); other stores have no
+    /// links.
+    fn check_confined(&self, key: &str) -> Result<(), FrameworkError> {
+        match &self.local_root {
+            Some(root) => confined(root, key, &root.join(key)),
+            None => Ok(()),
+        }
     }
 
     pub async fn put(&self, key: &str, bytes: Bytes) -> Result<(), FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         let n = bytes.len() as u64;
         self.inner.put(&path, PutPayload::from_bytes(bytes)).await.map_err(|e| FrameworkError::store(key, e))?;
         metrics::store_written(n);
@@ -121,6 +173,7 @@ impl Objects {
 
     pub async fn get(&self, key: &str) -> Result<Bytes, FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
         let bytes = result.bytes().await.map_err(|e| FrameworkError::store(key, e))?;
         metrics::store_read(bytes.len() as u64);
@@ -130,6 +183,7 @@ impl Objects {
     /// The file of `key` in a `file://` store; a key outside the store is `BadKey`.
     fn local_file(&self, key: &str) -> Result<PathBuf, FrameworkError> {
         store_path(key)?;
+        self.check_confined(key)?;
         self.local_path(key).ok_or_else(|| FrameworkError::Internal(format!("{key}: not a file store")))
     }
 
@@ -211,6 +265,7 @@ impl Objects {
 
     pub async fn exists(&self, key: &str) -> Result<bool, FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         match self.inner.head(&path).await {
             Ok(_) => Ok(true),
             Err(object_store::Error::NotFound { .. }) => Ok(false),
@@ -221,6 +276,7 @@ impl Objects {
     /// Uploads a local file (in parts, so a strip of many gigabytes never sits in memory).
     pub async fn put_file(&self, key: &str, file: &Path) -> Result<u64, FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         if let Some(dst) = self.local_path(key) {
             // Same machine: a copy through a temporary name, renamed into place.
             if let Some(dir) = dst.parent() {
@@ -262,6 +318,7 @@ impl Objects {
         E: std::fmt::Display,
     {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         let too_big = || FrameworkError::TooLarge { key: key.to_string(), limit };
         let broken = |e: E| FrameworkError::Invalid(format!("upload of {key} broke off: {e}"));
         let mut total = 0u64;
@@ -270,23 +327,20 @@ impl Objects {
                 tokio::fs::create_dir_all(dir).await.map_err(|e| FrameworkError::io(dir, e))?;
             }
             let tmp = dst.with_extension(format!("upload-{}", uuid::Uuid::new_v4().simple()));
+            // Removes the temporary file on every way out but success, a dropped request included.
+            let guard = TempFileGuard(Some(tmp.clone()));
             let mut out = tokio::fs::File::create(&tmp).await.map_err(|e| FrameworkError::io(&tmp, e))?;
-            let result: Result<(), FrameworkError> = async {
-                while let Some(chunk) = stream.try_next().await.map_err(broken)? {
-                    total += chunk.len() as u64;
-                    if total > limit {
-                        return Err(too_big());
-                    }
-                    out.write_all(&chunk).await.map_err(|e| FrameworkError::io(&tmp, e))?;
+            while let Some(chunk) = stream.try_next().await.map_err(broken)? {
+                total += chunk.len() as u64;
+                if total > limit {
+                    return Err(too_big());
                 }
-                out.flush().await.map_err(|e| FrameworkError::io(&tmp, e))
+                out.write_all(&chunk).await.map_err(|e| FrameworkError::io(&tmp, e))?;
             }
-            .await;
-            if let Err(e) = result {
-                let _ = tokio::fs::remove_file(&tmp).await;
-                return Err(e);
-            }
+            out.flush().await.map_err(|e| FrameworkError::io(&tmp, e))?;
+            drop(out);
             tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
+            guard.disarm();
             metrics::store_written(total);
             return Ok(total);
         }
@@ -322,6 +376,7 @@ impl Objects {
     /// Downloads `key` into `file` (streamed).
     pub async fn get_to_file(&self, key: &str, file: &Path) -> Result<u64, FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
         let mut stream = result.into_stream();
         if let Some(dir) = file.parent() {
@@ -344,6 +399,7 @@ impl Objects {
         key: &str,
     ) -> Result<(u64, futures::stream::BoxStream<'static, object_store::Result<Bytes>>), FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         let result = self.inner.get(&path).await.map_err(|e| FrameworkError::store(key, e))?;
         let size = result.meta.size;
         metrics::store_read(size);
@@ -353,13 +409,16 @@ impl Objects {
     /// Every key under `prefix` (a folder, without the trailing '/').
     pub async fn list(&self, prefix: &str) -> Result<Vec<String>, FrameworkError> {
         let path = store_path(prefix)?;
+        self.check_confined(prefix)?;
         let metas: Vec<_> =
             self.inner.list(Some(&path)).try_collect().await.map_err(|e| FrameworkError::store(prefix, e))?;
-        Ok(metas.into_iter().map(|m| m.location.to_string()).collect())
+        // A file store lists through links; what lies outside it is not the store's.
+        Ok(metas.into_iter().map(|m| m.location.to_string()).filter(|key| self.check_confined(key).is_ok()).collect())
     }
 
     pub async fn delete(&self, key: &str) -> Result<(), FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         match self.inner.delete(&path).await {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(FrameworkError::store(key, e)),
@@ -377,6 +436,24 @@ impl Objects {
             let _ = tokio::fs::remove_dir_all(dir).await;
         }
         Ok(keys.len())
+    }
+}
+
+/// Deletes its file when dropped, unless disarmed.
+#[derive(Debug)]
+struct TempFileGuard(Option<PathBuf>);
+
+impl TempFileGuard {
+    fn disarm(mut self) {
+        self.0 = None;
+    }
+}
+
+impl Drop for TempFileGuard {
+    fn drop(&mut self) {
+        if let Some(path) = self.0.take() {
+            let _ = std::fs::remove_file(path);
+        }
     }
 }
 
@@ -415,6 +492,79 @@ mod tests {
         assert!(objects.get("../x").await.is_err());
         assert!(Objects::from_url("file://relative/path").is_err());
         assert!(Objects::from_url("http://example.com").is_err());
+    }
+
+    #[tokio::test]
+    async fn the_file_store_refuses_links_leading_outside_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let outside = tempfile::tempdir().unwrap();
+        std::fs::write(outside.path().join("secret"), "TOP-SECRET").unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().join("store").display())).unwrap();
+        objects.put("inputs/real.csv", Bytes::from_static(b"ok")).await.unwrap();
+        let inputs = dir.path().join("store").join("inputs");
+        std::os::unix::fs::symlink(outside.path().join("secret"), inputs.join("file-link")).unwrap();
+        std::os::unix::fs::symlink(outside.path(), inputs.join("dir-link")).unwrap();
+        // A link inside the store to another of its objects is fine.
+        std::os::unix::fs::symlink(inputs.join("real.csv"), inputs.join("inner-link")).unwrap();
+        assert_eq!(&objects.get("inputs/inner-link").await.unwrap()[..], b"ok");
+        for key in ["inputs/file-link", "inputs/dir-link/secret"] {
+            let refused = objects.get(key).await.unwrap_err();
+            assert!(matches!(refused, FrameworkError::BadKey { .. }), "{key}: {refused}");
+            assert!(!refused.to_string().contains("TOP-SECRET") && !refused.to_string().contains("/tmp"), "{refused}");
+            assert!(objects.exists(key).await.is_err());
+            assert!(objects.get_many(&[key.to_string()]).await.is_err());
+            assert!(objects.local_path(key).is_none());
+            assert!(objects.delete(key).await.is_err());
+        }
+        let planted = objects.put_stream(
+            "inputs/dir-link/planted",
+            futures::stream::iter([Ok::<_, String>(Bytes::from_static(b"x"))]),
+            10,
+        );
+        assert!(matches!(planted.await, Err(FrameworkError::BadKey { .. })));
+        assert!(!outside.path().join("planted").exists());
+        assert!(objects.put("inputs/dir-link/planted", Bytes::new()).await.is_err());
+        let mut listed = objects.list("inputs").await.unwrap();
+        listed.sort();
+        assert_eq!(listed, ["inputs/inner-link", "inputs/real.csv"]);
+        assert!(outside.path().join("secret").exists());
+    }
+
+    #[tokio::test]
+    async fn a_failed_upload_leaves_no_temporary_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let objects = Objects::from_url(&format!("file://{}", dir.path().display())).unwrap();
+        let chunks =
+            || futures::stream::iter([Ok::<_, String>(Bytes::from_static(b"12345")), Ok(Bytes::from_static(b"6789"))]);
+        // Too long, broken off, and renamed onto a folder.
+        assert!(matches!(objects.put_stream("inputs/a/x", chunks(), 6).await, Err(FrameworkError::TooLarge { .. })));
+        let broken = futures::stream::iter([Ok(Bytes::from_static(b"12")), Err("reset".to_string())]);
+        assert!(matches!(objects.put_stream("inputs/a/x", broken, 100).await, Err(FrameworkError::Invalid(_))));
+        objects.put("inputs/a/x/y", Bytes::from_static(b"y")).await.unwrap();
+        assert!(matches!(objects.put_stream("inputs/a/x", chunks(), 100).await, Err(FrameworkError::Io { .. })));
+        // A request dropped mid-upload.
+        let endless = futures::stream::pending::<Result<Bytes, String>>();
+        let dropped =
+            tokio::time::timeout(std::time::Duration::from_millis(50), objects.put_stream("inputs/a/z", endless, 100));
+        assert!(dropped.await.is_err());
+        let mut left: Vec<_> = walk(dir.path());
+        left.sort();
+        assert_eq!(left, [dir.path().join("inputs/a/x/y")], "temporary files left behind");
+        assert_eq!(objects.put_stream("inputs/b", chunks(), 9).await.unwrap(), 9);
+        assert!(validate_key(&format!("inputs/{}", "n".repeat(256))).is_err());
+        assert!(validate_key(&format!("inputs/{}", "n".repeat(255))).is_ok());
+    }
+
+    fn walk(dir: &Path) -> Vec<PathBuf> {
+        let mut out = Vec::new();
+        for entry in std::fs::read_dir(dir).unwrap().flatten() {
+            if entry.path().is_dir() {
+                out.extend(walk(&entry.path()));
+            } else {
+                out.push(entry.path());
+            }
+        }
+        out
     }
 
     #[tokio::test]
