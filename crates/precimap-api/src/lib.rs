@@ -3,9 +3,10 @@
 
 pub mod client;
 pub mod dashboard;
+mod inputs;
 pub mod server;
 pub mod types;
 
 pub use client::{Client, ClientError};
 pub use server::{app, ApiState, Auth};
-pub use types::{CampaignStatus, ErrorBody, Problem, ResultEntry, Submitted};
+pub use types::{CampaignStatus, ErrorBody, InputEntry, InputList, InputsDeleted, Problem, ResultEntry, Submitted};

@@ -12,7 +12,7 @@ use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use futures::TryStreamExt;
 use precimap_formats::ManifestError;
-use precimap_framework::{validate_key, Framework, FrameworkError, SubmitError};
+use precimap_framework::{validate_key, CampaignLimits, Framework, FrameworkError, SubmitError};
 use precimap_jobs::JobError;
 use serde::Deserialize;
 use std::sync::Arc;
@@ -33,11 +33,19 @@ pub struct ApiState {
     pub auth: Auth,
     pub max_manifest_bytes: usize,
     pub max_upload_bytes: u64,
+    /// Bounds on a submitted campaign's size.
+    pub limits: CampaignLimits,
 }
 
 impl ApiState {
     pub fn new(framework: Framework, auth: Auth) -> Self {
-        Self { framework, auth, max_manifest_bytes: 4 << 20, max_upload_bytes: 64 << 30 }
+        Self {
+            framework,
+            auth,
+            max_manifest_bytes: 4 << 20,
+            max_upload_bytes: 64 << 30,
+            limits: CampaignLimits::default(),
+        }
     }
 }
 
@@ -56,6 +64,7 @@ pub fn app(state: ApiState) -> Router {
         .route("/v1/campaigns/{id}/results/{*name}", get(download_result))
         // Uploads stream to the store with their own limit (checked while streaming).
         .route("/v1/objects/{*key}", put(upload_object).layer(DefaultBodyLimit::disable()))
+        .merge(crate::inputs::routes())
         .merge(crate::dashboard::routes())
         .with_state(state)
 }
@@ -68,7 +77,7 @@ pub struct ApiError {
 }
 
 impl ApiError {
-    fn new(status: StatusCode, error: impl Into<String>) -> Self {
+    pub(crate) fn new(status: StatusCode, error: impl Into<String>) -> Self {
         Self { status, body: ErrorBody { error: error.into(), problems: Vec::new() } }
     }
 
@@ -103,6 +112,7 @@ impl From<FrameworkError> for ApiError {
                 Self::new(StatusCode::BAD_REQUEST, e.to_string())
             }
             FrameworkError::TooLarge { .. } => Self::new(StatusCode::PAYLOAD_TOO_LARGE, e.to_string()),
+            FrameworkError::Exists { .. } => Self::new(StatusCode::CONFLICT, e.to_string()),
             ref other if other.is_not_found() => Self::new(StatusCode::NOT_FOUND, e.to_string()),
             other => {
                 tracing::error!(error = %other, "object store");
@@ -112,7 +122,7 @@ impl From<FrameworkError> for ApiError {
     }
 }
 
-fn authorize(state: &ApiState, headers: &HeaderMap) -> Result<(), ApiError> {
+pub(crate) fn authorize(state: &ApiState, headers: &HeaderMap) -> Result<(), ApiError> {
     let Auth::Token(expected) = &state.auth else { return Ok(()) };
     let given = headers
         .get(header::AUTHORIZATION)
@@ -183,7 +193,7 @@ async fn submit_campaign(
         },
         other => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, other.to_string()),
     })?;
-    let id = state.framework.submit(&manifest).await.map_err(|e| match e {
+    let id = state.framework.submit_with_limits(&manifest, &state.limits).await.map_err(|e| match e {
         SubmitError::Invalid { problems } => ApiError {
             status: StatusCode::UNPROCESSABLE_ENTITY,
             body: ErrorBody {
@@ -218,7 +228,7 @@ async fn cancel_campaign(
     let id = parse_id(&id)?;
     let jobs = &state.framework.jobs;
     let campaign = jobs.campaign(id).await?.ok_or_else(|| ApiError::not_found(id))?;
-    if !jobs.cancel_campaign(id).await? {
+    if !state.framework.cancel(id).await? {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             format!("campaign {id} has already finished ({})", campaign.state.as_str()),
