@@ -247,7 +247,7 @@ async fn manifests_name_only_complete_inputs_within_the_bounds() {
         .into_iter()
         .filter(|k| precimap_framework::is_temporary_key(k))
         .collect();
-    assert_eq!(temporary, [partial.clone()]);
+    assert_eq!(temporary, std::slice::from_ref(&partial));
 
     // Bounds: each count, then the bytes, each with its path; nothing is created.
     let tight = CampaignLimits { max_strips: 3, max_trajectories: 1, max_input_bytes: 1000 };
