@@ -232,12 +232,33 @@ fn embedded_run_and_the_http_api_give_the_in_process_result() {
 
         // The anchors' positions were read from the trajectory files once, by the first field
         // task; every later field task read the object it wrote.
-        let stored = objects.list(&finished.object_prefix).await.unwrap();
-        let positions = stored.iter().filter(|k| k.contains("/anchors/positions.")).count();
+        let recorded = jobs.recorded_keys(submitted.id).await.unwrap();
+        let positions = recorded.iter().filter(|k| k.contains("/anchors/positions.")).count();
         let field_tasks =
             status.iterations.iter().filter(|i| i["common_mode_field_max_m"].as_f64() > Some(0.0)).count();
         assert!(field_tasks > 1, "{field_tasks} iterations solved the field");
         assert_eq!(positions, 1, "one anchor positions object");
+        // Only the results stay in the store once the campaign has succeeded: the executor that
+        // finished it removes the work files right after its commit.
+        let mut kept: Vec<String> =
+            framework.results(submitted.id).await.unwrap().into_iter().map(|(_, k)| k).collect();
+        kept.sort();
+        kept.dedup();
+        let waited = Instant::now();
+        loop {
+            let mut stored = objects.list(&finished.object_prefix).await.unwrap();
+            stored.sort();
+            if stored == kept {
+                break;
+            }
+            assert!(
+                waited.elapsed() < Duration::from_secs(60),
+                "{} objects stored, {} results",
+                stored.len(),
+                kept.len()
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
 
         // Deleting the campaign removes its objects.
         let prefix = finished.object_prefix.clone();
@@ -370,8 +391,16 @@ fn a_corrupt_strip_fails_its_campaign_and_not_the_one_beside_it() {
         sweeper.reconcile().await.unwrap();
         for (id, key) in [bad_id, good_id].into_iter().zip(&planted) {
             assert!(!objects.exists(key).await.unwrap(), "{key} swept");
-            let (stored, recorded) = stored_and_recorded(&jobs, &objects, id).await;
-            assert_eq!(stored, recorded, "only recorded outputs remain");
+            let (stored, _) = stored_and_recorded(&jobs, &objects, id).await;
+            // A failed campaign keeps nothing, a succeeded one its results (work files go).
+            let mut kept: Vec<String> = if id == bad_id {
+                Vec::new()
+            } else {
+                framework.results(id).await.unwrap().into_iter().map(|(_, k)| k).collect()
+            };
+            kept.sort();
+            kept.dedup();
+            assert_eq!(stored, kept, "only the results remain");
         }
         assert_eq!(jobs.claim_sweep(Duration::ZERO, Duration::ZERO).await.unwrap(), None, "both marked swept");
     });
@@ -558,13 +587,17 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
         "0"
     );
     // The objects of killed attempts were cleaned up when the campaign finished: every object
-    // left under the campaign's prefix is a recorded output.
+    // left under the campaign's prefix is a recorded output, and a result (work files go).
     rt.block_on(async {
         let jobs = JobStore::connect(&db).await.unwrap();
         let (stored, recorded) = stored_and_recorded(&jobs, &Objects::from_url(&store).unwrap(), id).await;
         let orphans: Vec<_> = stored.iter().filter(|k| recorded.binary_search(k).is_err()).collect();
         assert!(orphans.is_empty(), "{} orphaned objects, e.g. {:?}", orphans.len(), orphans.first());
-        assert_eq!(stored.len(), recorded.len());
+        let mut results: Vec<String> =
+            precimap_framework::lifecycle::result_keys(&jobs, id).await.unwrap().into_iter().map(|(_, k)| k).collect();
+        results.sort();
+        results.dedup();
+        assert_eq!(stored, results);
         jobs.close().await;
     });
     let _ = psql(&pg, &format!("DROP DATABASE IF EXISTS {database} WITH (FORCE)"));

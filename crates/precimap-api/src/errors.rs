@@ -81,6 +81,7 @@ impl From<FrameworkError> for ApiError {
                 Self::new(StatusCode::BAD_REQUEST, e.to_string())
             }
             FrameworkError::TooLarge { .. } => Self::new(StatusCode::PAYLOAD_TOO_LARGE, e.to_string()),
+            FrameworkError::Exists { .. } => Self::new(StatusCode::CONFLICT, e.to_string()),
             FrameworkError::Store { ref key, .. } if e.is_not_found() => {
                 Self::new(StatusCode::NOT_FOUND, format!("no object {key}"))
             }

@@ -15,7 +15,7 @@ use axum::routing::{get, post, put};
 use axum::{middleware, Json, Router};
 use futures::TryStreamExt;
 use precimap_formats::ManifestError;
-use precimap_framework::{validate_key, Framework, FrameworkError, SubmitError};
+use precimap_framework::{validate_key, CampaignLimits, Framework, FrameworkError, SubmitError};
 use precimap_jobs::EventRecord;
 use serde::Deserialize;
 use std::sync::Arc;
@@ -33,6 +33,8 @@ pub struct ApiState {
     /// `GET /metrics` renders these (404 without a recorder).
     pub metrics: Option<crate::ops::MetricsRenderer>,
     pub admission: Arc<Admission>,
+    /// Bounds on a submitted campaign's size.
+    pub limits: CampaignLimits,
 }
 
 impl ApiState {
@@ -44,6 +46,7 @@ impl ApiState {
             max_upload_bytes: 64 << 30,
             admission: Arc::new(Admission::new(AdmissionLimits::default())),
             metrics: None,
+            limits: CampaignLimits::default(),
         }
     }
 
@@ -73,6 +76,7 @@ pub fn app(state: ApiState) -> Router {
         .route("/v1/campaigns/{id}/results/{*name}", get(download_result))
         // Uploads stream to the store with their own limit (checked while streaming).
         .route("/v1/objects/{*key}", put(upload_object).layer(DefaultBodyLimit::disable()))
+        .merge(crate::inputs::routes())
         .merge(crate::dashboard::routes())
         .merge(crate::ops::routes())
         .fallback(no_route)
@@ -151,7 +155,7 @@ async fn submit_campaign(
         ),
         other => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, other.to_string()),
     })?;
-    let id = state.framework.submit(&manifest).await.map_err(|e| match e {
+    let id = state.framework.submit_with_limits(&manifest, &state.limits).await.map_err(|e| match e {
         SubmitError::Invalid { problems } => ApiError::with_problems(
             StatusCode::UNPROCESSABLE_ENTITY,
             problems.into_iter().map(|p| Problem { path: p.path, message: p.message }).collect(),
@@ -198,7 +202,7 @@ async fn cancel_campaign(
     let id = parse_id(&id)?;
     let jobs = &state.framework.jobs;
     let campaign = jobs.campaign(id).await?.ok_or_else(|| ApiError::not_found(id))?;
-    if !jobs.cancel_campaign(id).await? {
+    if !state.framework.cancel(id).await? {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             format!("campaign {id} has already finished ({})", campaign.state.as_str()),

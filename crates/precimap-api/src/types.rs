@@ -92,3 +92,26 @@ pub struct Uploaded {
     pub key: String,
     pub bytes: u64,
 }
+
+/// `GET /v1/inputs`: uploaded input objects, sorted by key.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct InputList {
+    pub inputs: Vec<InputEntry>,
+    /// More inputs match than `limit` allowed to list.
+    pub truncated: bool,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct InputEntry {
+    pub key: String,
+    pub bytes: u64,
+    pub modified_at_ms: i64,
+    /// The campaigns whose manifests name it (it cannot be deleted while any does).
+    pub campaigns: Vec<Uuid>,
+}
+
+/// `DELETE /v1/inputs/{key}`: the input objects removed.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct InputsDeleted {
+    pub deleted: Vec<String>,
+}

@@ -12,6 +12,7 @@ mod bench;
 mod progress;
 mod segments;
 mod service;
+mod storage_args;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};

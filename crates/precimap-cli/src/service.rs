@@ -2,6 +2,7 @@
 //! commands `submit`, `status`, `results`, `cancel`, `delete`.
 
 use crate::progress::Display;
+use crate::storage_args::{LimitArgs, RetentionArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use precimap_api::{ApiState, Auth, Client};
@@ -26,6 +27,8 @@ pub struct Backends {
     /// Lease of a claimed task in seconds (heartbeats renew it every third).
     #[arg(long, env = "PRECIMAP_LEASE_S", default_value_t = 60)]
     pub lease_s: u64,
+    #[command(flatten)]
+    pub retention: RetentionArgs,
 }
 
 impl Backends {
@@ -55,7 +58,11 @@ impl Backends {
 
     fn executor(&self, framework: &Framework) -> Executor {
         let scratch = std::env::temp_dir().join(format!("precimap-scratch-{}", std::process::id()));
-        let config = ExecutorConfig { lease: Duration::from_secs(self.lease_s.max(3)), ..ExecutorConfig::default() };
+        let config = ExecutorConfig {
+            lease: Duration::from_secs(self.lease_s.max(3)),
+            retention: self.retention.retention(),
+            ..ExecutorConfig::default()
+        };
         Executor::new(framework.jobs.clone(), TaskContext::new(framework.objects.clone(), scratch), config)
     }
 }
@@ -179,6 +186,8 @@ pub struct ServeArgs {
     pub max_manifest_bytes: usize,
     #[command(flatten)]
     pub limits: HttpLimits,
+    #[command(flatten)]
+    pub campaign_limits: LimitArgs,
 }
 
 /// What clients may hold open and ask for at once; every wait has a timeout.
@@ -270,6 +279,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         state.max_upload_bytes = args.max_upload_bytes;
         state.metrics = Some(install_metrics()?);
         state.max_manifest_bytes = args.max_manifest_bytes;
+        state.limits = args.campaign_limits.limits();
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;

@@ -3,12 +3,13 @@
 
 use crate::error::FrameworkError;
 use crate::exec::TaskContext;
-use crate::objects::{validate_key, Objects};
-use crate::plan::{new_campaign, SEGMENTS_PREFIX, STAGE_EXPORT, STAGE_PREPARE, STAGE_REPORT};
+use crate::lifecycle::{delete_campaign, result_keys, sweep_campaign, Retention, CAMPAIGNS_PREFIX, INPUTS_PREFIX};
+use crate::objects::{is_temporary_key, validate_key, Objects};
+use crate::plan::new_campaign;
 use crate::worker::{Executor, ExecutorConfig};
 use precimap_formats::{Manifest, ManifestProblem};
 use precimap_jobs::{CampaignRecord, CampaignState, JobStore, QueueConfig};
-use std::collections::HashSet;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use uuid::Uuid;
@@ -34,10 +35,86 @@ pub fn default_queue() -> QueueConfig {
     QueueConfig { max_attempts: 5, backoff_base: Duration::from_secs(1), backoff_max: Duration::from_secs(60) }
 }
 
+/// Bounds on what one submission may ask of the server, checked before anything is stored.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CampaignLimits {
+    pub max_strips: usize,
+    pub max_trajectories: usize,
+    /// Sum of the sizes of the distinct input objects the manifest names.
+    pub max_input_bytes: u64,
+}
+
+impl Default for CampaignLimits {
+    /// 10,000 strips, 1,000 trajectories, 1 TiB of inputs.
+    fn default() -> Self {
+        Self { max_strips: 10_000, max_trajectories: 1_000, max_input_bytes: 1 << 40 }
+    }
+}
+
+impl CampaignLimits {
+    /// No bounds (the embedded runner: the user's own machine and files).
+    pub const UNBOUNDED: CampaignLimits =
+        CampaignLimits { max_strips: usize::MAX, max_trajectories: usize::MAX, max_input_bytes: u64::MAX };
+
+    /// The counts over their bounds, as manifest problems.
+    fn count_problems(&self, manifest: &Manifest) -> Vec<ManifestProblem> {
+        let mut problems = Vec::new();
+        for (path, n, max, setting) in [
+            ("$.strips", manifest.strips.len(), self.max_strips, "--max-strips (PRECIMAP_MAX_STRIPS)"),
+            (
+                "$.trajectories",
+                manifest.trajectories.len(),
+                self.max_trajectories,
+                "--max-trajectories (PRECIMAP_MAX_TRAJECTORIES)",
+            ),
+        ] {
+            if n > max {
+                let what = &path[2..];
+                problems.push(ManifestProblem {
+                    path: path.to_string(),
+                    message: format!(
+                        "{n} {what}: this server accepts at most {max} {what} per campaign (its {setting}); \
+                         split the campaign"
+                    ),
+                });
+            }
+        }
+        problems
+    }
+}
+
+/// Why `key` cannot be a campaign's input, if it cannot: only complete uploads under `inputs/`.
+fn input_key_problem(key: &str) -> Option<String> {
+    if let Err(message) = validate_key(key) {
+        return Some(message);
+    }
+    if !key.starts_with(&format!("{INPUTS_PREFIX}/")) {
+        return Some(format!(
+            "{key:?} is not an input: a manifest may name only uploaded objects under {INPUTS_PREFIX}/ \
+             (PUT /v1/objects/{INPUTS_PREFIX}/…)"
+        ));
+    }
+    if is_temporary_key(key) {
+        return Some(format!("{key:?} is the temporary file of an upload, not a complete object"));
+    }
+    None
+}
+
 impl Framework {
-    /// Creates a campaign from a validated manifest whose URIs name objects in the store; every
-    /// missing object is reported with its JSON path.
+    /// Creates a campaign from a validated manifest whose URIs name objects in the store, without
+    /// bounds on its size (see [`Framework::submit_with_limits`]).
     pub async fn submit(&self, manifest: &Manifest) -> Result<Uuid, SubmitError> {
+        self.submit_with_limits(manifest, &CampaignLimits::UNBOUNDED).await
+    }
+
+    /// Creates a campaign from a validated manifest whose URIs name complete uploads under
+    /// `inputs/`; every problem is reported with its JSON path: a campaign over `limits`, a URI
+    /// outside `inputs/` or naming a temporary upload file, a missing object.
+    pub async fn submit_with_limits(&self, manifest: &Manifest, limits: &CampaignLimits) -> Result<Uuid, SubmitError> {
+        let problems = limits.count_problems(manifest);
+        if !problems.is_empty() {
+            return Err(SubmitError::Invalid { problems });
+        }
         let mut problems = Vec::new();
         let named = manifest
             .trajectories
@@ -45,25 +122,39 @@ impl Framework {
             .enumerate()
             .map(|(i, t)| (format!("$.trajectories[{i}].uri"), &t.uri))
             .chain(manifest.strips.iter().enumerate().map(|(i, s)| (format!("$.strips[{i}].uri"), &s.uri)));
+        let mut sizes: HashMap<&str, u64> = HashMap::new();
         for (path, uri) in named {
-            if let Err(message) = validate_key(uri) {
+            if let Some(message) = input_key_problem(uri) {
                 problems.push(ManifestProblem { path, message });
                 continue;
             }
-            if !self.objects.exists(uri).await? {
-                problems.push(ManifestProblem {
+            match self.objects.size(uri).await? {
+                Some(bytes) => {
+                    sizes.insert(uri.as_str(), bytes);
+                }
+                None => problems.push(ManifestProblem {
                     path,
                     message: format!(
-                        "no object {uri:?} in the store {}; upload it first (`precimap submit` uploads the files a local manifest names)",
-                        self.objects.url()
+                        "no object {uri:?} in the store; upload it first (`precimap submit` uploads the files a local manifest names)"
                     ),
-                });
+                }),
             }
+        }
+        let total: u64 = sizes.values().sum();
+        if total > limits.max_input_bytes {
+            problems.push(ManifestProblem {
+                path: "$".into(),
+                message: format!(
+                    "the inputs total {total} bytes: this server accepts at most {} per campaign (its \
+                     --max-input-bytes, PRECIMAP_MAX_INPUT_BYTES); split the campaign",
+                    limits.max_input_bytes
+                ),
+            });
         }
         if !problems.is_empty() {
             return Err(SubmitError::Invalid { problems });
         }
-        let prefix = format!("c/{}", Uuid::new_v4().simple());
+        let prefix = format!("{CAMPAIGNS_PREFIX}/{}", Uuid::new_v4().simple());
         let (campaign, first) = new_campaign(manifest, &prefix, self.queue);
         Ok(self.jobs.create_campaign(campaign, first).await.map_err(FrameworkError::from)?)
     }
@@ -71,21 +162,7 @@ impl Framework {
     /// The downloadable results of a succeeded campaign: `(name, object key)` with names such as
     /// `strips/p01-left.las`, `trajectories/p01.csv`, `report.json`.
     pub async fn results(&self, id: Uuid) -> Result<Vec<(String, String)>, FrameworkError> {
-        let mut out: Vec<(String, String)> = self
-            .jobs
-            .outputs(id, STAGE_PREPARE, 0)
-            .await?
-            .into_iter()
-            .filter(|o| o.name.starts_with(SEGMENTS_PREFIX))
-            .map(|o| (o.name, o.object_key))
-            .collect();
-        for stage in [STAGE_EXPORT, STAGE_REPORT] {
-            for o in self.jobs.outputs(id, stage, 0).await? {
-                out.push((o.name, o.object_key));
-            }
-        }
-        out.sort();
-        Ok(out)
+        result_keys(&self.jobs, id).await
     }
 
     /// Writes the results into `dir` in `precimap run`'s layout. A `file://` store hands its
@@ -114,36 +191,29 @@ impl Framework {
         clean_orphans(&self.jobs, &self.objects, id).await
     }
 
-    /// Removes a campaign's rows and every object under its prefix.
-    pub async fn delete(&self, id: Uuid) -> Result<bool, FrameworkError> {
-        match self.jobs.delete_campaign(id).await? {
-            None => Ok(false),
-            Some(prefix) => {
-                self.objects.delete_prefix(&prefix).await?;
-                Ok(true)
-            }
+    /// Cancels a running campaign and removes every object under its prefix (its attempts still
+    /// running write nothing more: their next write is refused, see [`crate::WriteGate`]).
+    /// False if it had already finished.
+    pub async fn cancel(&self, id: Uuid) -> Result<bool, FrameworkError> {
+        if !self.jobs.cancel_campaign(id).await? {
+            return Ok(false);
         }
+        sweep_campaign(&self.jobs, &self.objects, id, false).await?;
+        Ok(true)
+    }
+
+    /// Removes a campaign's rows, every object under its prefix and the inputs no other campaign
+    /// names. False if there is no such campaign.
+    pub async fn delete(&self, id: Uuid) -> Result<bool, FrameworkError> {
+        Ok(delete_campaign(&self.jobs, &self.objects, id).await?.is_some())
     }
 }
 
 /// Deletes objects under a campaign's prefix that no committed task recorded and no live attempt
-/// may still be writing (outputs of attempts whose lease was lost). Returns how many. Executors
-/// call it when a campaign finishes; an attempt cancelled by a failure may still write afterwards,
-/// and deleting the campaign removes those.
+/// may still be writing (outputs of attempts whose lease was lost), and everything of a cancelled
+/// campaign. Returns how many. Work files of a finished campaign stay (see [`sweep_campaign`]).
 pub async fn clean_orphans(jobs: &JobStore, objects: &Objects, id: Uuid) -> Result<usize, FrameworkError> {
-    let Some(campaign) = jobs.campaign(id).await? else { return Ok(0) };
-    let recorded: HashSet<String> = jobs.recorded_keys(id).await?.into_iter().collect();
-    let live: Vec<String> =
-        jobs.live_lease_tokens(id).await?.into_iter().map(|t| t.simple().to_string()[..12].to_string()).collect();
-    let mut removed = 0;
-    for key in objects.list(&campaign.object_prefix).await? {
-        if recorded.contains(&key) || live.iter().any(|tag| key.contains(tag.as_str())) {
-            continue;
-        }
-        objects.delete(&key).await?;
-        removed += 1;
-    }
-    Ok(removed)
+    sweep_campaign(jobs, objects, id, true).await
 }
 
 /// Plans the upload of the files a local manifest names: the manifest with its URIs rewritten
@@ -229,7 +299,9 @@ pub async fn run_embedded(
         Err(e @ SubmitError::Invalid { .. }) => return Err(FrameworkError::Invalid(e.to_string())),
     };
     let ctx = TaskContext::new(objects.clone(), state.join("scratch"));
-    let executor = Executor::new(jobs.clone(), ctx, ExecutorConfig::default());
+    // `--keep-work` keeps the work files in the store beside the job database.
+    let retention = if options.keep_state { Retention::keep_everything() } else { Retention::default() };
+    let executor = Executor::new(jobs.clone(), ctx, ExecutorConfig { retention, ..ExecutorConfig::default() });
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let concurrency = options.concurrency;
     let workers = tokio::spawn(async move { executor.work_loop(concurrency, stop_rx).await });

@@ -23,6 +23,10 @@ pub enum FrameworkError {
     Jobs(#[from] precimap_jobs::JobError),
     #[error("{0}")]
     Invalid(String),
+    /// Inputs are written once: a second upload to the same key is refused, so a campaign never
+    /// reads an input that changed under it.
+    #[error("object {key} already exists; inputs are immutable: upload under a new key, or delete it first")]
+    Exists { key: String },
     #[error("object {key} exceeds the upload limit of {limit} bytes")]
     TooLarge { key: String, limit: u64 },
     #[error(transparent)]

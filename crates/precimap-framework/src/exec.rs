@@ -41,13 +41,33 @@ pub struct TaskContext {
     pub scratch: PathBuf,
     /// Trajectories parsed by earlier tasks of this process.
     pub trajectories: TrajectoryCache,
+    /// Asked before every object write of the attempt (`None`: writes are never refused).
+    gate: Option<Arc<dyn WriteGate>>,
 }
 
 impl TaskContext {
     pub fn new(objects: Objects, scratch: PathBuf) -> Self {
-        Self { objects, scratch, trajectories: TrajectoryCache::default() }
+        Self { objects, scratch, trajectories: TrajectoryCache::default(), gate: None }
+    }
+
+    /// This context for one attempt whose every object write `gate` must allow first.
+    pub fn with_gate(&self, gate: Arc<dyn WriteGate>) -> Self {
+        Self { gate: Some(gate), ..self.clone() }
     }
 }
+
+/// Whether an attempt may still write objects. The executor asks the job store (the attempt
+/// holds its lease and its campaign runs) before every write, so that a cancelled or deleted
+/// campaign's running attempts stop writing at their next write instead of at their next
+/// heartbeat, and the clean-up that follows the cancel or delete is not refilled behind it.
+pub trait WriteGate: Send + Sync + std::fmt::Debug {
+    /// `Ok(false)`: stop, write nothing more. `Err`: the answer is unknown (a database hiccup).
+    fn may_write(&self) -> futures::future::BoxFuture<'_, Result<bool, String>>;
+}
+
+/// The message of an attempt its gate stopped.
+pub const ATTEMPT_STOPPED: &str =
+    "the attempt may no longer write (its campaign was cancelled, failed or deleted, or its lease was lost)";
 
 /// Trajectory files parsed by the tasks of one executor process. A campaign's segment and export
 /// tasks (two strips per trajectory each), its trajectory export and its first field task all
@@ -133,8 +153,21 @@ impl TaskContext {
         self.objects.get_many(keys).await.map_err(TaskError::from_store)
     }
 
+    /// Refuses with a permanent error once the attempt's gate says it may no longer write.
+    async fn check_gate(&self) -> Result<(), TaskError> {
+        match &self.gate {
+            None => Ok(()),
+            Some(gate) => match gate.may_write().await {
+                Ok(true) => Ok(()),
+                Ok(false) => Err(TaskError::permanent(ATTEMPT_STOPPED)),
+                Err(e) => Err(TaskError::transient(format!("cannot tell whether the attempt may write: {e}"))),
+            },
+        }
+    }
+
     /// Writes `objects` and returns their output records (`name`, key) in the same order.
     async fn put_many(&self, objects: Vec<(String, String, Vec<u8>)>) -> Result<Vec<OutputKey>, TaskError> {
+        self.check_gate().await?;
         let mut outputs = Vec::with_capacity(objects.len());
         let mut payloads = Vec::with_capacity(objects.len());
         for (name, key, bytes) in objects {
@@ -146,6 +179,7 @@ impl TaskContext {
     }
 
     async fn put(&self, key: &str, bytes: Vec<u8>) -> Result<(), TaskError> {
+        self.check_gate().await?;
         self.objects.put(key, Bytes::from(bytes)).await.map_err(TaskError::from_store)
     }
 
@@ -155,6 +189,7 @@ impl TaskContext {
     where
         F: FnOnce(&Path) -> Result<(), PipelineError> + Send + 'static,
     {
+        self.check_gate().await?;
         if let Some(dst) = self.objects.local_path(key) {
             let dir = dst.parent().map(Path::to_path_buf).unwrap_or_default();
             std::fs::create_dir_all(&dir).map_err(|e| TaskError::transient(FrameworkError::io(&dir, e)))?;
@@ -162,7 +197,28 @@ impl TaskContext {
             // Keep the extension: the LAS writer picks LAZ compression from it.
             let tmp = dst.with_extension(format!("partial.{ext}"));
             let tmp2 = tmp.clone();
-            blocking(move || produce(&tmp2)).await?.map_err(TaskError::from_pipeline)?;
+            // An attempt abandoned while the file is produced (its lease lost) leaves no
+            // temporary file in the store: whoever finishes last removes it.
+            let abandoned = Abandoned::default();
+            let flag = abandoned.0.clone();
+            let produced = blocking(move || {
+                let produced = produce(&tmp2);
+                if flag.load(std::sync::atomic::Ordering::SeqCst) {
+                    let _ = std::fs::remove_file(&tmp2);
+                }
+                produced
+            })
+            .await;
+            let allowed = match produced {
+                Ok(Ok(())) => self.check_gate().await,
+                Ok(Err(e)) => Err(TaskError::from_pipeline(e)),
+                Err(e) => Err(e),
+            };
+            drop(abandoned);
+            if let Err(e) = allowed {
+                let _ = std::fs::remove_file(&tmp);
+                return Err(e);
+            }
             std::fs::rename(&tmp, &dst).map_err(|e| TaskError::transient(FrameworkError::io(&dst, e)))?;
             return Ok(());
         }
@@ -173,8 +229,20 @@ impl TaskContext {
         let path = dir.path().join(key.rsplit('/').next().unwrap_or("object"));
         let p2 = path.clone();
         blocking(move || produce(&p2)).await?.map_err(TaskError::from_pipeline)?;
+        self.check_gate().await?;
         self.objects.put_file(key, &path).await.map_err(TaskError::from_store)?;
         Ok(())
+    }
+}
+
+/// Set when the future that owns it is dropped (or done): work still running on the compute
+/// pool for it then cleans up after itself.
+#[derive(Default)]
+struct Abandoned(Arc<std::sync::atomic::AtomicBool>);
+
+impl Drop for Abandoned {
+    fn drop(&mut self) {
+        self.0.store(true, std::sync::atomic::Ordering::SeqCst);
     }
 }
 
@@ -287,6 +355,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
     let tag = attempt_tag(token);
     match input {
         TaskInput::SegmentStrip { prefix, strip, params } => {
+            let params = required(params)?;
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
             let entry = strip_entry(&strip, &local.path);
@@ -331,6 +400,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             std_map,
             latent_map,
         } => {
+            let params = required(params)?;
             let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
             let bytes = ctx.get_many(&chunk_keys).await?;
             let decoded: Vec<(String, Bytes)> = chunk_keys.into_iter().zip(bytes).collect();
@@ -385,6 +455,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: to_json(&result)?, outputs })
         }
         TaskInput::SolveField { prefix, iteration, params, trajectories, positions, current, previous, equations } => {
+            let params = required(params)?;
             let mut outputs = Vec::with_capacity(2 * current.len() + 1);
             // The anchors' positions: read once from the trajectory files by the first field task
             // of the campaign, then from the object it wrote.
@@ -481,6 +552,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             iteration_start,
             blocks,
         } => {
+            let params = required(params)?;
             let has_previous = previous.is_some();
             let mut refs = vec![current];
             refs.extend(previous);
@@ -631,6 +703,14 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
         }
     }
+}
+
+/// The parameters a task needs: its own, or the campaign's that the executor filled in
+/// ([`TaskInput::with_campaign_params`]).
+fn required(params: Option<Box<precimap_core::Parameters>>) -> Result<Box<precimap_core::Parameters>, TaskError> {
+    params.ok_or_else(|| {
+        TaskError::permanent("the task carries no parameters and its campaign stores none; submit the campaign again")
+    })
 }
 
 fn to_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, TaskError> {

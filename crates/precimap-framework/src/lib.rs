@@ -8,17 +8,19 @@ pub mod codec;
 mod cpu;
 pub mod error;
 pub mod exec;
+pub mod lifecycle;
 pub mod metrics;
 pub mod objects;
 pub mod plan;
 pub mod worker;
 
 pub use campaigns::{
-    default_queue, plan_local_upload, run_embedded, upload_local_inputs, EmbeddedOptions, Framework, RunStatus,
-    SubmitError,
+    default_queue, plan_local_upload, run_embedded, upload_local_inputs, CampaignLimits, EmbeddedOptions, Framework,
+    RunStatus, SubmitError,
 };
 pub use error::{FrameworkError, TaskError};
-pub use exec::{TaskContext, TrajectoryCache};
-pub use objects::{validate_key, Objects};
+pub use exec::{TaskContext, TrajectoryCache, WriteGate};
+pub use lifecycle::Retention;
+pub use objects::{is_temporary_key, validate_key, Objects, StoredObject};
 pub use plan::CampaignPlanner;
 pub use worker::{Executor, ExecutorConfig, WorkOutcome};

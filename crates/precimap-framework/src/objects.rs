@@ -20,6 +20,30 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tokio::io::AsyncWriteExt;
 
+/// An object as a listing shows it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StoredObject {
+    pub key: String,
+    pub bytes: u64,
+    /// Last modification, milliseconds since the Unix epoch.
+    pub modified_ms: i64,
+}
+
+/// Whether `key` names a temporary file of a write in progress (or abandoned by a crash): an
+/// upload's `NAME.upload-…`, a task output's `NAME.partial` / `NAME.partial.EXT`, or the file
+/// store's own staging file `NAME#N`. Such a key is never a complete object: manifests may not
+/// name one and input listings leave them out.
+pub fn is_temporary_key(key: &str) -> bool {
+    let name = key.rsplit('/').next().unwrap_or(key);
+    if let Some((_, n)) = name.rsplit_once('#') {
+        if !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()) {
+            return true;
+        }
+    }
+    let mut parts = name.split('.').skip(1);
+    parts.any(|ext| ext == "partial" || ext.starts_with("upload-"))
+}
+
 /// Handle on the configured store. Cheap to clone.
 #[derive(Clone, Debug)]
 pub struct Objects {
@@ -339,10 +363,26 @@ impl Objects {
             }
             out.flush().await.map_err(|e| FrameworkError::io(&tmp, e))?;
             drop(out);
-            tokio::fs::rename(&tmp, &dst).await.map_err(|e| FrameworkError::io(&dst, e))?;
-            guard.disarm();
-            metrics::store_written(total);
-            return Ok(total);
+            // A hard link never replaces an existing file (a rename would): the object appears
+            // complete or not at all, and an existing one stays as it is.
+            let linked = tokio::fs::hard_link(&tmp, &dst).await;
+            // The temporary name goes either way; a linked object keeps its data.
+            drop(guard);
+            return match linked {
+                Ok(()) => {
+                    metrics::store_written(total);
+                    Ok(total)
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    Err(FrameworkError::Exists { key: key.to_string() })
+                }
+                Err(e) => Err(FrameworkError::io(&dst, e)),
+            };
+        }
+        // S3 has no create-only multipart upload: refuse a key that exists now (a concurrent
+        // upload of the same key may still win the race).
+        if self.exists(key).await? {
+            return Err(FrameworkError::Exists { key: key.to_string() });
         }
         let mut upload = object_store::WriteMultipart::new_with_chunk_size(
             self.inner.put_multipart(&path).await.map_err(|e| FrameworkError::store(key, e))?,
@@ -425,6 +465,38 @@ impl Objects {
         }
     }
 
+    /// The size of `key`'s object, `None` if there is none.
+    pub async fn size(&self, key: &str) -> Result<Option<u64>, FrameworkError> {
+        let path = store_path(key)?;
+        match self.inner.head(&path).await {
+            Ok(meta) => Ok(Some(meta.size)),
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(FrameworkError::store(key, e)),
+        }
+    }
+
+    /// Every object under `prefix` with its size and last-modified time (ms since the epoch).
+    pub async fn list_meta(&self, prefix: &str) -> Result<Vec<StoredObject>, FrameworkError> {
+        let path = store_path(prefix)?;
+        let metas: Vec<_> =
+            self.inner.list(Some(&path)).try_collect().await.map_err(|e| FrameworkError::store(prefix, e))?;
+        Ok(metas
+            .into_iter()
+            .map(|m| StoredObject {
+                key: m.location.to_string(),
+                bytes: m.size,
+                modified_ms: m.last_modified.timestamp_millis(),
+            })
+            .collect())
+    }
+
+    /// The folders directly under `prefix` (e.g. `c/0123…` under `c`), as keys.
+    pub async fn list_folders(&self, prefix: &str) -> Result<Vec<String>, FrameworkError> {
+        let path = store_path(prefix)?;
+        let listed = self.inner.list_with_delimiter(Some(&path)).await.map_err(|e| FrameworkError::store(prefix, e))?;
+        Ok(listed.common_prefixes.into_iter().map(|p| p.to_string()).collect())
+    }
+
     /// Deletes every object under `prefix`; returns how many.
     pub async fn delete_prefix(&self, prefix: &str) -> Result<usize, FrameworkError> {
         let keys = self.list(prefix).await?;
@@ -442,12 +514,6 @@ impl Objects {
 /// Deletes its file when dropped, unless disarmed.
 #[derive(Debug)]
 struct TempFileGuard(Option<PathBuf>);
-
-impl TempFileGuard {
-    fn disarm(mut self) {
-        self.0 = None;
-    }
-}
 
 impl Drop for TempFileGuard {
     fn drop(&mut self) {

@@ -118,14 +118,20 @@ pub enum TaskInput {
     SegmentStrip {
         prefix: String,
         strip: StripInput,
-        params: Parameters,
+        /// The campaign's parameters; absent in tasks queued now (the executor reads them from
+        /// the campaign, where they are stored once), present in tasks queued by older versions.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        params: Option<Box<Parameters>>,
     },
     EstimateTile {
         prefix: String,
         iteration: u32,
         tile: TileKey,
         step: IterationStep,
-        params: Parameters,
+        /// The campaign's parameters; absent in tasks queued now (the executor reads them from
+        /// the campaign, where they are stored once), present in tasks queued by older versions.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        params: Option<Box<Parameters>>,
         trajectories: u32,
         chunks: Vec<ChunkRef>,
         corrections: Vec<CorrectionsRef>,
@@ -140,7 +146,10 @@ pub enum TaskInput {
     SolveField {
         prefix: String,
         iteration: u32,
-        params: Parameters,
+        /// The campaign's parameters; absent in tasks queued now (the executor reads them from
+        /// the campaign, where they are stored once), present in tasks queued by older versions.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        params: Option<Box<Parameters>>,
         /// Every trajectory (its anchors' positions come from its file, unless `positions` names
         /// them).
         trajectories: Vec<TrajectoryInput>,
@@ -158,7 +167,10 @@ pub enum TaskInput {
         iteration: u32,
         trajectory: TrajectoryInput,
         step: IterationStep,
-        params: Parameters,
+        /// The campaign's parameters; absent in tasks queued now (the executor reads them from
+        /// the campaign, where they are stored once), present in tasks queued by older versions.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        params: Option<Box<Parameters>>,
         with_sigma: bool,
         current: CorrectionsRef,
         /// The corrections before `current`, when momentum carries the last step on.
@@ -201,8 +213,8 @@ pub enum TaskInput {
         anchor_spacing_m: f64,
         corrections: CorrectionsRef,
         /// The campaign's parameters, to continue the corrections over the trajectory's run-up
-        /// and run-out (`corrections_for_export`). Absent in tasks queued before they were
-        /// recorded: the end anchors' corrections are held there.
+        /// and run-out (`corrections_for_export`). Absent in tasks queued now: the executor
+        /// reads them from the campaign, where they are stored once.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         params: Option<Box<Parameters>>,
     },
@@ -222,6 +234,39 @@ pub enum TaskInput {
 }
 
 impl TaskInput {
+    /// Fills in the campaign's parameters where the input does not carry them (tasks queued
+    /// now); an input that carries its own keeps them.
+    pub fn with_campaign_params(mut self, campaign: &Parameters) -> Self {
+        match &mut self {
+            Self::SegmentStrip { params, .. }
+            | Self::EstimateTile { params, .. }
+            | Self::SolveField { params, .. }
+            | Self::SolveTrajectory { params, .. }
+            | Self::ExportTrajectory { params, .. } => {
+                if params.is_none() {
+                    *params = Some(Box::new(campaign.clone()));
+                }
+            }
+            Self::AndersonMoments { .. }
+            | Self::AndersonCombine { .. }
+            | Self::ExportStrip { .. }
+            | Self::WriteReport { .. } => {}
+        }
+        self
+    }
+
+    /// Whether the input lacks parameters it needs (see [`TaskInput::with_campaign_params`]).
+    pub fn needs_campaign_params(&self) -> bool {
+        match self {
+            Self::SegmentStrip { params, .. }
+            | Self::EstimateTile { params, .. }
+            | Self::SolveField { params, .. }
+            | Self::SolveTrajectory { params, .. }
+            | Self::ExportTrajectory { params, .. } => params.is_none(),
+            _ => false,
+        }
+    }
+
     pub fn kind(&self) -> &'static str {
         match self {
             Self::SegmentStrip { .. } => KIND_SEGMENT_STRIP,
@@ -468,18 +513,24 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         tasks: strips
             .iter()
             .map(|s| {
-                TaskInput::SegmentStrip {
-                    prefix: prefix.to_string(),
-                    strip: s.clone(),
-                    params: manifest.parameters.clone(),
-                }
-                .task(s.id.clone())
+                TaskInput::SegmentStrip { prefix: prefix.to_string(), strip: s.clone(), params: None }
+                    .task(s.id.clone())
             })
             .collect(),
     };
+    // The strips and trajectories are rows of their own (and in the plan state): the stored spec
+    // is the manifest without them, so a large campaign holds its input list once per table.
+    let spec = Manifest {
+        name: manifest.name.clone(),
+        scanners: manifest.scanners.clone(),
+        trajectories: Vec::new(),
+        strips: Vec::new(),
+        parameters: manifest.parameters.clone(),
+    };
     let campaign = NewCampaign {
         name: manifest.name.clone(),
-        spec: serde_json::to_value(manifest).expect("manifest serialises"),
+        spec: serde_json::to_value(&spec).expect("manifest serialises"),
+        params: serde_json::to_value(&manifest.parameters).expect("parameters serialise"),
         plan_state: serde_json::to_value(&state).expect("plan state serialises"),
         object_prefix: prefix.to_string(),
         iterations_planned: manifest.parameters.schedule.len() as i32,
@@ -670,7 +721,7 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 iteration: state.iteration,
                 tile: *tile,
                 step,
-                params: state.params.clone(),
+                params: None,
                 trajectories: state.trajectories.len() as u32,
                 chunks: chunks.clone(),
                 corrections: used.into_iter().map(|t| corrections_ref(state, t)).collect(),
@@ -745,7 +796,7 @@ fn after_estimate(state: &mut PlanState, tasks: &[FinishedTask]) -> Result<Next,
     let task = TaskInput::SolveField {
         prefix: state.prefix.clone(),
         iteration: state.iteration,
-        params: state.params.clone(),
+        params: None,
         trajectories: state.trajectories.clone(),
         positions: state.anchor_positions.clone(),
         current: corrections_refs(state, &state.corrections),
@@ -823,7 +874,7 @@ fn solve_stage(
                 iteration: state.iteration,
                 trajectory: traj.clone(),
                 step,
-                params: state.params.clone(),
+                params: None,
                 with_sigma,
                 current: reference(&current, traj.index),
                 previous: previous.as_ref().map(|p| reference(p, traj.index)),
@@ -1049,7 +1100,7 @@ fn export_stage(state: &PlanState) -> Next {
             trajectory: t.clone(),
             anchor_spacing_m: spacing,
             corrections: corrections_or_zero(state, t.index),
-            params: Some(Box::new(state.params.clone())),
+            params: None,
         }
         .task(t.id.clone())
     }));

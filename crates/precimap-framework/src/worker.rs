@@ -2,19 +2,22 @@
 //! through the job store (the commit point), repeat. `work --once` is one round of this loop; the
 //! embedded default and `serve` run the loop in-process.
 
-use crate::campaigns::clean_orphans;
 use crate::error::{FrameworkError, TaskError};
-use crate::exec::{execute, TaskContext};
+use crate::exec::{execute, TaskContext, WriteGate};
+use crate::lifecycle::{sweep_campaign, sweep_store_logged, Retention};
 use crate::metrics;
 use crate::plan::{CampaignPlanner, TaskInput};
+use precimap_core::Parameters;
 use precimap_jobs::{CampaignState, ClaimedTask, FailOutcome, JobError, JobStore};
 use serde::Deserialize;
+use std::collections::HashMap;
 use std::future::Future;
 use std::sync::atomic::{AtomicU32, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::{watch, Notify};
 use tracing::{debug, info, warn, Instrument as _};
+use uuid::Uuid;
 
 /// What one round of an executor did.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -37,6 +40,8 @@ pub struct ExecutorConfig {
     pub lease: Duration,
     /// How long an executor keeps retrying a database that is unreachable before giving up.
     pub database_patience: Duration,
+    /// What its clean-ups and sweeps keep, and for how long.
+    pub retention: Retention,
 }
 
 impl Default for ExecutorConfig {
@@ -45,6 +50,7 @@ impl Default for ExecutorConfig {
             worker_id: format!("{}-{}", hostname(), std::process::id()),
             lease: Duration::from_secs(60),
             database_patience: Duration::from_secs(120),
+            retention: Retention::default(),
         }
     }
 }
@@ -60,6 +66,32 @@ pub struct Executor {
     config: ExecutorConfig,
     /// Wakes idle in-process executors when a task completes (a stage may have opened).
     wake: Arc<Notify>,
+    /// Campaigns' parameters read so far (they never change).
+    params: Arc<Mutex<HashMap<Uuid, Arc<Parameters>>>>,
+    /// When this process last swept the store for objects no campaign owns.
+    last_store_sweep: Arc<Mutex<Option<Instant>>>,
+}
+
+/// Campaigns whose parameters an executor keeps (the cache starts over when full).
+const PARAMS_CACHED: usize = 64;
+
+/// Asks the job store whether an attempt may still write ([`crate::exec::WriteGate`]).
+#[derive(Debug)]
+struct LeaseGate {
+    jobs: JobStore,
+    task: i64,
+    token: Uuid,
+    patience: Duration,
+}
+
+impl WriteGate for LeaseGate {
+    fn may_write(&self) -> futures::future::BoxFuture<'_, Result<bool, String>> {
+        Box::pin(async move {
+            retry_transient(self.patience, || self.jobs.attempt_may_write(self.task, self.token))
+                .await
+                .map_err(|e| e.to_string())
+        })
+    }
 }
 
 /// Retries `op` while it fails with a transient database error (a restart, a dropped
@@ -85,7 +117,14 @@ where
 
 impl Executor {
     pub fn new(jobs: JobStore, ctx: TaskContext, config: ExecutorConfig) -> Self {
-        Self { jobs, ctx, config, wake: Arc::new(Notify::new()) }
+        Self {
+            jobs,
+            ctx,
+            config,
+            wake: Arc::new(Notify::new()),
+            params: Arc::default(),
+            last_store_sweep: Arc::default(),
+        }
     }
 
     pub fn jobs(&self) -> &JobStore {
@@ -115,7 +154,21 @@ impl Executor {
             self.clean_up(campaign).await;
         }
         self.sweep_finished().await;
+        if self.store_sweep_due() {
+            sweep_store_logged(&self.jobs, &self.ctx.objects, &self.config.retention).await;
+        }
         Ok(())
+    }
+
+    /// Whether this process's last store sweep is at least the sweep interval ago (and if so,
+    /// records that one starts now).
+    fn store_sweep_due(&self) -> bool {
+        let mut last = self.last_store_sweep.lock().unwrap_or_else(|p| p.into_inner());
+        let due = last.is_none_or(|t| t.elapsed() >= self.config.retention.store_sweep_interval);
+        if due {
+            *last = Some(Instant::now());
+        }
+        due
     }
 
     /// The durable half of the orphan clean-up: sweeps finished campaigns that no sweep has
@@ -124,8 +177,13 @@ impl Executor {
     /// marks each one after its sweep. A failure only postpones it to a later reconcile.
     async fn sweep_finished(&self) {
         let lease = self.config.lease;
+        // Work files go with this sweep once their retention has passed (never, if kept for ever).
+        let (grace, keep_work) = match self.config.retention.work {
+            Some(work) => (lease.max(work), false),
+            None => (lease, true),
+        };
         loop {
-            let claimed = retry_transient(self.config.database_patience, || self.jobs.claim_sweep(lease, lease)).await;
+            let claimed = retry_transient(self.config.database_patience, || self.jobs.claim_sweep(grace, lease)).await;
             let campaign = match claimed {
                 Ok(Some(campaign)) => campaign,
                 Ok(None) => return,
@@ -134,7 +192,7 @@ impl Executor {
                     return;
                 }
             };
-            match clean_orphans(&self.jobs, &self.ctx.objects, campaign).await {
+            match sweep_campaign(&self.jobs, &self.ctx.objects, campaign, keep_work).await {
                 Ok(n) => {
                     if n > 0 {
                         info!(%campaign, removed = n, "swept objects of lost attempts");
@@ -150,6 +208,12 @@ impl Executor {
                 }
             }
         }
+    }
+
+    /// Runs a task claimed elsewhere (with [`JobStore::claim`]) as [`Executor::work_once`] runs
+    /// the one it claims.
+    pub async fn run_task(&self, task: ClaimedTask) -> Result<WorkOutcome, FrameworkError> {
+        Ok(self.run_claimed(task, false).await?.0)
     }
 
     /// Claims and runs at most one task.
@@ -205,7 +269,7 @@ impl Executor {
             key = %task.key,
             attempt = task.attempt
         );
-        let result = self.run_task(task, claim_next).instrument(span).await;
+        let result = self.run_attempt(task, claim_next).instrument(span).await;
         if let Ok((outcome, _)) = &result {
             let outcome = match outcome {
                 WorkOutcome::Done { .. } => "done",
@@ -218,7 +282,7 @@ impl Executor {
         result
     }
 
-    async fn run_task(
+    async fn run_attempt(
         &self,
         task: ClaimedTask,
         claim_next: bool,
@@ -233,6 +297,12 @@ impl Executor {
                 return Ok((self.fail(&task, TaskError::permanent(error)).await?, None));
             }
         };
+        let input = match self.with_campaign_params(&task, input).await {
+            Ok(input) => input,
+            Err(e) => return Ok((self.fail(&task, e).await?, None)),
+        };
+        let gate = LeaseGate { jobs: self.jobs.clone(), task: task.id, token: task.lease_token, patience };
+        let ctx = self.ctx.with_gate(Arc::new(gate));
         let (lost_tx, mut lost_rx) = watch::channel(false);
         // Aborted on drop, too: an executor shutting down drops this future mid-task, and a
         // heartbeat left running would keep the lease it hands back alive.
@@ -256,7 +326,7 @@ impl Executor {
             })
         });
         let result = tokio::select! {
-            r = execute(&self.ctx, input, task.lease_token) => Some(r),
+            r = execute(&ctx, input, task.lease_token) => Some(r),
             _ = lost_rx.wait_for(|lost| *lost) => None,
         };
         drop(heartbeat);
@@ -328,6 +398,37 @@ impl Executor {
         }
     }
 
+    /// `input` with its campaign's parameters filled in where it carries none (read from the job
+    /// store once per campaign and process: they never change).
+    async fn with_campaign_params(&self, task: &ClaimedTask, input: TaskInput) -> Result<TaskInput, TaskError> {
+        if !input.needs_campaign_params() {
+            return Ok(input);
+        }
+        let cached = self.params.lock().unwrap_or_else(|p| p.into_inner()).get(&task.campaign).cloned();
+        let params = match cached {
+            Some(params) => params,
+            None => {
+                let patience = self.config.database_patience;
+                let stored = retry_transient(patience, || self.jobs.campaign_params(task.campaign))
+                    .await
+                    .map_err(TaskError::transient)?
+                    .ok_or_else(|| {
+                        TaskError::permanent("the campaign stores no parameters for its tasks; submit it again")
+                    })?;
+                let params: Arc<Parameters> = Arc::new(Parameters::deserialize(&stored).map_err(|e| {
+                    TaskError::permanent(format!("the campaign's parameters are unreadable ({e}); submit it again"))
+                })?);
+                let mut held = self.params.lock().unwrap_or_else(|p| p.into_inner());
+                if held.len() >= PARAMS_CACHED {
+                    held.clear();
+                }
+                held.insert(task.campaign, Arc::clone(&params));
+                params
+            }
+        };
+        Ok(input.with_campaign_params(&params))
+    }
+
     async fn fail(&self, task: &ClaimedTask, error: TaskError) -> Result<WorkOutcome, FrameworkError> {
         let (kind, key) = (task.kind.clone(), task.key.clone());
         warn!(%kind, %key, permanent = error.permanent, error = %error.message, "task failed");
@@ -348,11 +449,13 @@ impl Executor {
         }
     }
 
-    /// Removes a finished campaign's orphaned objects; a failure here only costs storage.
+    /// Removes a finished campaign's orphaned objects, and its work files unless they are kept
+    /// for a while; a failure here only costs storage.
     async fn clean_up(&self, campaign: uuid::Uuid) {
-        match clean_orphans(&self.jobs, &self.ctx.objects, campaign).await {
+        let keep_work = self.config.retention.keeps_work_at_finish();
+        match sweep_campaign(&self.jobs, &self.ctx.objects, campaign, keep_work).await {
             Ok(0) => {}
-            Ok(n) => info!(%campaign, removed = n, "removed objects of lost attempts"),
+            Ok(n) => info!(%campaign, removed = n, "removed objects of lost attempts and work files"),
             Err(e) => warn!(%campaign, error = %e, "orphan clean-up failed"),
         }
     }

@@ -127,6 +127,7 @@ async fn run(
     let campaign = NewCampaign {
         name: "queue-bench".into(),
         spec: json!({}),
+        params: serde_json::Value::Null,
         plan_state: json!({}),
         object_prefix: "bench/".into(),
         iterations_planned: 0,

@@ -413,9 +413,10 @@ impl JobStore {
         check_unique_tasks(&first).map_err(JobError::Invalid)?;
         let id = Uuid::new_v4();
         let q = self.sql(&format!(
-            "INSERT INTO campaigns ({CAMPAIGN_COLS}) VALUES ($1, $2, 'running', $3, $4, $5, $6, $7, $8, NULL, \
-             $9, $10, $11, NOW_MS, NOW_MS, NULL)"
+            "INSERT INTO campaigns ({CAMPAIGN_COLS}, params) VALUES ($1, $2, 'running', $3, $4, $5, $6, $7, $8, NULL, \
+             $9, $10, $11, NOW_MS, NOW_MS, NULL, $12)"
         ));
+        let params = (!c.params.is_null()).then_some(Json(&c.params));
         with_tx!(self, tx => {
             sqlx::query(&q)
                 .bind(id)
@@ -429,6 +430,7 @@ impl JobStore {
                 .bind(c.queue.max_attempts)
                 .bind(duration_ms(c.queue.backoff_base))
                 .bind(duration_ms(c.queue.backoff_max))
+                .bind(params)
                 .execute(&mut *tx)
                 .await?;
             for chunk in c.strips.chunks(INSERT_CHUNK) {
@@ -1340,6 +1342,8 @@ impl JobStore {
     }
 }
 
+mod lifecycle;
+
 /// The columns a claim returns: id, campaign, stage, iteration, kind, key, input, attempt,
 /// lease token, lease expiry.
 type ClaimRow = (i64, Uuid, String, i32, String, String, Json<Value>, i32, Uuid, i64);
@@ -1440,6 +1444,7 @@ mod tests {
         let campaign = NewCampaign {
             name: "async".into(),
             spec: Value::Null,
+            params: Value::Null,
             plan_state: Value::Null,
             object_prefix: "a/".into(),
             iterations_planned: 0,

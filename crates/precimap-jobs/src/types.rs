@@ -55,6 +55,10 @@ pub struct NewCampaign {
     pub name: String,
     /// Manifest and parameters; opaque to the store.
     pub spec: serde_json::Value,
+    /// The campaign's parameters, stored once for all its tasks (`JobStore::campaign_params`);
+    /// `Null` stores none. Opaque to the store.
+    #[serde(default)]
+    pub params: serde_json::Value,
     /// The planner's state; replaced at every stage transition.
     pub plan_state: serde_json::Value,
     /// Prefix of every object the campaign writes (returned by `delete_campaign`).
@@ -365,4 +369,21 @@ pub struct QueueDepth {
     pub open: Vec<(String, String, i64)>,
     /// Executor loops holding at least one lease.
     pub busy_executors: i64,
+}
+
+/// What [`crate::JobStore::delete_campaign_with_inputs`] removed from the database; the caller
+/// removes the objects.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DeletedCampaign {
+    /// Prefix of every object the campaign wrote.
+    pub object_prefix: String,
+    /// Input objects (keys under `inputs/`) the campaign named and no other campaign names.
+    pub unreferenced_inputs: Vec<String>,
+}
+
+/// A campaign that names an input object ([`crate::JobStore::input_references`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct InputReference {
+    pub key: String,
+    pub campaign: Uuid,
 }

@@ -94,6 +94,7 @@ pub fn new_campaign(name: &str, queue: QueueConfig) -> NewCampaign {
     NewCampaign {
         name: name.into(),
         spec: json!({ "manifest": name }),
+        params: json!({ "grid_m": 1.0 }),
         plan_state: json!({ "stage": 0 }),
         object_prefix: format!("c/{name}/"),
         iterations_planned: 2,
