@@ -101,6 +101,33 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// The accuracy matrix: scenes × GNSS/IMU error models × passes, each simulated, adjusted with
+    /// the estimator's defaults and evaluated against its truth; writes a Markdown and a JSON
+    /// table (one row per scenario).
+    Accuracy {
+        /// Run only the scenarios whose name (e.g. `grid/gauss_markov/4p`) contains this.
+        #[arg(long)]
+        filter: Option<String>,
+        /// The fast subset at a smaller campaign size (what the test suite runs).
+        #[arg(long)]
+        fast: bool,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Where each scenario's campaign and result are written (and removed after it).
+        #[arg(long, default_value = "target/bench/accuracy")]
+        work: PathBuf,
+        /// Keep each scenario's campaign and result.
+        #[arg(long)]
+        keep: bool,
+        /// Estimation parameters to change, as a manifest's `parameters` object, to measure a
+        /// variant of the defaults against the matrix.
+        #[arg(long, value_name = "JSON")]
+        parameters: Option<String>,
+        #[arg(long, default_value = "target/bench/accuracy/accuracy-matrix.md")]
+        markdown: PathBuf,
+        #[arg(long, default_value = "target/bench/accuracy/accuracy-matrix.json")]
+        json: PathBuf,
+    },
     /// The block-tridiagonal solver alone.
     Solve {
         #[arg(long, default_value_t = 20_000)]
@@ -125,6 +152,10 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
+        BenchCommand::Accuracy { filter, fast, seed, work, keep, markdown, json, parameters } => {
+            let request = crate::accuracy::MatrixRequest { filter, fast, seed, work, markdown, json, keep, parameters };
+            crate::accuracy::run_matrix(&request).map(|_| ())
+        }
         BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, capture, json } => {
             let step = match capture {
                 true => precimap_core::params::default_schedule()[0],
@@ -644,7 +675,7 @@ fn bench_preprocess(
 
 /// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`, clock
 /// ticks of 1/100 s); 0 elsewhere.
-fn cpu_seconds() -> f64 {
+pub(crate) fn cpu_seconds() -> f64 {
     // utime and stime, in clock ticks of 10 ms (USER_HZ is 100 on Linux).
     proc_stat_fields("/proc/self/stat", [14, 15]).map_or(0.0, |[user, system]| (user + system) as f64 / 100.0)
 }

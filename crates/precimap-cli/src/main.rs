@@ -8,6 +8,7 @@ macro_rules! outln {
     };
 }
 
+mod accuracy;
 mod bench;
 mod progress;
 mod segments;
@@ -52,6 +53,23 @@ enum Command {
         /// Scanner revolutions per second instead of the scale's (small 40, medium 100).
         #[arg(long)]
         revolutions_per_s: Option<f64>,
+        /// Start from this simulation config (JSON, as `truth/truth.json`'s `config`) instead of
+        /// the scale's preset; the other options change it.
+        #[arg(long, value_name = "JSON_FILE")]
+        config: Option<PathBuf>,
+        /// The town: grid, oblique (streets at 65°/115°), open_road or downtown.
+        #[arg(long)]
+        scene: Option<precimap_sim::Scene>,
+        /// The pose and calibration errors: sinusoids, gauss_markov, gauss_markov_slow,
+        /// random_walk, white_noise, outage or calibration.
+        #[arg(long)]
+        errors: Option<precimap_sim::ErrorModel>,
+        /// Passes (each drives the figure 8 once).
+        #[arg(long)]
+        passes: Option<u32>,
+        /// Scan heads per vehicle (1 or 2).
+        #[arg(long)]
+        heads: Option<u32>,
     },
     /// Adjust a campaign: corrected strips, trajectories and report.json in OUT. Runs through the
     /// job framework on the embedded default (SQLite + local store + in-process executors).
@@ -288,8 +306,41 @@ fn real_main(cli: Cli) -> Result<()> {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting up the thread pool")?;
     }
     match cli.command {
-        Command::Simulate { scale, seed, out, laz, points_per_revolution, revolutions_per_s } => {
-            let mut config = precimap_sim::SimConfig::for_scale(scale, seed);
+        Command::Simulate {
+            scale,
+            seed,
+            out,
+            laz,
+            points_per_revolution,
+            revolutions_per_s,
+            config,
+            scene,
+            errors,
+            passes,
+            heads,
+        } => {
+            let mut config = match config {
+                Some(path) => {
+                    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+                    serde_json::from_str(&text)
+                        .with_context(|| format!("{}: not a simulation config", path.display()))?
+                }
+                None => precimap_sim::SimConfig::for_scale(scale, seed),
+            };
+            if let Some(p) = passes {
+                config.drive.passes = p;
+                config.drive.stop_pass = config.drive.stop_pass.filter(|&s| s < p);
+                config.errors.outage_pass = config.errors.outage_pass.filter(|&s| s < p);
+            }
+            if let Some(h) = heads {
+                config.scanner.heads = h;
+            }
+            if let Some(s) = scene {
+                s.apply(&mut config);
+            }
+            if let Some(e) = errors {
+                e.apply(&mut config);
+            }
             if let Some(n) = points_per_revolution {
                 config.scanner.points_per_revolution = n;
             }

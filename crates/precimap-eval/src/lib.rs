@@ -16,6 +16,7 @@
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
 
+mod agreement;
 mod assignments;
 mod latent;
 mod normals;
@@ -24,6 +25,7 @@ mod segments;
 mod stats;
 mod trajectory;
 
+pub use agreement::{AgreementTally, Orientation, Spread, SpreadMetric, SurfaceAgreement, UsedShares};
 pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
 pub use latent::{evaluate_latent_map, read_latent_maps, LatentClassFigures, LatentMapEvaluation};
 pub use normals::{NormalEvaluation, NormalFigures, NormalTally};
@@ -282,6 +284,9 @@ pub struct Evaluation {
     /// RMS of the vertical position error about that plane (weighted by arc length): the
     /// vertical accuracy the strips' agreement decides.
     pub trajectory_vertical_error_without_tilt_rms_m: Metric,
+    /// The same-surface agreement with percentiles, split by the surfaces' orientation to the
+    /// direction of travel, and the share of points used per orientation ([`SurfaceAgreement`]).
+    pub same_surface_agreement: SurfaceAgreement,
     /// The last iteration's `points_used` (report.json) over the number of surface points.
     pub surface_points_used_share: Option<f64>,
     /// The last iteration's `points_used` from report.json, if present.
@@ -550,6 +555,7 @@ struct StripOutcome {
     /// so the latter also gives the whole campaign's same-surface spread.
     classes: [BTreeMap<u8, ShiftFreeMeans>; 2],
     class_surfaces: [ClassSurfaceStripMeans; 2],
+    agreement: AgreementTally,
     /// The first and last GPS time of the strip's points; `None` without points.
     time_span: Option<(f64, f64)>,
 }
@@ -618,6 +624,7 @@ fn evaluate_strip(
         shift_free_after: ShiftFreeMeans::new(),
         classes: Default::default(),
         class_surfaces: Default::default(),
+        agreement: AgreementTally::default(),
         time_span: before.gps_time_span(),
     };
     // Per-point id files next to the result (optional), each checked against the point count.
@@ -672,9 +679,19 @@ fn evaluate_strip(
         out.tiles_after.add(tile, index, ea);
         let len = t.normal.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt();
         let unit = t.normal.map(|c| c as f64 / len);
+        let travel = trajectory.and_then(|tr| tr.truth.pose_at(before.gps_time[k])).map(|p| {
+            let x = p.rotation.column(0);
+            [x[0], x[1], x[2]]
+        });
+        let orientation = Orientation::of(unit, travel) as u8;
         for (k, e) in [eb, ea].into_iter().enumerate() {
             out.classes[k].entry(t.class as u8).or_default().add(tile, index, e, unit);
             out.class_surfaces[k].add_oriented((t.class as u8, tile, t.surface_id), index, e, unit);
+            out.agreement.means[k].add_oriented((orientation, tile, t.surface_id), index, e, unit);
+        }
+        out.agreement.points[orientation as usize] += 1;
+        if assignment_ids.as_ref().is_some_and(|ids| ids[k] != u32::MAX) {
+            out.agreement.used[orientation as usize] += 1;
         }
         if let Some(tr) = trajectory {
             let time = before.gps_time[k];
@@ -756,6 +773,7 @@ fn assemble(
     let mut classes: BTreeMap<u8, (ErrorStats, ErrorStats)> = BTreeMap::new();
     let mut class_means: [BTreeMap<u8, ShiftFreeMeans>; 2] = Default::default();
     let mut class_surface_means: [ClassSurfaceStripMeans; 2] = Default::default();
+    let mut agreement = AgreementTally::default();
     let mut per_strip = Vec::with_capacity(strips.len());
     let mut points = 0;
     let mut segment_tallies = Vec::new();
@@ -789,6 +807,7 @@ fn assemble(
         for (total, part) in class_surface_means.iter_mut().zip(s.class_surfaces) {
             total.merge(part);
         }
+        agreement.merge(s.agreement);
         per_strip.push(StripEvaluation {
             id: id.clone(),
             points: s.points,
@@ -880,7 +899,9 @@ fn assemble(
     let coplanar = if segmentation.is_some() { segments::coplanar_surfaces(&segment_tallies) } else { HashMap::new() };
     // Only when every strip has its file: a partial audit would mislead.
     let assignments = assignment_tally.filter(|_| assignment_files == strip_jobs.len()).map(|t| t.evaluate(&coplanar));
+    let same_surface_agreement = agreement.evaluate(campaign_shifts, assignments.is_some());
     Evaluation {
+        same_surface_agreement,
         segment_purity: segmentation.as_ref().map(|s| s.purity),
         surface_points_removed: segmentation.as_ref().map(|s| s.surface_points_removed),
         foliage_points_removed: segmentation.as_ref().map(|s| s.foliage_points_removed),
@@ -971,6 +992,13 @@ impl Evaluation {
         row("strip offset spread", &self.strip_offset_spread_m, 1e3, "mm");
         row("  same-surface spread", &self.same_surface_spread_m, 1e3, "mm");
         row("    without the campaign's shift", &self.same_surface_spread_without_campaign_shift_m, 1e3, "mm");
+        let a = &self.same_surface_agreement;
+        let of = |m: &SpreadMetric, f: fn(&Spread) -> f64| metric(f(&m.before), f(&m.after));
+        row("      95th percentile (≥ 50 points)", &of(&a.all, |s| s.p95_m), 1e3, "mm");
+        row("      maximum (≥ 50 points)", &of(&a.all, |s| s.max_m), 1e3, "mm");
+        row("      up-facing, RMS", &of(&a.up, |s| s.rms_m), 1e3, "mm");
+        row("      facing travel, RMS", &of(&a.facing_travel, |s| s.rms_m), 1e3, "mm");
+        row("      facing across, RMS", &of(&a.facing_across, |s| s.rms_m), 1e3, "mm");
         row("  without the campaign's shift", &self.spread_without_campaign_shift_m, 1e3, "mm");
         row("  without each tile's shift", &self.spread_without_tile_shift_m, 1e3, "mm");
         row("  from the datum error alone", &self.spread_from_datum_m, 1e3, "mm");

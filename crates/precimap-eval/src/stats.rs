@@ -184,6 +184,28 @@ impl<K: Copy + Eq + Ord + std::hash::Hash> GroupStripMeans<K> {
         self.spread_with(min_points, keep, |_, sum, sn| sum - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]))
     }
 
+    /// Every (group, strip) pair's distance from its group: `|mean − group mean|` after removing
+    /// the translation `d` as [`Self::spread_of_without_shift`] does, over the groups with two or
+    /// more strips of at least `min_points` samples that `keep` accepts; sorted ascending. Their
+    /// RMS is that spread.
+    pub fn deviations_without_shift(&self, min_points: usize, keep: impl Fn(&K) -> bool, d: [f64; 3]) -> Vec<f64> {
+        let mut groups: BTreeMap<K, Vec<(u32, f64)>> = BTreeMap::new();
+        for (&(group, strip), &(n, e, sn)) in &self.cells {
+            if n >= min_points as u64 && n > 0 && keep(&group) {
+                let sum = e - (d[0] * sn[0] + d[1] * sn[1] + d[2] * sn[2]);
+                groups.entry(group).or_default().push((strip, sum / n as f64));
+            }
+        }
+        let mut out = Vec::new();
+        for means in groups.values_mut().filter(|m| m.len() >= 2) {
+            means.sort_by_key(|&(strip, _)| strip);
+            let mean = means.iter().map(|m| m.1).sum::<f64>() / means.len() as f64;
+            out.extend(means.iter().map(|m| (m.1 - mean).abs()));
+        }
+        out.sort_by(f64::total_cmp);
+        out
+    }
+
     /// The spread of the groups `keep` accepts, with each (group, strip) pair's error sum
     /// replaced by `sum(group, Σe, Σn)` before it is divided by the count.
     fn spread_with(

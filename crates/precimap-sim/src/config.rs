@@ -119,6 +119,23 @@ pub struct TownConfig {
     pub corner_clearance_m: f64,
     /// Cell edge of the 2D ray-casting grid.
     pub grid_cell_m: f64,
+    /// Angle by which the south–north streets lean from the perpendicular (degrees, |·| < 60):
+    /// the street grid becomes a grid of parallelograms whose streets cross at 90° − skew and
+    /// 90° + skew. 0 keeps the right-angled grid.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub skew_deg: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
+fn is_two(v: &u32) -> bool {
+    *v == 2
+}
+
+fn two() -> u32 {
+    2
 }
 
 /// Vehicle passes: routes, speeds, the traffic-light stop and body motion.
@@ -179,6 +196,9 @@ pub struct ScannerConfig {
     pub min_range_m: f64,
     /// σ of the range noise.
     pub range_noise_m: f64,
+    /// Scan heads per vehicle: 2 (left and right) or 1 (the left head alone).
+    #[serde(default = "two", skip_serializing_if = "is_two")]
+    pub heads: u32,
 }
 
 /// GNSS/IMU error processes (per pass). σ ranges `[lo, hi]` are drawn per pass and axis; the
@@ -208,6 +228,98 @@ pub struct ErrorConfig {
     pub outage_heading_drift_deg: f64,
     /// After the outage the bump decays smoothly over this time.
     pub outage_decay_s: f64,
+    /// The random process of the pose errors. The default, sums of sinusoids, is drawn from the
+    /// fields above; the others carry their own parameters.
+    #[serde(default, skip_serializing_if = "ErrorProcess::is_sinusoids")]
+    pub process: ErrorProcess,
+    /// Constant calibration errors of the scan heads (none by default).
+    #[serde(default, skip_serializing_if = "CalibrationErrors::is_none")]
+    pub calibration: CalibrationErrors,
+}
+
+/// The random process of the GNSS/IMU pose errors of every pass, per position axis (world x,
+/// y, z) and attitude angle (roll, pitch, heading). All are driven by the pass's own random
+/// stream, so a campaign is a pure function of its seed.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ErrorProcess {
+    /// Sums of random-phase sinusoids of the error clock (`ErrorConfig`'s σ and period ranges).
+    #[default]
+    Sinusoids,
+    /// First-order Gauss–Markov: stationary, variance σ², autocorrelation `exp(−|Δt|/τ)`.
+    GaussMarkov {
+        position_sigma_m: [f64; 3],
+        position_tau_s: [f64; 3],
+        attitude_sigma_deg: [f64; 3],
+        attitude_tau_s: [f64; 3],
+    },
+    /// Random walk from zero at the pass's start: variance grows as `q²·t`.
+    RandomWalk { position_m_per_sqrt_s: [f64; 3], attitude_deg_per_sqrt_s: [f64; 3] },
+    /// Independent normal errors at every trajectory sample.
+    WhiteNoise { position_sigma_m: [f64; 3], attitude_sigma_deg: [f64; 3] },
+}
+
+impl ErrorProcess {
+    pub fn is_sinusoids(&self) -> bool {
+        matches!(self, ErrorProcess::Sinusoids)
+    }
+
+    /// Short name (`sinusoids`, `gauss_markov`, `random_walk`, `white_noise`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            ErrorProcess::Sinusoids => "sinusoids",
+            ErrorProcess::GaussMarkov { .. } => "gauss_markov",
+            ErrorProcess::RandomWalk { .. } => "random_walk",
+            ErrorProcess::WhiteNoise { .. } => "white_noise",
+        }
+    }
+
+    fn problems(&self, out: &mut Vec<String>) {
+        let mut check = |name: &str, v: [f64; 3], positive: bool| {
+            if v.iter().any(|x| !x.is_finite() || *x < 0.0 || (positive && *x <= 0.0)) {
+                let what = if positive { "positive" } else { "zero or positive" };
+                out.push(format!("errors.process.{name} must be three {what} numbers, got {v:?}"));
+            }
+        };
+        match self {
+            ErrorProcess::Sinusoids => {}
+            ErrorProcess::GaussMarkov { position_sigma_m, position_tau_s, attitude_sigma_deg, attitude_tau_s } => {
+                check("position_sigma_m", *position_sigma_m, false);
+                check("position_tau_s", *position_tau_s, true);
+                check("attitude_sigma_deg", *attitude_sigma_deg, false);
+                check("attitude_tau_s", *attitude_tau_s, true);
+            }
+            ErrorProcess::RandomWalk { position_m_per_sqrt_s, attitude_deg_per_sqrt_s } => {
+                check("position_m_per_sqrt_s", *position_m_per_sqrt_s, false);
+                check("attitude_deg_per_sqrt_s", *attitude_deg_per_sqrt_s, false);
+            }
+            ErrorProcess::WhiteNoise { position_sigma_m, attitude_sigma_deg } => {
+                check("position_sigma_m", *position_sigma_m, false);
+                check("attitude_sigma_deg", *attitude_sigma_deg, false);
+            }
+        }
+    }
+}
+
+/// Constant errors of the scan heads' calibration: the manifest states the nominal lever arms and
+/// zero boresight, the points are measured with these added. Angles rotate the head's frame
+/// about the body's x, y and z axes (roll, pitch, yaw).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CalibrationErrors {
+    pub boresight_left_deg: [f64; 3],
+    pub boresight_right_deg: [f64; 3],
+    pub lever_arm_left_m: [f64; 3],
+    pub lever_arm_right_m: [f64; 3],
+    /// Range scale error, parts per million: the measured range is `ρ·(1 + s·10⁻⁶) + offset`.
+    pub range_scale_ppm: f64,
+    pub range_offset_m: f64,
+}
+
+impl CalibrationErrors {
+    pub fn is_none(&self) -> bool {
+        *self == CalibrationErrors::default()
+    }
 }
 
 impl SimConfig {
@@ -342,6 +454,18 @@ impl SimConfig {
         if !(s.range_noise_m >= 0.0 && s.range_noise_m.is_finite()) {
             out.push("scanner.range_noise_m must be zero or positive".into());
         }
+        e.process.problems(&mut out);
+        let c = &e.calibration;
+        let calibration = [c.boresight_left_deg, c.boresight_right_deg, c.lever_arm_left_m, c.lever_arm_right_m];
+        if calibration.iter().flatten().chain([&c.range_scale_ppm, &c.range_offset_m]).any(|v| !v.is_finite()) {
+            out.push("errors.calibration must hold finite numbers only".into());
+        }
+        if !(s.heads == 1 || s.heads == 2) {
+            out.push(format!("scanner.heads must be 1 or 2, got {}", s.heads));
+        }
+        if !(t.skew_deg.is_finite() && t.skew_deg.abs() < 60.0) {
+            out.push(format!("town.skew_deg must lie between −60 and 60 degrees, got {}", t.skew_deg));
+        }
         if e.components == 0 {
             out.push("errors.components must be at least 1".into());
         }
@@ -392,6 +516,7 @@ impl Default for TownConfig {
             car_probability: 0.45,
             corner_clearance_m: 9.0,
             grid_cell_m: 4.0,
+            skew_deg: 0.0,
         }
     }
 }
@@ -434,6 +559,7 @@ impl Default for ScannerConfig {
             max_range_m: 70.0,
             min_range_m: 1.0,
             range_noise_m: 0.005,
+            heads: 2,
         }
     }
 }
@@ -455,6 +581,8 @@ impl Default for ErrorConfig {
             outage_vertical_fraction: 0.4,
             outage_heading_drift_deg: 0.01,
             outage_decay_s: 20.0,
+            process: ErrorProcess::Sinusoids,
+            calibration: CalibrationErrors::default(),
         }
     }
 }

@@ -55,11 +55,11 @@ impl Figure8 {
         pattern
             .iter()
             .map(|&(a, b)| {
-                if self.vertical {
+                layout.to_world(if self.vertical {
                     [layout.street_x(self.i + b), layout.street_y(self.j + a)]
                 } else {
                     [layout.street_x(self.i + a), layout.street_y(self.j + b)]
-                }
+                })
             })
             .collect()
     }
@@ -529,7 +529,7 @@ mod tests {
 
     #[test]
     fn route_is_closed_and_continuous() {
-        let layout = Layout { blocks_x: 2, blocks_y: 1, block_m: 60.0 };
+        let layout = Layout::square(2, 1, 60.0);
         for f in Figure8::all(&layout) {
             for right in [1.75, -1.75] {
                 let w = f.waypoints(&layout);
@@ -557,7 +557,7 @@ mod tests {
 
     #[test]
     fn lane_is_right_of_the_centre_line() {
-        let layout = Layout { blocks_x: 2, blocks_y: 1, block_m: 60.0 };
+        let layout = Layout::square(2, 1, 60.0);
         let w = Figure8 { i: 0, j: 0, vertical: false }.waypoints(&layout);
         let r = Route::from_waypoints(&w, 9.0, 1.75);
         // Segment 0 drives north on x = 0: the right lane is at x = +1.75.
@@ -568,7 +568,7 @@ mod tests {
     #[test]
     fn speed_profile_is_smooth_and_stops() {
         let cfg = SimConfig::for_scale(Scale::Small, 4);
-        let layout = Layout { blocks_x: 2, blocks_y: 1, block_m: 60.0 };
+        let layout = Layout::square(2, 1, 60.0);
         let plan = PassPlan::new(&cfg, &layout, cfg.drive.stop_pass.unwrap());
         assert!(plan.stops);
         let route = plan.route(&cfg.drive, &layout);
@@ -622,8 +622,13 @@ mod tests {
 
     #[test]
     fn vehicles_drive_through_free_space() {
-        for scale in [Scale::Tiny, Scale::Small, Scale::Medium] {
-            let cfg = SimConfig::for_scale(scale, 21);
+        let mut configs: Vec<(String, SimConfig)> =
+            [Scale::Tiny, Scale::Small, Scale::Medium].map(|s| (s.to_string(), SimConfig::for_scale(s, 21))).into();
+        for scene in crate::Scene::ALL {
+            let scenario = crate::Scenario::new(scene, crate::ErrorModel::Sinusoids, 4, 2);
+            configs.push((scenario.name(), scenario.config(21, 40.0, 10.0, 100)));
+        }
+        for (scale, cfg) in configs {
             let town = Town::build(&cfg.town, cfg.seed);
             for p in 0..cfg.drive.passes {
                 let tp = true_pass(&cfg, &town, PassPlan::new(&cfg, &town.layout(), p));

@@ -1,6 +1,7 @@
-//! GNSS/IMU errors of one pass: smooth, time-correlated position and attitude errors, nearly
-//! frozen while the vehicle stands (zero-velocity updates), plus an optional GNSS outage that
-//! lets a drift bump grow and then decay once satellites are back.
+//! GNSS/IMU errors of one pass: time-correlated position and attitude errors (by default smooth
+//! sums of sinusoids, nearly frozen while the vehicle stands thanks to zero-velocity updates; or
+//! one of the processes of [`crate::process`]), plus an optional GNSS outage that lets a drift
+//! bump grow and then decay once satellites are back.
 
 use crate::config::ErrorConfig;
 use crate::rng::Rng;
@@ -43,7 +44,9 @@ fn smoothstep(u: f64) -> f64 {
 /// Error statistics of one pass (measured minus true), over all trajectory samples.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ErrorStats {
-    /// σ drawn for the smooth process per axis; its realised RMS over the pass equals it.
+    /// σ of the process per axis: for sinusoid sums drawn per pass (the realised RMS over the
+    /// pass equals it), for Gauss–Markov and white noise the configured one, for a random walk
+    /// its realised RMS over the pass.
     pub sigma_position_m: [f64; 3],
     /// σ drawn for roll, pitch, heading.
     pub sigma_attitude_deg: [f64; 3],
@@ -105,15 +108,27 @@ fn channel(rng: &mut Rng, tau: &[f64], sigma: f64, periods: [f64; 2], components
 /// Errors for pass `pass` at the given samples (GPS seconds, speeds in m/s).
 pub fn pass_errors(cfg: &ErrorConfig, seed: u64, pass: u32, times: &[f64], speeds: &[f64]) -> PassErrors {
     let mut rng = Rng::new(seed, STREAM_ERRORS + pass as u64);
-    let tau = error_clock(cfg, times, speeds);
     let n = times.len();
-    let sig_p = [rng.within(cfg.position_sigma_m), rng.within(cfg.position_sigma_m), rng.within(cfg.position_sigma_m)];
-    let sig_a =
-        [rng.within(cfg.roll_pitch_sigma_deg), rng.within(cfg.roll_pitch_sigma_deg), rng.within(cfg.heading_sigma_deg)];
-    let pos: Vec<Vec<f64>> =
-        sig_p.iter().map(|&s| channel(&mut rng, &tau, s, cfg.position_period_s, cfg.components)).collect();
-    let att: Vec<Vec<f64>> =
-        sig_a.iter().map(|&s| channel(&mut rng, &tau, s, cfg.attitude_period_s, cfg.components)).collect();
+    let (pos, att, sig_p, sig_a) = match crate::process::channels(&cfg.process, seed, pass, times) {
+        Some(([x, y, z, roll, pitch, heading], s)) => {
+            (vec![x, y, z], vec![roll, pitch, heading], [s[0], s[1], s[2]], [s[3], s[4], s[5]])
+        }
+        None => {
+            let tau = error_clock(cfg, times, speeds);
+            let sig_p =
+                [rng.within(cfg.position_sigma_m), rng.within(cfg.position_sigma_m), rng.within(cfg.position_sigma_m)];
+            let sig_a = [
+                rng.within(cfg.roll_pitch_sigma_deg),
+                rng.within(cfg.roll_pitch_sigma_deg),
+                rng.within(cfg.heading_sigma_deg),
+            ];
+            let pos: Vec<Vec<f64>> =
+                sig_p.iter().map(|&s| channel(&mut rng, &tau, s, cfg.position_period_s, cfg.components)).collect();
+            let att: Vec<Vec<f64>> =
+                sig_a.iter().map(|&s| channel(&mut rng, &tau, s, cfg.attitude_period_s, cfg.components)).collect();
+            (pos, att, sig_p, sig_a)
+        }
+    };
     // Drawn for every pass, so choosing the outage pass changes nothing else.
     let frac = rng.range(0.3, 0.45);
     let dur = rng.within(cfg.outage_duration_s);

@@ -21,14 +21,20 @@
 pub mod config;
 pub mod drive;
 pub mod gnss;
+pub mod process;
 pub mod rng;
 pub mod scan;
+pub mod scenario;
 pub mod town;
 pub mod truth;
 
-pub use config::{DriveConfig, ErrorConfig, ParseScaleError, Scale, ScannerConfig, SimConfig, TownConfig};
+pub use config::{
+    CalibrationErrors, DriveConfig, ErrorConfig, ErrorProcess, ParseScaleError, Scale, ScannerConfig, SimConfig,
+    TownConfig,
+};
 pub use gnss::{ErrorStats, Outage};
 pub use scan::Head;
+pub use scenario::{ErrorModel, Scenario, Scene};
 pub use town::Town;
 pub use truth::{SurfaceClass, TruthPoint, TruthReader, TruthWriter};
 
@@ -177,9 +183,9 @@ fn simulate_pass(cfg: &SimConfig, town: &Town, index: u32, out: &Path, laz: bool
     let truth_traj = Trajectory::new(tp.times.clone(), tp.positions.clone(), tp.rpy_deg.clone()).map_err(traj_err)?;
     let measured_traj = Trajectory::new(tp.times.clone(), measured_pos, measured_rpy).map_err(traj_err)?;
     let ext = if laz { "laz" } else { "las" };
-    let jobs: Vec<scan::StripJob<'_>> = [Head::Left, Head::Right]
-        .into_iter()
-        .map(|head| {
+    let jobs: Vec<scan::StripJob<'_>> = Head::mounted(cfg.scanner.heads)
+        .iter()
+        .map(|&head| {
             let sid = format!("{id}-{}", head.name());
             scan::StripJob {
                 number: (2 * index + head.channel() as u32 + 1) as u16,
@@ -195,9 +201,11 @@ fn simulate_pass(cfg: &SimConfig, town: &Town, index: u32, out: &Path, laz: bool
             }
         })
         .collect();
-    let (a, b) = rayon::join(|| scan::run_strip(cfg, town, &jobs[0]), || scan::run_strip(cfg, town, &jobs[1]));
+    let results: Vec<Result<scan::StripStats, SimError>> =
+        jobs.par_iter().map(|job| scan::run_strip(cfg, town, job)).collect();
     let mut strips = Vec::new();
-    for (job, stats) in jobs.iter().zip([a?, b?]) {
+    for (job, stats) in jobs.iter().zip(results) {
+        let stats = stats?;
         strips.push((
             StripTruth {
                 id: job.id.clone(),
@@ -277,9 +285,9 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
 
     let manifest = Manifest {
         name: config.name.clone(),
-        scanners: [("left", config.scanner.lever_arm_left_m), ("right", config.scanner.lever_arm_right_m)]
-            .into_iter()
-            .map(|(k, arm)| (k.to_string(), ScannerSpec { lever_arm_m: arm, boresight_deg: [0.0; 3] }))
+        scanners: Head::mounted(config.scanner.heads)
+            .iter()
+            .map(|&h| (h.name().to_string(), ScannerSpec { lever_arm_m: h.lever_arm(config), boresight_deg: [0.0; 3] }))
             .collect(),
         trajectories: trajectories.iter().map(|t| TrajectoryRef { id: t.id.clone(), uri: t.uri.clone() }).collect(),
         strips: strips

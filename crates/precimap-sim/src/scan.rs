@@ -51,6 +51,15 @@ impl Head {
         }
     }
 
+    /// The heads of a vehicle with `heads` of them (1: the left one alone).
+    pub fn mounted(heads: u32) -> &'static [Head] {
+        if heads == 1 {
+            &[Head::Left]
+        } else {
+            &[Head::Left, Head::Right]
+        }
+    }
+
     /// Body-frame unit direction of every measurement of a revolution.
     pub fn directions(self, cfg: &SimConfig) -> Vec<Vec3> {
         let n = cfg.scanner.points_per_revolution;
@@ -120,6 +129,35 @@ fn intensity(class: SurfaceClass, surface_id: u32, cos_incidence: f64, range: f6
     (v * 65535.0).clamp(1.0, 65535.0) as u16
 }
 
+/// How a head's points are recorded when its calibration is off
+/// ([`crate::config::CalibrationErrors`]): `p = c + R·(ℓ + δℓ + R_b·d·(ρ·(1 + s) + o))`.
+struct Miscalibration {
+    lever_arm: Vec3,
+    boresight: precimap_core::geom::Mat3,
+    range_scale: f64,
+    range_offset_m: f64,
+}
+
+impl Miscalibration {
+    fn of(cfg: &SimConfig, head: Head) -> Option<Self> {
+        let c = &cfg.errors.calibration;
+        if c.is_none() {
+            return None;
+        }
+        let (bore, arm) = match head {
+            Head::Left => (c.boresight_left_deg, c.lever_arm_left_m),
+            Head::Right => (c.boresight_right_deg, c.lever_arm_right_m),
+        };
+        let [r, p, y] = bore.map(f64::to_radians);
+        Some(Self {
+            lever_arm: Vec3::from(head.lever_arm(cfg)) + Vec3::from(arm),
+            boresight: precimap_core::geom::rot_from_rpy(r, p, y),
+            range_scale: 1.0 + c.range_scale_ppm * 1e-6,
+            range_offset_m: c.range_offset_m,
+        })
+    }
+}
+
 /// Simulates one strip, streaming to its files.
 pub(crate) fn run_strip(cfg: &SimConfig, town: &Town, job: &StripJob<'_>) -> Result<StripStats, SimError> {
     let sc = &cfg.scanner;
@@ -128,6 +166,7 @@ pub(crate) fn run_strip(cfg: &SimConfig, town: &Town, job: &StripJob<'_>) -> Res
     let count = ((job.t_end - job.t_start) / dt).floor().max(0.0) as u64;
     let dirs = job.head.directions(cfg);
     let lever = Vec3::from(job.head.lever_arm(cfg));
+    let miscalibration = Miscalibration::of(cfg, job.head);
     let origin = Vec3::from(cfg.origin);
     let strip_key = rng::hash3(cfg.seed, job.pass as u64, job.head.channel() as u64);
     let mut writer = StripWriter::create(
@@ -165,7 +204,13 @@ pub(crate) fn run_strip(cfg: &SimConfig, town: &Town, job: &StripJob<'_>) -> Res
         let noisy = rho + sc.range_noise_m * rng::normal(rng::hash2(key, 0x0015E));
         let p_true = head + d * rho;
         let m = job.measured_traj.pose_in_segment(seg, lambda);
-        let p_rec = m.position + m.rotation * (lever + d_body * noisy);
+        let p_rec = match &miscalibration {
+            None => m.position + m.rotation * (lever + d_body * noisy),
+            Some(c) => {
+                let range = noisy * c.range_scale + c.range_offset_m;
+                m.position + m.rotation * (c.lever_arm + c.boresight * d_body * range)
+            }
+        };
         let n = hit.normal;
         let cos_inc = (n[0] * d.x + n[1] * d.y + n[2] * d.z).abs();
         writer.push(&NewPoint {

@@ -23,14 +23,27 @@ pub const GROUND_ID: u32 = 1;
 
 /// The street grid: street centre lines at `x = (i − blocks_x/2)·L` and `y = (j − blocks_y/2)·L`.
 /// Lines `0..=blocks_x` (`0..=blocks_y`) enclose the driven blocks; one ring of blocks more is built.
+/// Coordinates are those of the grid frame; [`Layout::to_world`] maps them to local metres.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Layout {
     pub blocks_x: u32,
     pub blocks_y: u32,
     pub block_m: f64,
+    /// `tan(skew)`: the grid frame's y axis leans by the skew towards +x in the world.
+    pub skew: f64,
 }
 
 impl Layout {
+    /// A right-angled grid.
+    pub fn square(blocks_x: u32, blocks_y: u32, block_m: f64) -> Layout {
+        Layout { blocks_x, blocks_y, block_m, skew: 0.0 }
+    }
+
+    /// World (local) x, y of grid-frame point `p`.
+    pub fn to_world(&self, p: [f64; 2]) -> [f64; 2] {
+        [p[0] + self.skew * p[1], p[1]]
+    }
+
     pub fn street_x(&self, i: i32) -> f64 {
         (i as f64 - self.blocks_x as f64 / 2.0) * self.block_m
     }
@@ -175,6 +188,8 @@ pub struct TownStats {
 pub struct Town {
     layout: Layout,
     grade: [f64; 2],
+    /// `tan(skew)` of the street grid: the sheared frame's x is `x − skew·y`.
+    skew: f64,
     /// |(−a, −b, 1)|, the length of the shear-transformed z normal.
     slope_norm: f64,
     mean_free_path: f64,
@@ -452,7 +467,8 @@ impl Builder<'_> {
 impl Town {
     /// Builds the town of `cfg`, randomised by `seed`.
     pub fn build(cfg: &TownConfig, seed: u64) -> Town {
-        let layout = Layout { blocks_x: cfg.blocks_x, blocks_y: cfg.blocks_y, block_m: cfg.block_m };
+        let skew = cfg.skew_deg.to_radians().tan();
+        let layout = Layout { blocks_x: cfg.blocks_x, blocks_y: cfg.blocks_y, block_m: cfg.block_m, skew };
         let mut b = Builder {
             cfg,
             rng: Rng::new(seed, STREAM_TOWN),
@@ -532,6 +548,7 @@ impl Town {
         Town {
             layout,
             grade: [a, g],
+            skew,
             slope_norm: (1.0 + a * a + g * g).sqrt(),
             mean_free_path: cfg.foliage_mean_free_path_m,
             boxes: b.boxes,
@@ -571,15 +588,17 @@ impl Town {
         self.surfaces.iter().enumerate().skip(1).map(|(i, s)| (i as u32, *s))
     }
 
+    /// The sheared frame of world point (or direction) `p`: the ground becomes `z' = 0` and the
+    /// skewed street grid axis-aligned.
     #[inline]
     fn shear(&self, p: [f64; 3]) -> [f64; 3] {
-        [p[0], p[1], p[2] - self.grade[0] * p[0] - self.grade[1] * p[1]]
+        [p[0] - self.skew * p[1], p[1], p[2] - self.grade[0] * p[0] - self.grade[1] * p[1]]
     }
 
-    /// World unit normal of a sheared-frame normal.
+    /// World unit normal of a sheared-frame normal (the shear's transpose applied, normalised).
     #[inline]
     fn world_normal(&self, n: [f64; 3]) -> [f64; 3] {
-        let w = [n[0] - self.grade[0] * n[2], n[1] - self.grade[1] * n[2], n[2]];
+        let w = [n[0] - self.grade[0] * n[2], n[1] - self.skew * n[0] - self.grade[1] * n[2], n[2]];
         let l = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
         [w[0] / l, w[1] / l, w[2] / l]
     }
@@ -596,7 +615,11 @@ impl Town {
                 let b = &self.boxes[prim as usize];
                 let axis = (face / 2) as usize;
                 let (value, sign) = if face % 2 == 0 { (b.min[axis], -1.0) } else { (b.max[axis], 1.0) };
-                let scale = if axis == 2 { self.slope_norm } else { 1.0 };
+                let scale = match axis {
+                    0 => (1.0 + self.skew * self.skew).sqrt(),
+                    1 => 1.0,
+                    _ => self.slope_norm,
+                };
                 let within = (0..3).filter(|&k| k != axis).all(|k| inside(q[k], b.min[k], b.max[k]));
                 SurfaceCheck { distance: sign * (q[axis] - value) / scale, within_bounds: within }
             }
@@ -653,7 +676,7 @@ impl Town {
     /// `key` seeds the ray's foliage randomness: the same key gives the same answer.
     pub fn cast(&self, o: [f64; 3], d: [f64; 3], t_max: f64, key: u64) -> Option<Hit> {
         let op = self.shear(o);
-        let dp = [d[0], d[1], d[2] - self.grade[0] * d[0] - self.grade[1] * d[1]];
+        let dp = self.shear(d);
         let mut best = Best { t: t_max, what: HitRef::None };
         if dp[2] < 0.0 && op[2] > 0.0 {
             let t = -op[2] / dp[2];
@@ -672,7 +695,8 @@ impl Town {
                 n[axis] = if face % 2 == 0 { -1.0 } else { 1.0 };
                 (self.boxes[k as usize].id0 + face as u32, self.world_normal(n))
             }
-            HitRef::CylSide(k, n) => (self.cyls[k as usize].id, [n[0], n[1], 0.0]),
+            HitRef::CylSide(k, n) if self.skew == 0.0 => (self.cyls[k as usize].id, [n[0], n[1], 0.0]),
+            HitRef::CylSide(k, n) => (self.cyls[k as usize].id, self.world_normal([n[0], n[1], 0.0])),
             HitRef::CylCap(k) => (self.cyls[k as usize].id + 1, self.world_normal([0.0, 0.0, 1.0])),
             HitRef::Crown(k) => {
                 let id = self.crowns[k as usize].id;
@@ -844,126 +868,4 @@ impl Town {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn flat_town() -> Town {
-        let cfg = TownConfig { grade: [0.0, 0.0], ..TownConfig::default() };
-        Town::build(&cfg, 3)
-    }
-
-    #[test]
-    fn straight_down_hits_the_road() {
-        let t = flat_town();
-        // Street centre between the two driven blocks (x = 0 is a street line).
-        let h = t.cast([0.0, 0.0, 2.0], [0.0, 0.0, -1.0], 70.0, 1).unwrap();
-        assert!((h.t - 2.0).abs() < 1e-12);
-        assert_eq!(h.surface_id, GROUND_ID);
-        assert_eq!(h.class, SurfaceClass::Road);
-        assert_eq!(h.normal, [0.0, 0.0, 1.0]);
-    }
-
-    #[test]
-    fn sloped_ground_hits_and_normal() {
-        let cfg = TownConfig { grade: [0.02, -0.01], ..TownConfig::default() };
-        let t = Town::build(&cfg, 3);
-        let o = [0.3, 0.2, t.ground_z(0.3, 0.2) + 2.0];
-        let h = t.cast(o, [0.0, 0.0, -1.0], 70.0, 1).unwrap();
-        assert!((h.t - 2.0).abs() < 1e-12);
-        let n = h.normal;
-        let l = (1.0f64 + 0.0004 + 0.0001).sqrt();
-        assert!((n[0] + 0.02 / l).abs() < 1e-12 && (n[1] - 0.01 / l).abs() < 1e-12);
-        let p = [o[0], o[1], o[2] - h.t];
-        assert!(t.check_surface(h.surface_id, p, 1e-9).unwrap().distance.abs() < 1e-12);
-    }
-
-    #[test]
-    fn horizontal_ray_hits_curb_or_something_solid_with_consistent_truth() {
-        let cfg = TownConfig::default();
-        let t = Town::build(&cfg, 11);
-        let mut classes = std::collections::HashSet::new();
-        let mut hits = 0;
-        for k in 0..20_000u64 {
-            // Rays from 2 m above the middle street in all directions.
-            let az = rng::unit(k * 3) * std::f64::consts::TAU;
-            let el = (rng::unit(k * 3 + 1) * 2.0 - 1.0).asin();
-            let d = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
-            let y = (rng::unit(k * 3 + 2) - 0.5) * 40.0;
-            let o = [0.0, y, t.ground_z(0.0, y) + 2.2];
-            if let Some(h) = t.cast(o, d, 70.0, k) {
-                hits += 1;
-                classes.insert(h.class);
-                let p = [o[0] + h.t * d[0], o[1] + h.t * d[1], o[2] + h.t * d[2]];
-                let c = t.check_surface(h.surface_id, p, 1e-6).unwrap();
-                let n = h.normal;
-                assert!(((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() - 1.0).abs() < 1e-9);
-                if h.class.is_surface() {
-                    assert!(c.distance.abs() < 1e-7 && c.within_bounds, "{h:?} {c:?}");
-                    assert!(n[0] * d[0] + n[1] * d[1] + n[2] * d[2] < 1e-9, "normal faces away from ray: {h:?}");
-                } else {
-                    assert!(c.within_bounds && c.distance <= 1e-9, "foliage outside its crown: {c:?}");
-                }
-                // The brute-force nearest over all surfaces cannot be closer: re-cast from just
-                // before the hit must hit the same surface at the remaining distance.
-                let back = h.t - 1e-3;
-                let o2 = [o[0] + back * d[0], o[1] + back * d[1], o[2] + back * d[2]];
-                if h.class.is_surface() {
-                    let h2 = t.cast(o2, d, 1.0, k).unwrap();
-                    assert!((h2.t - 1e-3).abs() < 1e-7);
-                }
-            }
-        }
-        assert!(hits > 10_000);
-        for c in
-            [SurfaceClass::Road, SurfaceClass::Facade, SurfaceClass::Pole, SurfaceClass::Car, SurfaceClass::Foliage]
-        {
-            assert!(classes.contains(&c), "{c:?} never hit");
-        }
-    }
-
-    #[test]
-    fn grid_walk_agrees_with_brute_force() {
-        let t = flat_town();
-        for k in 0..3_000u64 {
-            let az = rng::unit(k * 5) * std::f64::consts::TAU;
-            let el = (rng::unit(k * 5 + 1) * 1.6 - 0.8).asin();
-            let d = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
-            let o = [(rng::unit(k * 5 + 2) - 0.5) * 4.0, (rng::unit(k * 5 + 3) - 0.5) * 40.0, 2.2];
-            let fast = t.cast(o, d, 70.0, k);
-            // Brute force: every primitive.
-            let op = t.shear(o);
-            let dp = d;
-            let inv = [1.0 / dp[0], 1.0 / dp[1], 1.0 / dp[2]];
-            let mut best = Best { t: 70.0, what: HitRef::None };
-            if dp[2] < 0.0 && -op[2] / dp[2] < 70.0 {
-                best = Best { t: -op[2] / dp[2], what: HitRef::Ground };
-            }
-            for i in 0..t.boxes.len() as u32 {
-                t.hit_box(i, &op, &dp, &inv, &mut best);
-            }
-            for i in 0..t.cyls.len() as u32 {
-                t.hit_cylinder(i, &op, &dp, &mut best);
-            }
-            for i in 0..t.crowns.len() as u32 {
-                t.hit_crown(i, &op, &dp, k, &mut best);
-            }
-            match (fast, best.what) {
-                (None, HitRef::None) => {}
-                (Some(h), _) => assert!((h.t - best.t).abs() < 1e-9, "ray {k}: grid {} brute {}", h.t, best.t),
-                (None, w) => panic!("ray {k}: grid missed {w:?} at {}", best.t),
-            }
-        }
-    }
-
-    #[test]
-    fn deterministic_per_seed() {
-        let cfg = TownConfig::default();
-        let (a, b, c) = (Town::build(&cfg, 5), Town::build(&cfg, 5), Town::build(&cfg, 6));
-        assert_eq!(a.stats(), b.stats());
-        assert_eq!(a.boxes.len(), b.boxes.len());
-        assert!(a.boxes.iter().zip(&b.boxes).all(|(x, y)| x.min == y.min && x.max == y.max));
-        assert!(a.stats() != c.stats() || a.boxes.iter().zip(&c.boxes).any(|(x, y)| x.min != y.min));
-        let s = a.stats();
-        assert!(s.buildings > 20 && s.cars > 5 && s.poles > 5 && s.trees > 3, "{s:?}");
-    }
-}
+mod tests;
