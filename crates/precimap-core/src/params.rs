@@ -198,12 +198,6 @@ pub struct Parameters {
     /// The paper's final 7 mm suit a scanner with ~2.5 mm noise; with noisier ranges a fixed 7 mm
     /// rejects good points by the hundred thousand and truncates their distribution.
     pub threshold_floor_sigmas: f64,
-    /// Robust tail of the outlier test, in thresholds: a point whose distance `e` to the map
-    /// exceeds the step's threshold `T` but not `outlier_tail_thresholds × T` stays an
-    /// observation with its weight scaled by `(T/e)²` (its pull on the poses tends to `T²/e`
-    /// instead of dropping to 0), so points whose strips still disagree, because the poses are
-    /// still wrong, keep pulling. 1 rejects every point beyond `T` (hard rejection alone).
-    pub outlier_tail_thresholds: f64,
     /// In point-sampled steps, a triangle of another pass adds its height to a point's latent
     /// height only where it lies within this many outlier thresholds of the consensus there
     /// (the mean of the point's own height and every covering triangle's); 0 takes every
@@ -326,7 +320,6 @@ impl Default for Parameters {
             point_latent_below_grid_m: 0.03,
             latent_pixel_share: 0.7,
             threshold_floor_sigmas: 4.0,
-            outlier_tail_thresholds: 1.0,
             cover_agreement_thresholds: 0.0,
             momentum: 0.85,
             common_mode_field_m: 7.5,
@@ -470,15 +463,6 @@ impl Parameters {
                     });
                 }
             }
-        }
-        if !(self.outlier_tail_thresholds.is_finite() && self.outlier_tail_thresholds >= 1.0) {
-            out.push(ParameterProblem {
-                field: "outlier_tail_thresholds".into(),
-                problem: format!(
-                    "must be a number ≥ 1 (1 rejects every point beyond the threshold), got {}",
-                    self.outlier_tail_thresholds
-                ),
-            });
         }
         if !(self.threshold_floor_sigmas.is_finite() && self.threshold_floor_sigmas >= 0.0) {
             out.push(ParameterProblem {

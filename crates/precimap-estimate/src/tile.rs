@@ -467,7 +467,6 @@ fn estimate_tile_into<S: LatentSink>(
     };
     let weight = 1.0 / (params.sigma_distance_m * params.sigma_distance_m);
     let threshold = step.threshold_m;
-    let tail = params.outlier_tail_thresholds;
     let mut stats = TileStats::new(tile);
     stats.surface_models = models.len() as u64;
     let in_core = |p: &[f64; 3]| p[0] >= 0.0 && p[0] < tile_size && p[1] >= 0.0 && p[1] < tile_size;
@@ -480,7 +479,7 @@ fn estimate_tile_into<S: LatentSink>(
     let Latent { points: latent, pull } = match &index {
         None if by_pixel => {
             let vehicle = solves_field.then_some(vehicle.as_slice());
-            let pulls = params.consistent_gradient.then_some(ItemPull { threshold, tail, weight });
+            let pulls = params.consistent_gradient.then_some(ItemPull { threshold, weight });
             let (latent, pulls) = pixels::pixel_latent(
                 &triangles,
                 &in_core,
@@ -495,7 +494,7 @@ fn estimate_tile_into<S: LatentSink>(
             latent
         }
         Some(index) => {
-            let pulls = params.consistent_gradient.then_some((&mut covers, ItemPull { threshold, tail, weight }));
+            let pulls = params.consistent_gradient.then_some((&mut covers, ItemPull { threshold, weight }));
             let agreement = match params.cover_agreement_thresholds {
                 f if f > 0.0 => f * threshold,
                 _ => f64::INFINITY,
@@ -552,7 +551,7 @@ fn estimate_tile_into<S: LatentSink>(
                 stats.points_modelled += 1;
                 let e = h - latent;
                 histogram.add(e);
-                if let Some(robust) = residual_weight(e, threshold, tail) {
+                if e.abs() <= threshold {
                     stats.points_used += 1;
                     if let Some(used) = used.as_deref_mut() {
                         used.push(UsedPoint { strip: chunk.strip, source: chunk.source[k], model: id });
@@ -564,8 +563,8 @@ fn estimate_tile_into<S: LatentSink>(
                     // With a consistent gradient the point pulls on its own pass by its share in
                     // the latent height; the covering passes get the rest (`corner_pulls`).
                     let own_weight = match &pulls {
-                        Some(_) => robust * weight * at.covering as f64 / (at.covering as f64 + 1.0),
-                        None => robust * weight,
+                        Some(_) => weight * at.covering as f64 / (at.covering as f64 + 1.0),
+                        None => weight,
                     };
                     // Both observations in one: weights add, and so do weight × residual.
                     let (total, weighted, observations) = match own_pull.take() {
@@ -581,7 +580,7 @@ fn estimate_tile_into<S: LatentSink>(
                             k: share,
                             w,
                             e,
-                            weight: robust * weight,
+                            weight,
                             lever: [g[3], g[4], g[5]],
                         });
                     }
@@ -1468,10 +1467,10 @@ fn point_latent<S: LatentSink>(
             };
             points[a as usize] = PointLatent { height: mean, others, covering: s.count };
             // The observation loop's residual `h − latent` and its test against the threshold.
-            if let Some(ItemPull { threshold, tail, weight }) = pull_terms {
+            if let Some(ItemPull { threshold, weight }) = pull_terms {
                 let e = h - mean;
-                if let Some(robust) = residual_weight(e, threshold, tail) {
-                    let alpha = robust * weight / (s.count as f64 + 1.0);
+                if e.abs() <= threshold {
+                    let alpha = weight / (s.count as f64 + 1.0);
                     pull[q] = [alpha, alpha * e];
                 }
             }
@@ -1513,25 +1512,7 @@ impl Default for PointLatent {
 #[derive(Clone, Copy)]
 struct ItemPull {
     threshold: f64,
-    /// [`Parameters::outlier_tail_thresholds`].
-    tail: f64,
     weight: f64,
-}
-
-/// The factor on an observation's weight for its distance `e` to the map: 1 within the step's
-/// threshold, `(threshold/e)²` beyond it out to `tail` thresholds
-/// ([`Parameters::outlier_tail_thresholds`]), `None` (rejected) farther.
-#[inline]
-fn residual_weight(e: f64, threshold: f64, tail: f64) -> Option<f64> {
-    let a = e.abs();
-    if a <= threshold {
-        Some(1.0)
-    } else if a <= tail * threshold {
-        let r = threshold / a;
-        Some(r * r)
-    } else {
-        None
-    }
 }
 
 /// What the used points' residuals pull on the triangles that cover them, gathered per corner
@@ -1673,20 +1654,6 @@ impl Sample {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn residual_weight_rejects_hard_without_a_tail_and_downweights_within_it() {
-        // Without a tail: exactly the hard threshold test.
-        for e in [0.0, 0.004, -0.007, 0.00700001, -0.02] {
-            assert_eq!(residual_weight(e, 0.007, 1.0), (e.abs() <= 0.007).then_some(1.0), "{e}");
-        }
-        assert_eq!(residual_weight(0.005, 0.01, 3.0), Some(1.0));
-        assert_eq!(residual_weight(-0.02, 0.01, 3.0), Some(0.25));
-        assert_eq!(residual_weight(0.031, 0.01, 3.0), None);
-        // The pull on the pose, weight × e, falls beyond the threshold.
-        let pull = |e: f64| residual_weight(e, 0.01, 3.0).unwrap() * e;
-        assert!(pull(0.02) < pull(0.01) && pull(0.03) < pull(0.02));
-    }
 
     fn patch(strip: u32, anchor: u32, normal: [f64; 3], centre: [f64; 3], count: u32) -> Patch {
         let c = count as f64;

@@ -15,8 +15,7 @@
 //! in O(1): the work per pixel is linear in its entries and points.
 
 use super::{
-    lifted, residual_weight, CornerPulls, ItemPull, Latent, PixelGrid, PointLatent, Triangles, MAX_SLOPE, NONE,
-    SAME_PASS_ANCHORS,
+    lifted, CornerPulls, ItemPull, Latent, PixelGrid, PointLatent, Triangles, MAX_SLOPE, NONE, SAME_PASS_ANCHORS,
 };
 use crate::chunk::NO_NEIGHBOUR;
 use crate::latent::{LatentSample, LatentSink};
@@ -414,10 +413,10 @@ pub(super) fn pixel_latent<S: LatentSink>(
                         None => [0.0; 3],
                     };
                     points[a] = PointLatent { height: mean, others, covering: c as u32 };
-                    if let Some(ItemPull { threshold, tail, weight }) = pulls {
+                    if let Some(ItemPull { threshold, weight }) = pulls {
                         let e = h - mean;
-                        if let Some(robust) = residual_weight(e, threshold, tail) {
-                            let alpha = robust * weight / (c + 1.0);
+                        if e.abs() <= threshold {
+                            let alpha = weight / (c + 1.0);
                             let pull = [alpha, alpha * e];
                             for k in 0..2 {
                                 total_pull[k] += pull[k];
