@@ -8,6 +8,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
+use precimap_framework::metrics::observe_job_store;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -34,34 +35,29 @@ async fn readyz(State(state): State<Arc<ApiState>>) -> Response {
     let jobs = tokio::time::timeout(CHECK_TIMEOUT, state.framework.jobs.now_ms());
     let store = tokio::time::timeout(CHECK_TIMEOUT, state.framework.objects.exists("readyz-probe"));
     let (jobs, store) = tokio::join!(jobs, store);
-    let mut failing = Vec::new();
-    match jobs {
-        Ok(Ok(_)) => {}
-        Ok(Err(e)) => {
-            tracing::warn!(error = %e, "readiness: job store");
-            failing.push("job store");
-        }
-        Err(_) => {
-            tracing::warn!("readiness: job store did not answer within {CHECK_TIMEOUT:?}");
-            failing.push("job store");
-        }
-    }
-    match store {
-        Ok(Ok(_)) => {}
-        Ok(Err(e)) => {
-            tracing::warn!(error = %e, "readiness: object store");
-            failing.push("object store");
-        }
-        Err(_) => {
-            tracing::warn!("readiness: object store did not answer within {CHECK_TIMEOUT:?}");
-            failing.push("object store");
-        }
-    }
+    let failing: Vec<&str> = [("job store", answered(jobs)), ("object store", answered(store))]
+        .into_iter()
+        .filter_map(|(name, answer)| {
+            answer.err().map(|why| {
+                tracing::warn!(error = %why, "readiness: {name}");
+                name
+            })
+        })
+        .collect();
     if failing.is_empty() {
         (StatusCode::OK, Json(serde_json::json!({ "status": "ready" }))).into_response()
     } else {
         let body = serde_json::json!({ "status": "not ready", "failing": failing });
         (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()
+    }
+}
+
+/// A check's result within its timeout, or why not.
+fn answered<T, E: std::fmt::Display>(result: Result<Result<T, E>, tokio::time::error::Elapsed>) -> Result<(), String> {
+    match result {
+        Ok(Ok(_)) => Ok(()),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(_) => Err(format!("no answer within {CHECK_TIMEOUT:?}")),
     }
 }
 
@@ -72,12 +68,9 @@ async fn metrics(State(state): State<Arc<ApiState>>) -> Response {
     };
     // The queue and the campaigns as the job store has them now; a database that does not
     // answer leaves the last values (and says so in the log), the process's own series stand.
-    match tokio::time::timeout(CHECK_TIMEOUT, precimap_framework::metrics::observe_job_store(&state.framework.jobs))
-        .await
-    {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => tracing::warn!(error = %e, "metrics: reading the job store"),
-        Err(_) => tracing::warn!("metrics: the job store did not answer within {CHECK_TIMEOUT:?}"),
+    let observed = tokio::time::timeout(CHECK_TIMEOUT, observe_job_store(&state.framework.jobs)).await;
+    if let Err(why) = answered(observed) {
+        tracing::warn!(error = %why, "metrics: reading the job store");
     }
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")], (render.0)()).into_response()
 }

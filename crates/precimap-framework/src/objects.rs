@@ -468,6 +468,7 @@ impl Objects {
     /// The size of `key`'s object, `None` if there is none.
     pub async fn size(&self, key: &str) -> Result<Option<u64>, FrameworkError> {
         let path = store_path(key)?;
+        self.check_confined(key)?;
         match self.inner.head(&path).await {
             Ok(meta) => Ok(Some(meta.size)),
             Err(object_store::Error::NotFound { .. }) => Ok(None),
@@ -478,10 +479,12 @@ impl Objects {
     /// Every object under `prefix` with its size and last-modified time (ms since the epoch).
     pub async fn list_meta(&self, prefix: &str) -> Result<Vec<StoredObject>, FrameworkError> {
         let path = store_path(prefix)?;
+        self.check_confined(prefix)?;
         let metas: Vec<_> =
             self.inner.list(Some(&path)).try_collect().await.map_err(|e| FrameworkError::store(prefix, e))?;
         Ok(metas
             .into_iter()
+            .filter(|m| self.check_confined(m.location.as_ref()).is_ok())
             .map(|m| StoredObject {
                 key: m.location.to_string(),
                 bytes: m.size,
@@ -493,8 +496,14 @@ impl Objects {
     /// The folders directly under `prefix` (e.g. `c/0123…` under `c`), as keys.
     pub async fn list_folders(&self, prefix: &str) -> Result<Vec<String>, FrameworkError> {
         let path = store_path(prefix)?;
+        self.check_confined(prefix)?;
         let listed = self.inner.list_with_delimiter(Some(&path)).await.map_err(|e| FrameworkError::store(prefix, e))?;
-        Ok(listed.common_prefixes.into_iter().map(|p| p.to_string()).collect())
+        Ok(listed
+            .common_prefixes
+            .into_iter()
+            .map(|p| p.to_string())
+            .filter(|key| self.check_confined(key).is_ok())
+            .collect())
     }
 
     /// Deletes every object under `prefix`; returns how many.
