@@ -611,12 +611,12 @@ mod tests {
         let objects = Objects::from_url(&format!("file://{}", dir.path().display())).unwrap();
         let chunks =
             || futures::stream::iter([Ok::<_, String>(Bytes::from_static(b"12345")), Ok(Bytes::from_static(b"6789"))]);
-        // Too long, broken off, and renamed onto a folder.
+        // Too long, broken off, and linked onto a folder (refused like an existing object).
         assert!(matches!(objects.put_stream("inputs/a/x", chunks(), 6).await, Err(FrameworkError::TooLarge { .. })));
         let broken = futures::stream::iter([Ok(Bytes::from_static(b"12")), Err("reset".to_string())]);
         assert!(matches!(objects.put_stream("inputs/a/x", broken, 100).await, Err(FrameworkError::Invalid(_))));
         objects.put("inputs/a/x/y", Bytes::from_static(b"y")).await.unwrap();
-        assert!(matches!(objects.put_stream("inputs/a/x", chunks(), 100).await, Err(FrameworkError::Io { .. })));
+        assert!(matches!(objects.put_stream("inputs/a/x", chunks(), 100).await, Err(FrameworkError::Exists { .. })));
         // A request dropped mid-upload.
         let endless = futures::stream::pending::<Result<Bytes, String>>();
         let dropped =
