@@ -1027,6 +1027,25 @@ fn send_signal(child: &std::process::Child, signal: &str) {
     assert!(status.success(), "kill -{signal} {}", child.id());
 }
 
+/// `precimap serve --no-auth` on 127.0.0.1:`port` over `dir`'s SQLite `jobs.db` and file store
+/// `store/`, with `extra` arguments, once it answers; its standard error goes to the returned file.
+fn serve_locally(dir: &Path, port: u16, extra: &[&str]) -> (Worker, PathBuf) {
+    let log = dir.join("serve.log");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
+        .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}")])
+        .args(["--db", &format!("sqlite://{}", dir.join("jobs.db").display())])
+        .args(["--store", &format!("file://{}", dir.join("store").display())])
+        .args(extra)
+        .current_dir(dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .expect("spawn precimap serve");
+    let mut server = Worker { child };
+    server.wait_until_serving(port, || std::fs::read_to_string(&log).unwrap_or_default());
+    (server, log)
+}
+
 /// Waits at most `limit` for a child to exit; panics with `log()` if it does not.
 fn exit_within(child: &mut std::process::Child, limit: Duration, log: impl Fn() -> String) -> std::process::ExitStatus {
     let started = Instant::now();
@@ -1126,19 +1145,8 @@ fn the_server_finishes_its_requests_on_sigterm_and_exits() {
     use std::io::{Read as _, Write as _};
     let dir = tempfile::tempdir().unwrap();
     let port = free_port();
-    let log = dir.path().join("serve.log");
-    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
-        .args(["serve", "--no-auth", "--listen", &format!("127.0.0.1:{port}")])
-        .args(["--db", &format!("sqlite://{}", dir.path().join("jobs.db").display())])
-        .args(["--store", &format!("file://{}", dir.path().join("store").display())])
-        .current_dir(dir.path())
-        .stdout(std::process::Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .expect("spawn precimap serve");
-    let mut server = Worker { child };
+    let (mut server, log) = serve_locally(dir.path(), port, &[]);
     let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
-    server.wait_until_serving(port, read_log);
 
     let body = vec![b'x'; 64 * 1024];
     let mut upload = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
@@ -1209,18 +1217,8 @@ fn metrics_follow_a_campaign_and_readiness_checks_both_stores() {
     let (port, executor_port) = (free_port(), free_port());
     let db = format!("sqlite://{}", dir.path().join("jobs.db").display());
     let store = format!("file://{}", dir.path().join("store").display());
-    let log = dir.path().join("serve.log");
-    let child = std::process::Command::new(env!("CARGO_BIN_EXE_precimap"))
-        .args(["serve", "--no-auth", "--workers", "2", "--lease-s", "2", "--listen", &format!("127.0.0.1:{port}")])
-        .args(["--db", &db, "--store", &store])
-        .current_dir(dir.path())
-        .stdout(std::process::Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .expect("spawn precimap serve");
-    let mut server = Worker { child };
+    let (server, log) = serve_locally(dir.path(), port, &["--workers", "2", "--lease-s", "2"]);
     let read_log = || std::fs::read_to_string(&log).unwrap_or_default();
-    server.wait_until_serving(port, read_log);
     let ready = http_get(port, "/readyz").unwrap();
     assert!(ready.contains(" 200 ") && ready.contains("\"ready\""), "{ready}");
     let idle = scrape(port);

@@ -2,37 +2,18 @@
 //! every manifest problem with its JSON path, and the object-key rules.
 
 use axum::body::Body;
-use axum::http::{header, Method, Request, StatusCode};
-use precimap_api::{app, ApiState, Auth, ErrorBody};
-use precimap_framework::{default_queue, Framework, Objects};
-use precimap_jobs::JobStore;
+use axum::http::{header, Method, StatusCode};
+use precimap_api::{app, ApiState, ErrorBody};
 use tower::ServiceExt;
 
-const TOKEN: &str = "s3cret-token";
+mod common;
+use common::{call, embedded_state, request, TOKEN};
 
 async fn state(dir: &std::path::Path) -> ApiState {
-    let jobs = JobStore::connect(&format!("sqlite://{}", dir.join("jobs.db").display())).await.unwrap();
-    let objects = Objects::from_url(&format!("file://{}", dir.join("store").display())).unwrap();
-    let mut s = ApiState::new(Framework { jobs, objects, queue: default_queue() }, Auth::Token(TOKEN.into()));
+    let mut s = embedded_state(dir).await;
     s.max_upload_bytes = 1000;
     s.max_manifest_bytes = 10_000;
     s
-}
-
-fn request(method: Method, uri: &str, token: Option<&str>, body: impl Into<Body>) -> Request<Body> {
-    let mut b = Request::builder().method(method).uri(uri);
-    if let Some(t) = token {
-        b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
-    }
-    b.header(header::CONTENT_TYPE, "application/json").body(body.into()).unwrap()
-}
-
-async fn call(s: &ApiState, req: Request<Body>) -> (StatusCode, serde_json::Value) {
-    let response = app(s.clone()).oneshot(req).await.unwrap();
-    let status = response.status();
-    let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
-    let json = serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null);
-    (status, json)
 }
 
 fn manifest(strip_uri: &str, traj_uri: &str) -> String {

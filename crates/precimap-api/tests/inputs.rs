@@ -3,33 +3,15 @@
 //! complete inputs within the server's bounds, cancel and delete removing what they leave.
 
 use axum::body::Body;
-use axum::http::{header, Method, Request, StatusCode};
-use precimap_api::{app, ApiState, Auth};
-use precimap_framework::{default_queue, CampaignLimits, Framework, Objects};
-use precimap_jobs::JobStore;
-use tower::ServiceExt;
+use axum::http::{Method, StatusCode};
+use precimap_api::ApiState;
+use precimap_framework::CampaignLimits;
 
-const TOKEN: &str = "s3cret-token";
+mod common;
+use common::{call, embedded_state, request, TOKEN};
 
 async fn state(dir: &std::path::Path) -> ApiState {
-    let jobs = JobStore::connect(&format!("sqlite://{}", dir.join("jobs.db").display())).await.unwrap();
-    let objects = Objects::from_url(&format!("file://{}", dir.join("store").display())).unwrap();
-    ApiState::new(Framework { jobs, objects, queue: default_queue() }, Auth::Token(TOKEN.into()))
-}
-
-fn request(method: Method, uri: &str, token: Option<&str>, body: impl Into<Body>) -> Request<Body> {
-    let mut b = Request::builder().method(method).uri(uri);
-    if let Some(t) = token {
-        b = b.header(header::AUTHORIZATION, format!("Bearer {t}"));
-    }
-    b.header(header::CONTENT_TYPE, "application/json").body(body.into()).unwrap()
-}
-
-async fn call(s: &ApiState, req: Request<Body>) -> (StatusCode, serde_json::Value) {
-    let response = app(s.clone()).oneshot(req).await.unwrap();
-    let status = response.status();
-    let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
-    (status, serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null))
+    embedded_state(dir).await
 }
 
 fn manifest(strips: &[&str], traj_uri: &str) -> String {
