@@ -7,6 +7,7 @@
 
 pub mod bench;
 mod error;
+mod migrations;
 mod store;
 mod types;
 

@@ -26,6 +26,7 @@ use tracing::{debug, info, warn};
 use uuid::Uuid;
 
 use crate::error::JobError;
+use crate::migrations::{self, Embedded};
 use crate::types::*;
 
 /// Rows per multi-row INSERT (well below both backends' bind-parameter limits).
@@ -343,7 +344,7 @@ impl JobStore {
                 .acquire_timeout(options.acquire_timeout)
                 .connect_with(opts)
                 .await?;
-            sqlx::migrate!("../../migrations/sqlite").run(&pool).await?;
+            Embedded(migrations::SQLITE).migrator().await?.run(&pool).await?;
             Pool::Sqlite(pool)
         } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
             let mut opts = PgConnectOptions::from_str(url).map_err(|e| bad(e.to_string()))?;
@@ -359,7 +360,7 @@ impl JobStore {
                 .connect_with(opts)
                 .await?;
             // sqlx takes an advisory lock, so executors starting together migrate once.
-            sqlx::migrate!("../../migrations/postgres").run(&pool).await?;
+            Embedded(migrations::POSTGRES).migrator().await?.run(&pool).await?;
             Pool::Postgres(pool)
         } else {
             return Err(bad("expected `sqlite://PATH`, `sqlite::memory:` or `postgres://…`".into()));
