@@ -174,7 +174,9 @@ mod tests {
             assert_eq!(t.times()[0], 10.0);
             for (i, (p, r)) in poses().iter().enumerate() {
                 assert!((t.positions()[i] - p).norm() < 1e-7, "{:?} {i}: {} vs {p}", samples.convention, t.positions()[i]);
-                assert!((t.rotations()[i] - r).norm() < 1e-12, "{:?} {i}", samples.convention);
+                // The numerical convergence is good to ~1e-10 rad (10 nm at 100 m).
+                let d = (t.rotations()[i] - r).norm();
+                assert!(d < 1e-9, "{:?} {i}: {d}", samples.convention);
             }
         }
         // Grid coordinates at the origin are the origin, and the yaw about grid east is the local yaw there.

@@ -69,11 +69,13 @@ pub fn header_crs(header: &Header) -> Option<StripCrs> {
         let (name, epsg) = wkt_horizontal(text);
         return Some(StripCrs { epsg, declared_as: format!("WKT {:?}", name.unwrap_or_else(|| "unnamed".into())), wkt: true });
     }
-    let projected = header.get_projected_crs_geo_key_value();
-    let geodetic = header.get_geodetic_crs_geo_key_value();
-    if projected.is_none() && geodetic.is_none() && !header.has_crs_vlrs() {
+    if !header.has_crs_vlrs() {
         return None;
     }
+    // Damaged keys read as a declaration without a code (refused where a CRS is checked).
+    let keys = header.get_geotiff_crs().ok().flatten();
+    let projected = keys.as_ref().and_then(|k| k.get_projected_crs_geo_key_value());
+    let geodetic = keys.as_ref().and_then(|k| k.get_geodetic_crs_geo_key_value());
     // 32767 is GeoTIFF's "user-defined".
     let epsg = projected.or(geodetic).filter(|c| *c != 32767).map(u32::from);
     Some(StripCrs { epsg, declared_as: "GeoTIFF keys".into(), wkt: false })
@@ -108,5 +110,19 @@ mod tests {
         assert_eq!(wkt_horizontal(&compound).1, Some(25832));
         assert_eq!(wkt_horizontal("LOCAL_CS[\"x\"]"), (None, None));
         assert_eq!(wkt_horizontal("PROJCS[\"broken\""), (None, None));
+    }
+
+    #[test]
+    fn geotiff_keys_and_wkt_headers() {
+        let mut b = las::Builder::from(las::Version::new(1, 2));
+        b.vlrs.push(geotiff_vlr(25832));
+        let c = header_crs(&b.into_header().unwrap()).unwrap();
+        assert_eq!((c.epsg, c.wkt), (Some(25832), false));
+        assert_eq!(c.to_string(), "EPSG:25832 (GeoTIFF keys)");
+        let mut h = las::Builder::from(las::Version::new(1, 4)).into_header().unwrap();
+        assert_eq!(header_crs(&h), None);
+        h.set_wkt_crs(crs_definitions::EPSG_32632.wkt.as_bytes().to_vec()).unwrap();
+        let c = header_crs(&h).unwrap();
+        assert_eq!(c.to_string(), "EPSG:32632 (WKT \"WGS 84 / UTM zone 32N\")");
     }
 }
