@@ -90,7 +90,8 @@ fn convert_strip(src: &Path, dst: &Path, georef: &precimap_formats::crs::Georefe
         concat!("precimap-sim ", env!("CARGO_PKG_VERSION")),
         declarations,
     )?;
-    for (i, point) in reader.points().enumerate() {
+    let data = reader.read_all().map_err(|e| format_error(src, e))?;
+    for (i, point) in data.points().enumerate() {
         let p = point.map_err(|e| format_error(src, format!("point {i}: {e}")))?;
         let grid = georef.strip_from_local([p.x, p.y, p.z]).map_err(|e| format_error(src, format!("point {i}: {e}")))?;
         writer.push(&NewPoint {
