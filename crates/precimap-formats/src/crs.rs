@@ -72,7 +72,8 @@ impl Crs {
     pub fn from_epsg(code: u32) -> Result<Self, CrsError> {
         let short = u16::try_from(code).map_err(|_| CrsError::Unknown(code))?;
         let def = crs_definitions::from_code(short).ok_or(CrsError::Unknown(code))?;
-        let unsupported = |message: String| CrsError::Unsupported { code, name: wkt_name(def.wkt).to_string(), message };
+        let unsupported =
+            |message: String| CrsError::Unsupported { code, name: wkt_name(def.wkt).to_string(), message };
         let proj = Proj::from_proj_string(def.proj4)
             .map_err(|e| unsupported(format!("its definition `{}` cannot be used ({e})", def.proj4)))?;
         if proj.is_geocent() {

@@ -23,8 +23,8 @@ pub mod trajectory_csv;
 pub use error::FormatError;
 pub use latent_map::{encode_latent_map, read_latent_map, write_latent_map};
 pub use manifest::{
-    load_manifest, parse_manifest, resolve_uri, CrsSpec, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
-    TrajectoryFormat, TrajectoryRef,
+    load_manifest, parse_manifest, resolve_uri, CrsSpec, Manifest, ManifestError, ManifestProblem, ScannerSpec,
+    StripRef, TrajectoryFormat, TrajectoryRef,
 };
 pub use segments::{decode_segments, encode_assignments, encode_segments, read_assignments, read_segments};
 pub use strip::{

@@ -67,7 +67,14 @@ pub struct TrajectoryRef {
 impl TrajectoryRef {
     /// A trajectory CSV in the campaign's frame.
     pub fn csv(id: impl Into<String>, uri: impl Into<String>) -> Self {
-        Self { id: id.into(), uri: uri.into(), format: TrajectoryFormat::Csv, crs: None, accuracy_uri: None, ascii: None }
+        Self {
+            id: id.into(),
+            uri: uri.into(),
+            format: TrajectoryFormat::Csv,
+            crs: None,
+            accuracy_uri: None,
+            ascii: None,
+        }
     }
 }
 

@@ -119,7 +119,11 @@ pub fn to_trajectory(
 
 /// A pose of the processing frame as grid coordinates of its CRS and precimap angles (degrees)
 /// about the grid axes at that point ([`AttitudeConvention::Grid`]): what trajectory outputs carry.
-pub fn grid_pose(frame: &LocalFrame, position: &Vec3, local_from_body: &Mat3) -> Result<([f64; 3], [f64; 3]), CrsError> {
+pub fn grid_pose(
+    frame: &LocalFrame,
+    position: &Vec3,
+    local_from_body: &Mat3,
+) -> Result<([f64; 3], [f64; 3]), CrsError> {
     let g = frame.geographic_from_local(position);
     let grid = frame.crs().from_geographic(g)?;
     let enu = frame.enu_from_body_rotation(g[0], g[1], local_from_body);
@@ -173,7 +177,12 @@ mod tests {
             let t = to_trajectory(path, samples, source, Some(&f), 10.0).unwrap();
             assert_eq!(t.times()[0], 10.0);
             for (i, (p, r)) in poses().iter().enumerate() {
-                assert!((t.positions()[i] - p).norm() < 1e-7, "{:?} {i}: {} vs {p}", samples.convention, t.positions()[i]);
+                assert!(
+                    (t.positions()[i] - p).norm() < 1e-7,
+                    "{:?} {i}: {} vs {p}",
+                    samples.convention,
+                    t.positions()[i]
+                );
                 // The numerical convergence is good to ~1e-10 rad (10 nm at 100 m).
                 let d = (t.rotations()[i] - r).norm();
                 assert!(d < 1e-9, "{:?} {i}: {d}", samples.convention);

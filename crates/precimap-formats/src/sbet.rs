@@ -34,8 +34,18 @@ pub const SBET_FIELDS: [&str; 17] = [
     "z angular rate",
 ];
 const SBET_RECORD: usize = 17 * 8;
-const SMRMSG_FIELDS: [&str; 10] =
-    ["time", "north σ", "east σ", "down σ", "north velocity σ", "east velocity σ", "down velocity σ", "roll σ", "pitch σ", "heading σ"];
+const SMRMSG_FIELDS: [&str; 10] = [
+    "time",
+    "north σ",
+    "east σ",
+    "down σ",
+    "north velocity σ",
+    "east velocity σ",
+    "down velocity σ",
+    "roll σ",
+    "pitch σ",
+    "heading σ",
+];
 const SMRMSG_RECORD: usize = 10 * 8;
 
 /// Splits a headerless binary file into records of `n` f64, checking length, finiteness and
@@ -60,14 +70,17 @@ fn records(path: &Path, bytes: &[u8], names: &[&str], what: &str) -> Result<Vec<
     }
     let mut out = Vec::with_capacity(n);
     for (i, rec) in bytes.chunks_exact(size).enumerate() {
-        let values: Vec<f64> = rec
-            .chunks_exact(8)
-            .map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
-            .collect();
+        let values: Vec<f64> =
+            rec.chunks_exact(8).map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])).collect();
         if let Some(k) = values.iter().position(|v| !v.is_finite()) {
             return Err(FormatError::file(
                 path,
-                format!("record {i} (byte {}): {} is {}, not a finite number; {what} is damaged", i * size + k * 8, names[k], values[k]),
+                format!(
+                    "record {i} (byte {}): {} is {}, not a finite number; {what} is damaged",
+                    i * size + k * 8,
+                    names[k],
+                    values[k]
+                ),
             ));
         }
         if let Some(prev) = out.last().map(|p: &Vec<f64>| p[0]) {
@@ -124,7 +137,10 @@ pub fn write_sbet(path: &Path, samples: &NavSamples, wander: &[f64]) -> Result<(
         || samples.coordinates.len() != samples.len()
         || samples.attitude.len() != samples.len()
     {
-        return Err(FormatError::file(path, "cannot write SBET: needs one position, navigation attitude and wander angle per time"));
+        return Err(FormatError::file(
+            path,
+            "cannot write SBET: needs one position, navigation attitude and wander angle per time",
+        ));
     }
     let mut bytes = Vec::with_capacity(samples.len() * SBET_RECORD);
     for i in 0..samples.len() {
@@ -172,7 +188,10 @@ pub fn read_smrmsg(path: &Path) -> Result<NavAccuracy, FormatError> {
     let mut out = NavAccuracy::default();
     for (i, r) in recs.iter().enumerate() {
         if let Some(k) = r[1..].iter().position(|v| *v < 0.0) {
-            return Err(FormatError::file(path, format!("record {i}: {} is negative ({})", SMRMSG_FIELDS[k + 1], r[k + 1])));
+            return Err(FormatError::file(
+                path,
+                format!("record {i}: {} is negative ({})", SMRMSG_FIELDS[k + 1], r[k + 1]),
+            ));
         }
         out.times.push(r[0]);
         out.position_sigma_m.push([r[1], r[2], r[3]]);

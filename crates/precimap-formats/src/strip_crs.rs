@@ -55,7 +55,8 @@ fn node_epsg(node: &str) -> Option<u32> {
 /// The horizontal CRS's name and EPSG code of a WKT (1 or 2): the projected CRS if there is one,
 /// else the geographic one (inside a compound CRS too).
 pub fn wkt_horizontal(wkt: &str) -> (Option<String>, Option<u32>) {
-    let n = node(wkt, &["PROJCS", "PROJCRS", "PROJECTEDCRS"]).or_else(|| node(wkt, &["GEOGCS", "GEOGCRS", "GEOGRAPHICCRS"]));
+    let n = node(wkt, &["PROJCS", "PROJCRS", "PROJECTEDCRS"])
+        .or_else(|| node(wkt, &["GEOGCS", "GEOGCRS", "GEOGRAPHICCRS"]));
     let Some(n) = n else { return (None, None) };
     let name = n.split_once("[\"").and_then(|(_, r)| r.split_once('"')).map(|(name, _)| name.to_string());
     (name, node_epsg(n))
@@ -67,7 +68,11 @@ pub fn header_crs(header: &Header) -> Option<StripCrs> {
         let text = String::from_utf8_lossy(bytes);
         let text = text.trim_end_matches('\0');
         let (name, epsg) = wkt_horizontal(text);
-        return Some(StripCrs { epsg, declared_as: format!("WKT {:?}", name.unwrap_or_else(|| "unnamed".into())), wkt: true });
+        return Some(StripCrs {
+            epsg,
+            declared_as: format!("WKT {:?}", name.unwrap_or_else(|| "unnamed".into())),
+            wkt: true,
+        });
     }
     if !header.has_crs_vlrs() {
         return None;

@@ -28,7 +28,8 @@ pub struct LoadedTrajectory {
 }
 
 fn crs_of(path: &Path, code: u32) -> Result<Crs, FormatError> {
-    Crs::from_epsg(code).map_err(|e| FormatError::file(path, format!("{e}; fix the trajectory's \"crs\" in the manifest")))
+    Crs::from_epsg(code)
+        .map_err(|e| FormatError::file(path, format!("{e}; fix the trajectory's \"crs\" in the manifest")))
 }
 
 /// Reads the trajectory `spec` from `path` (and its accuracy file from `accuracy_path`) into the
@@ -106,10 +107,9 @@ pub fn trajectory_clock(spec: &TrajectoryRef, gps_week: Option<u32>, first_time:
         (Some(TimeConvention::WeekSeconds), Some(w)) => {
             LoadedTrajectoryClock { time: Some(TimeConvention::AdjustedStandard), week: Some(w) }
         }
-        (Some(TimeConvention::AdjustedStandard), _) => LoadedTrajectoryClock {
-            time: file,
-            week: gps_week.or_else(|| gps_time::week_of_adjusted(first_time)),
-        },
+        (Some(TimeConvention::AdjustedStandard), _) => {
+            LoadedTrajectoryClock { time: file, week: gps_week.or_else(|| gps_time::week_of_adjusted(first_time)) }
+        }
         _ => LoadedTrajectoryClock { time: file, week: None },
     }
 }

@@ -99,12 +99,19 @@ impl AsciiLayout {
         let idx = self.columns.indices();
         for (i, a) in idx.iter().enumerate() {
             if *a > 1000 {
-                out.push(("columns", format!("{} column {a} is beyond any export; columns count from 0", AsciiColumns::NAMES[i])));
+                out.push((
+                    "columns",
+                    format!("{} column {a} is beyond any export; columns count from 0", AsciiColumns::NAMES[i]),
+                ));
             }
             if let Some(j) = idx[..i].iter().position(|b| b == a) {
                 out.push((
                     "columns",
-                    format!("{} and {} both name column {a}; every quantity needs its own column", AsciiColumns::NAMES[j], AsciiColumns::NAMES[i]),
+                    format!(
+                        "{} and {} both name column {a}; every quantity needs its own column",
+                        AsciiColumns::NAMES[j],
+                        AsciiColumns::NAMES[i]
+                    ),
                 ));
             }
         }
@@ -127,10 +134,21 @@ pub fn read_trajectory_ascii(path: &Path, layout: &AsciiLayout, geographic: bool
     parse(path, &text, layout, geographic)
 }
 
-pub(crate) fn parse(path: &Path, bytes: &[u8], layout: &AsciiLayout, geographic: bool) -> Result<NavSamples, FormatError> {
+pub(crate) fn parse(
+    path: &Path,
+    bytes: &[u8],
+    layout: &AsciiLayout,
+    geographic: bool,
+) -> Result<NavSamples, FormatError> {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     let text = std::str::from_utf8(bytes).map_err(|e| {
-        FormatError::file(path, format!("is not text (UTF-8 error at byte {}); is this a binary SBET? use \"format\": \"sbet\"", e.valid_up_to()))
+        FormatError::file(
+            path,
+            format!(
+                "is not text (UTF-8 error at byte {}); is this a binary SBET? use \"format\": \"sbet\"",
+                e.valid_up_to()
+            ),
+        )
     })?;
     let convention = match layout.attitude {
         AsciiAttitude::Navigation => AttitudeConvention::Navigation,
@@ -188,7 +206,10 @@ pub(crate) fn parse(path: &Path, bytes: &[u8], layout: &AsciiLayout, geographic:
                 return Err(line_error(
                     path,
                     line_no,
-                    format!("time {} is not after the previous line's time {prev}; times must be strictly increasing", v[0]),
+                    format!(
+                        "time {} is not after the previous line's time {prev}; times must be strictly increasing",
+                        v[0]
+                    ),
                 ));
             }
         }
@@ -197,7 +218,10 @@ pub(crate) fn parse(path: &Path, bytes: &[u8], layout: &AsciiLayout, geographic:
                 return Err(line_error(
                     path,
                     line_no,
-                    format!("longitude {} / latitude {} are not degrees; x is the longitude and y the latitude", v[1], v[2]),
+                    format!(
+                        "longitude {} / latitude {} are not degrees; x is the longitude and y the latitude",
+                        v[1], v[2]
+                    ),
                 ));
             }
             [v[1].to_radians(), v[2].to_radians(), v[3]]
@@ -209,7 +233,14 @@ pub(crate) fn parse(path: &Path, bytes: &[u8], layout: &AsciiLayout, geographic:
         out.attitude.push([angle(v[4]), angle(v[5]), angle(v[6])]);
     }
     if out.len() < 2 {
-        return Err(FormatError::file(path, format!("has {} pose(s) after {} header line(s); a trajectory needs at least 2", out.len(), layout.header_lines)));
+        return Err(FormatError::file(
+            path,
+            format!(
+                "has {} pose(s) after {} header line(s); a trajectory needs at least 2",
+                out.len(),
+                layout.header_lines
+            ),
+        ));
     }
     Ok(out)
 }
@@ -264,7 +295,9 @@ mod tests {
         let m = err("1,52,9,80,0,0,x\n");
         assert!(m.contains("heading (column 6)") && m.contains("\"x\""), "{m}");
         assert!(err("1,52,9,80,0,0,0\n").contains("at least 2"));
-        let bad = layout(r#"{"delimiter": "::", "columns": {"time": 0, "x": 1, "y": 1, "z": 3, "roll": 4, "pitch": 5, "heading": 6}}"#);
+        let bad = layout(
+            r#"{"delimiter": "::", "columns": {"time": 0, "x": 1, "y": 1, "z": 3, "roll": 4, "pitch": 5, "heading": 6}}"#,
+        );
         let p = bad.problems();
         assert!(p.iter().any(|(f, m)| *f == "delimiter" && m.contains("one character")), "{p:?}");
         assert!(p.iter().any(|(f, m)| *f == "columns" && m.contains("x and y both name column 1")), "{p:?}");

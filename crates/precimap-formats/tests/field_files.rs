@@ -20,10 +20,26 @@ fn pdal_sbet_reads_as_pdal_documents() {
     // PDAL's SbetReaderTest (radians): time, latitude, longitude, altitude, roll, pitch,
     // heading (platform heading) and wander; the true heading is their difference.
     let want = [
-        (1.516310028360710e+05, 5.680211852972264e-01, -2.041654392303940, 1.077152953296560e+02,
-         -2.813407149321339e-02, -2.429905393889139e-02, 3.046773230278662, -2.198414736922658e-02),
-        (1.516310078318641e+05, 5.680211834722869e-01, -2.041654392034053, 1.077151424357507e+02,
-         -2.813856631423094e-02, -2.425215669392169e-02, 3.047131105236811, -2.198416007932108e-02),
+        (
+            1.516310028360710e+05,
+            5.680211852972264e-01,
+            -2.041654392303940,
+            1.077152953296560e+02,
+            -2.813407149321339e-02,
+            -2.429905393889139e-02,
+            3.046773230278662,
+            -2.198414736922658e-02,
+        ),
+        (
+            1.516310078318641e+05,
+            5.680211834722869e-01,
+            -2.041654392034053,
+            1.077151424357507e+02,
+            -2.813856631423094e-02,
+            -2.425215669392169e-02,
+            3.047131105236811,
+            -2.198416007932108e-02,
+        ),
     ];
     for (i, w) in want.iter().enumerate() {
         assert!(close(s.times[i], w.0, 1e-6), "{i}");
@@ -46,7 +62,9 @@ fn pdal_smrmsg_reads_as_pdal_documents() {
     assert!(close(a.position_sigma_m[0][0], 0.056279, 1e-6) && close(a.position_sigma_m[0][2], 0.070774, 1e-6));
     assert!(close(a.attitude_sigma_deg[0][2] * 60.0, 3.010802, 1e-6), "{:?}", a.attitude_sigma_deg[0]);
     assert_eq!(a.times[2], 536_260.0);
-    assert!(close(a.position_sigma_m[2][1], 0.054339, 1e-6) && close(a.attitude_sigma_deg[2][0] * 60.0, 0.235108, 1e-6));
+    assert!(
+        close(a.position_sigma_m[2][1], 0.054339, 1e-6) && close(a.attitude_sigma_deg[2][0] * 60.0, 0.235108, 1e-6)
+    );
 }
 
 #[test]

@@ -293,7 +293,8 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
 /// accuracy file (reported only) is not read by tasks.
 fn read_trajectory_file(path: &Path, field: Option<&FieldInput>) -> Result<Trajectory, PipelineError> {
     let Some(f) = field else { return Ok(precimap_formats::read_trajectory_csv(path)?) };
-    let frame = f.crs.frame().map_err(|e| PipelineError::Input { what: "manifest $.crs".into(), message: e.to_string() })?;
+    let frame =
+        f.crs.frame().map_err(|e| PipelineError::Input { what: "manifest $.crs".into(), message: e.to_string() })?;
     let loaded = precimap_formats::trajectory::load_trajectory(path, &f.trajectory, None, Some(&frame), f.gps_week)?;
     Ok(loaded.trajectory)
 }

@@ -49,10 +49,9 @@ pub fn manifest_georeference(manifest: &Manifest) -> Result<Option<Arc<Georefere
         .crs
         .as_ref()
         .map(|spec| {
-            spec.georeference().map(Arc::new).map_err(|e| PipelineError::Input {
-                what: "manifest $.crs".to_string(),
-                message: e.to_string(),
-            })
+            spec.georeference()
+                .map(Arc::new)
+                .map_err(|e| PipelineError::Input { what: "manifest $.crs".to_string(), message: e.to_string() })
         })
         .transpose()
 }

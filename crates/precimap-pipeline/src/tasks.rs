@@ -235,9 +235,8 @@ pub fn export_strip_file(
     let mut offset = None;
     let georef = entry.georef.as_deref();
     let correct = |i: usize, xyz: [f64; 3], gps_time: f64| {
-        let offset = *offset.get_or_insert_with(|| {
-            precimap_formats::trajectory::strip_clock(convention, gps_time, &traj.clock).0
-        });
+        let offset = *offset
+            .get_or_insert_with(|| precimap_formats::trajectory::strip_clock(convention, gps_time, &traj.clock).0);
         let local = match georef.map(|g| g.local_from_strip(xyz)) {
             None => xyz,
             Some(Ok(p)) => p,
@@ -318,8 +317,10 @@ pub fn corrections_outputs(
 ) -> Vec<(String, Vec<u8>)> {
     let rows = corrections_in_vehicle_frame(&entry.data, anchor_spacing_m, exported, estimated, covariance);
     let (plot_name, plot) = crate::qc::trajectory_plot(&entry.id, anchor_spacing_m, &rows);
-    let mut out =
-        vec![(corrections_table_name(&entry.id), corrections_table(&rows).into_bytes()), (plot_name, plot.into_bytes())];
+    let mut out = vec![
+        (corrections_table_name(&entry.id), corrections_table(&rows).into_bytes()),
+        (plot_name, plot.into_bytes()),
+    ];
     if let Some(g) = &entry.georef {
         // The exported trajectory's CRS, beside it where GIS tools look for it.
         out.push((format!("trajectories/{}.prj", entry.id), g.frame.crs().wkt().as_bytes().to_vec()));
@@ -544,8 +545,10 @@ pub fn export_trajectory_file(
         match &entry.georef {
             // Field campaigns: grid coordinates and angles about the grid axes of the processing CRS.
             Some(g) => {
-                let (grid, angles) = precimap_formats::navigation::grid_pose(&g.frame, &position, &rotated)
-                    .map_err(|e| PipelineError::Input { what: format!("trajectory {}", entry.id), message: e.to_string() })?;
+                let (grid, angles) =
+                    precimap_formats::navigation::grid_pose(&g.frame, &position, &rotated).map_err(|e| {
+                        PipelineError::Input { what: format!("trajectory {}", entry.id), message: e.to_string() }
+                    })?;
                 positions.push(Vec3::from(grid));
                 rpy.push(angles);
             }

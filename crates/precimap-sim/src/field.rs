@@ -9,7 +9,8 @@ use crate::SimError;
 use precimap_formats::gps_time::{self, TimeConvention};
 use precimap_formats::navigation::{navigation_pose, AttitudeConvention, NavSamples};
 use precimap_formats::{
-    load_manifest, read_trajectory_csv, CrsSpec, FormatError, NewPoint, StripDeclarations, StripWriter, TrajectoryFormat,
+    load_manifest, read_trajectory_csv, CrsSpec, FormatError, NewPoint, StripDeclarations, StripWriter,
+    TrajectoryFormat,
 };
 use std::path::Path;
 
@@ -33,8 +34,7 @@ fn format_error(path: &Path, e: impl std::fmt::Display) -> SimError {
 /// `origin_grid_m` in [`FIELD_CRS`]. Returns the GPS week of the first pass.
 pub fn write_field_campaign(local: &Path, out: &Path, origin_grid_m: [f64; 3], laz: bool) -> Result<u32, SimError> {
     let manifest_path = local.join("manifest.json");
-    let mut manifest =
-        load_manifest(&manifest_path).map_err(|e| format_error(&manifest_path, e))?;
+    let mut manifest = load_manifest(&manifest_path).map_err(|e| format_error(&manifest_path, e))?;
     let spec = CrsSpec { processing: FIELD_CRS, origin_grid_m, strips: None };
     let georef = spec.georeference().map_err(|e| format_error(&manifest_path, e))?;
     for dir in ["trajectories", "strips"] {
@@ -93,7 +93,8 @@ fn convert_strip(src: &Path, dst: &Path, georef: &precimap_formats::crs::Georefe
     let data = reader.read_all().map_err(|e| format_error(src, e))?;
     for (i, point) in data.points().enumerate() {
         let p = point.map_err(|e| format_error(src, format!("point {i}: {e}")))?;
-        let grid = georef.strip_from_local([p.x, p.y, p.z]).map_err(|e| format_error(src, format!("point {i}: {e}")))?;
+        let grid =
+            georef.strip_from_local([p.x, p.y, p.z]).map_err(|e| format_error(src, format!("point {i}: {e}")))?;
         writer.push(&NewPoint {
             position: grid,
             gps_time: p.gps_time.unwrap_or(f64::NAN),

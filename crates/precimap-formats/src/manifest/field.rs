@@ -86,10 +86,18 @@ impl Checker {
             .required("$.crs", map, "processing", "the EPSG code of the projected CRS to work in, e.g. 32632")
             .and_then(|v| self.epsg("$.crs.processing", v));
         if let Some(c) = processing.as_ref().filter(|c| c.is_geographic()) {
-            self.push("$.crs.processing", format!("{c} is geographic; name a projected CRS in metres, such as the campaign's UTM zone"));
+            self.push(
+                "$.crs.processing",
+                format!("{c} is geographic; name a projected CRS in metres, such as the campaign's UTM zone"),
+            );
         }
         let origin = self
-            .required("$.crs", map, "origin_grid_m", "[easting, northing, height] of a point near the middle of the campaign")
+            .required(
+                "$.crs",
+                map,
+                "origin_grid_m",
+                "[easting, northing, height] of a point near the middle of the campaign",
+            )
             .cloned();
         if let Some(o) = &origin {
             self.vec3("$.crs.origin_grid_m", o, "metres in the processing CRS", 1e8);
@@ -97,7 +105,10 @@ impl Checker {
         if let Some(s) = map.get("strips") {
             if let Some(c) = self.epsg("$.crs.strips", s) {
                 if c.is_geographic() {
-                    self.push("$.crs.strips", format!("{c} is geographic; LAS strips need projected coordinates in metres"));
+                    self.push(
+                        "$.crs.strips",
+                        format!("{c} is geographic; LAS strips need projected coordinates in metres"),
+                    );
                 }
             }
         }
@@ -108,7 +119,10 @@ impl Checker {
         match spec.map(|s| s.frame()) {
             Ok(Ok(_)) => true,
             Ok(Err(e)) => {
-                self.push("$.crs.origin_grid_m", format!("{e}; give grid coordinates inside the processing CRS's area"));
+                self.push(
+                    "$.crs.origin_grid_m",
+                    format!("{e}; give grid coordinates inside the processing CRS's area"),
+                );
                 false
             }
             Err(e) => {
@@ -140,7 +154,10 @@ impl Checker {
             Some(v) => match serde_json::from_value::<TrajectoryFormat>(v.clone()) {
                 Ok(f) => Some(f),
                 Err(_) => {
-                    self.push(&child(path, "format"), format!("expected \"csv\", \"sbet\" or \"ascii\", found {}", describe(v)));
+                    self.push(
+                        &child(path, "format"),
+                        format!("expected \"csv\", \"sbet\" or \"ascii\", found {}", describe(v)),
+                    );
                     None
                 }
             },
@@ -157,7 +174,10 @@ impl Checker {
         if let Some(uri) = map.get("accuracy_uri") {
             let at = child(path, "accuracy_uri");
             if format != Some(TrajectoryFormat::Sbet) {
-                self.push(&at, "an accuracy (SMRMSG) file belongs to an SBET trajectory; remove it or set \"format\": \"sbet\"");
+                self.push(
+                    &at,
+                    "an accuracy (SMRMSG) file belongs to an SBET trajectory; remove it or set \"format\": \"sbet\"",
+                );
             }
             match uri.as_str() {
                 Some(u) => {
@@ -183,7 +203,9 @@ impl Checker {
                 }
                 Err(e) => self.push(&at, format!("{e}; see docs/user/parameters.md for the layout's fields")),
             },
-            (Some(_), Some(_)) => self.push(&at, "a layout belongs to \"format\": \"ascii\"; remove it or change the format"),
+            (Some(_), Some(_)) => {
+                self.push(&at, "a layout belongs to \"format\": \"ascii\"; remove it or change the format")
+            }
             _ => {}
         }
     }
