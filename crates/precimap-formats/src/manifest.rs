@@ -64,20 +64,6 @@ pub struct TrajectoryRef {
     pub ascii: Option<crate::trajectory_ascii::AsciiLayout>,
 }
 
-impl TrajectoryRef {
-    /// A trajectory CSV in the campaign's frame.
-    pub fn csv(id: impl Into<String>, uri: impl Into<String>) -> Self {
-        Self {
-            id: id.into(),
-            uri: uri.into(),
-            format: TrajectoryFormat::Csv,
-            crs: None,
-            accuracy_uri: None,
-            ascii: None,
-        }
-    }
-}
-
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StripRef {

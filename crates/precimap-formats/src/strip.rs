@@ -9,7 +9,7 @@
 
 use crate::atomic::PendingFile;
 use crate::gps_time::TimeConvention;
-use crate::strip_crs::{geotiff_vlr, header_crs, StripCrs};
+use crate::strip_crs::{declare_crs, header_crs, DeclaredCrs, StripCrs, StripDeclarations};
 use crate::FormatError;
 use las::point::Format;
 use las::{Builder, Header, PointData, PointDataBuilder, Reader, Transform, Vector, Version, Writer};
@@ -697,15 +697,6 @@ impl std::fmt::Debug for StripWriter {
     }
 }
 
-/// What a new strip declares besides its points.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct StripDeclarations<'a> {
-    /// The CRS's OGC WKT, written as a WKT VLR.
-    pub wkt: Option<&'a str>,
-    /// GPS times are adjusted standard GPS time (global-encoding bit 0), not week seconds.
-    pub adjusted_standard_time: bool,
-}
-
 impl StripWriter {
     pub fn create(
         path: &Path,
@@ -850,13 +841,6 @@ pub fn rewrite_strip_timed(
     rewrite(src, dst, true, None, new_xyz)
 }
 
-/// A CRS for [`rewrite_strip_declaring`]: its EPSG code and WKT.
-#[derive(Clone, Copy, Debug)]
-pub struct DeclaredCrs<'a> {
-    pub epsg: u32,
-    pub wkt: &'a str,
-}
-
 /// [`rewrite_strip_timed`] that makes the copy declare `crs` when the source declares no CRS: a
 /// WKT VLR in LAS 1.4, GeoTIFF keys before. A source that declares one keeps its own VLRs (the
 /// caller checks that it is the same CRS).
@@ -867,22 +851,6 @@ pub fn rewrite_strip_declaring(
     new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
 ) -> Result<u64, FormatError> {
     rewrite(src, dst, true, Some(crs), new_xyz)
-}
-
-fn declare_crs(src: &Path, header: &mut Header, crs: DeclaredCrs<'_>) -> Result<(), FormatError> {
-    if header_crs(header).is_some() {
-        return Ok(());
-    }
-    let refused = |e: String| FormatError::file(src, format!("cannot declare EPSG:{} in the copy: {e}", crs.epsg));
-    if header.version() >= Version::new(1, 4) {
-        header.set_wkt_crs(crs.wkt.as_bytes().to_vec()).map_err(|e| refused(e.to_string()))
-    } else {
-        let code = u16::try_from(crs.epsg).map_err(|_| refused("GeoTIFF keys hold codes up to 65535".into()))?;
-        let mut b = Builder::from(header.clone());
-        b.vlrs.push(geotiff_vlr(code));
-        *header = b.into_header().map_err(|e| refused(e.to_string()))?;
-        Ok(())
-    }
 }
 
 fn rewrite(

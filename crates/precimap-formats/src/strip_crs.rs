@@ -1,8 +1,10 @@
 //! The CRS a LAS/LAZ file declares in its VLRs (OGC WKT, record 2112, or GeoTIFF keys, record
 //! 34735), and the VLR that declares one.
 
-use las::{Header, Vlr};
+use crate::FormatError;
+use las::{Builder, Header, Version, Vlr};
 use std::fmt;
+use std::path::Path;
 
 /// A strip's declared CRS.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -95,6 +97,38 @@ pub fn geotiff_vlr(epsg: u16) -> Vlr {
         record_id: 34735,
         description: "GeoKeyDirectoryTag".into(),
         data: words.iter().flat_map(|w| w.to_le_bytes()).collect(),
+    }
+}
+
+/// A CRS for [`rewrite_strip_declaring`]: its EPSG code and WKT.
+#[derive(Clone, Copy, Debug)]
+pub struct DeclaredCrs<'a> {
+    pub epsg: u32,
+    pub wkt: &'a str,
+}
+
+/// What a new strip declares besides its points.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StripDeclarations<'a> {
+    /// The CRS's OGC WKT, written as a WKT VLR.
+    pub wkt: Option<&'a str>,
+    /// GPS times are adjusted standard GPS time (global-encoding bit 0), not week seconds.
+    pub adjusted_standard_time: bool,
+}
+
+pub(crate) fn declare_crs(src: &Path, header: &mut Header, crs: DeclaredCrs<'_>) -> Result<(), FormatError> {
+    if header_crs(header).is_some() {
+        return Ok(());
+    }
+    let refused = |e: String| FormatError::file(src, format!("cannot declare EPSG:{} in the copy: {e}", crs.epsg));
+    if header.version() >= Version::new(1, 4) {
+        header.set_wkt_crs(crs.wkt.as_bytes().to_vec()).map_err(|e| refused(e.to_string()))
+    } else {
+        let code = u16::try_from(crs.epsg).map_err(|_| refused("GeoTIFF keys hold codes up to 65535".into()))?;
+        let mut b = Builder::from(header.clone());
+        b.vlrs.push(geotiff_vlr(code));
+        *header = b.into_header().map_err(|e| refused(e.to_string()))?;
+        Ok(())
     }
 }
 

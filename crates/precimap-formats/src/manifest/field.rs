@@ -58,6 +58,20 @@ impl CrsSpec {
     }
 }
 
+impl super::TrajectoryRef {
+    /// A trajectory CSV in the campaign's frame.
+    pub fn csv(id: impl Into<String>, uri: impl Into<String>) -> Self {
+        Self {
+            id: id.into(),
+            uri: uri.into(),
+            format: TrajectoryFormat::Csv,
+            crs: None,
+            accuracy_uri: None,
+            ascii: None,
+        }
+    }
+}
+
 pub(super) const CRS_FIELDS: [&str; 3] = ["processing", "origin_grid_m", "strips"];
 /// The largest plausible GPS week (continuous count since 1980).
 pub const MAX_GPS_WEEK: u64 = 10_000;
