@@ -52,7 +52,7 @@ const SMRMSG_RECORD: usize = 10 * 8;
 /// increasing times (field 0). Errors name the record (0-based) and the field.
 fn records(path: &Path, bytes: &[u8], names: &[&str], what: &str) -> Result<Vec<Vec<f64>>, FormatError> {
     let size = names.len() * 8;
-    if bytes.len() % size != 0 {
+    if !bytes.len().is_multiple_of(size) {
         let whole = bytes.len() / size;
         return Err(FormatError::file(
             path,

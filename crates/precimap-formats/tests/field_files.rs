@@ -1,6 +1,9 @@
 //! Public SBET, SMRMSG and georeferenced LAZ files (tests/data/field, sources and licences in its
 //! README), read and checked against the values their sources' own tests document.
 
+// The expected values are copied digit for digit from the sources' tests.
+#![allow(clippy::excessive_precision)]
+
 use precimap_formats::sbet::{read_sbet, read_smrmsg};
 use precimap_formats::{read_strip, strip_info};
 use std::path::PathBuf;

@@ -148,7 +148,7 @@ impl Checker {
 
     pub(super) fn gps_week(&mut self, top: &Map<String, Value>) {
         if let Some(v) = top.get("gps_week") {
-            if !v.as_u64().is_some_and(|w| w <= MAX_GPS_WEEK) {
+            if v.as_u64().is_none_or(|w| w > MAX_GPS_WEEK) {
                 self.push(
                     "$.gps_week",
                     format!(
