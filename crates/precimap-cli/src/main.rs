@@ -46,6 +46,11 @@ enum Command {
         /// Write LAZ instead of LAS.
         #[arg(long)]
         laz: bool,
+        /// Also write the campaign as it comes from the field into OUT/field: SBET trajectories in
+        /// geographic coordinates and strips in WGS 84 / UTM zone 32N with adjusted standard GPS
+        /// time, with a manifest whose processing frame is the simulation's local frame.
+        #[arg(long)]
+        field: bool,
         /// Measurements per scanner revolution instead of the scale's (small 240, i.e. 1.5°;
         /// real mobile-mapping heads take ~3000); must divide 60000.
         #[arg(long)]
@@ -311,6 +316,7 @@ fn real_main(cli: Cli) -> Result<()> {
             seed,
             out,
             laz,
+            field,
             points_per_revolution,
             revolutions_per_s,
             config,
@@ -347,7 +353,14 @@ fn real_main(cli: Cli) -> Result<()> {
             if let Some(r) = revolutions_per_s {
                 config.scanner.revolutions_per_s = r;
             }
-            simulate(&config, &out, laz)
+            simulate(&config, &out, laz)?;
+            if field {
+                let dir = out.join("field");
+                let week = precimap_sim::field::write_field_campaign(&out, &dir, config.origin, laz)
+                    .with_context(|| format!("writing the field campaign into {}", dir.display()))?;
+                eprintln!("  field campaign (SBET + UTM 32N strips, GPS week {week}): {}", dir.display());
+            }
+            Ok(())
         }
         Command::Run { manifest, out, keep_work, in_process, assignments } => {
             if in_process {

@@ -42,3 +42,11 @@ impl Drop for PendingFile {
         }
     }
 }
+
+/// Writes `bytes` to `dst` atomically.
+pub(crate) fn write_bytes(dst: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+    use std::io::Write;
+    let (pending, mut file) = PendingFile::create(dst)?;
+    file.write_all(bytes).map_err(|e| FormatError::io(dst, "write file", e))?;
+    pending.commit()
+}

@@ -6,21 +6,30 @@
 //! Files written here appear atomically (temporary + rename).
 
 mod atomic;
+pub mod crs;
 mod error;
+pub mod gps_time;
 pub mod latent_map;
 pub mod manifest;
+pub mod navigation;
+pub mod sbet;
 pub mod segments;
 pub mod strip;
+pub mod strip_crs;
+pub mod trajectory;
+pub mod trajectory_ascii;
 pub mod trajectory_csv;
 
 pub use error::FormatError;
 pub use latent_map::{encode_latent_map, read_latent_map, write_latent_map};
 pub use manifest::{
-    load_manifest, parse_manifest, resolve_uri, Manifest, ManifestError, ManifestProblem, ScannerSpec, StripRef,
-    TrajectoryRef,
+    load_manifest, parse_manifest, resolve_uri, CrsSpec, Manifest, ManifestError, ManifestProblem, ScannerSpec,
+    StripRef, TrajectoryFormat, TrajectoryRef,
 };
 pub use segments::{decode_segments, encode_assignments, encode_segments, read_assignments, read_segments};
 pub use strip::{
-    read_strip, rewrite_strip, rewrite_strip_timed, strip_info, NewPoint, StripInfo, StripPoints, StripWriter,
+    read_strip, rewrite_strip, rewrite_strip_declaring, rewrite_strip_timed, strip_info, NewPoint, StripInfo,
+    StripPoints, StripWriter,
 };
+pub use strip_crs::{DeclaredCrs, StripDeclarations};
 pub use trajectory_csv::{read_trajectory_csv, write_trajectory_csv};

@@ -12,10 +12,19 @@ use std::collections::{BTreeMap, HashMap};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+mod field;
+pub use field::{CrsSpec, TrajectoryFormat, MAX_GPS_WEEK};
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Manifest {
     pub name: String,
+    /// The processing CRS and local frame; absent for campaigns in a local metric frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crs: Option<CrsSpec>,
+    /// The GPS week of files that count GPS week seconds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gps_week: Option<u32>,
     /// Scanner name → mounting on the vehicle.
     pub scanners: BTreeMap<String, ScannerSpec>,
     pub trajectories: Vec<TrajectoryRef>,
@@ -40,6 +49,19 @@ pub struct TrajectoryRef {
     pub id: String,
     /// Relative to the manifest's folder (see [`resolve_uri`]).
     pub uri: String,
+    #[serde(default, skip_serializing_if = "TrajectoryFormat::is_csv")]
+    pub format: TrajectoryFormat,
+    /// EPSG code of the file's coordinates: for SBET the geographic CRS (4979 when absent), for
+    /// CSV and ASCII the CRS of x/y (local-frame coordinates when absent, with `$.crs` the
+    /// processing CRS).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crs: Option<u32>,
+    /// An SBET's SMRMSG accuracy file, relative to the manifest's folder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accuracy_uri: Option<String>,
+    /// The column layout of an ASCII trajectory.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ascii: Option<crate::trajectory_ascii::AsciiLayout>,
 }
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -256,9 +278,9 @@ pub const MAX_LEVER_ARM_M: f64 = 100.0;
 /// The most iteration steps a schedule may list.
 pub const MAX_SCHEDULE_STEPS: usize = 1000;
 
-const TOP_FIELDS: [&str; 5] = ["name", "scanners", "trajectories", "strips", "parameters"];
+const TOP_FIELDS: [&str; 7] = ["name", "crs", "gps_week", "scanners", "trajectories", "strips", "parameters"];
 const SCANNER_FIELDS: [&str; 2] = ["lever_arm_m", "boresight_deg"];
-const TRAJECTORY_FIELDS: [&str; 2] = ["id", "uri"];
+const TRAJECTORY_FIELDS: [&str; 6] = ["id", "uri", "format", "crs", "accuracy_uri", "ascii"];
 const STRIP_FIELDS: [&str; 4] = ["id", "trajectory", "scanner", "uri"];
 
 impl Checker {
@@ -283,8 +305,10 @@ impl Checker {
                 None => c.wrong_type("$.name", v, "a string"),
             }
         }
+        let has_crs = c.crs(top);
+        c.gps_week(top);
         let scanners = c.scanners(top);
-        let trajectories = c.trajectories(top);
+        let trajectories = c.trajectories(top, has_crs);
         c.strips(top, scanners.as_ref(), trajectories.as_ref());
         if let Some(v) = top.get("parameters") {
             c.parameters(v);
@@ -417,7 +441,7 @@ impl Checker {
         Some(map.keys().cloned().collect())
     }
 
-    fn trajectories(&mut self, top: &Map<String, Value>) -> Option<Vec<String>> {
+    fn trajectories(&mut self, top: &Map<String, Value>, has_crs: bool) -> Option<Vec<String>> {
         let v = self.required("$", top, "trajectories", "an array of {\"id\": ..., \"uri\": ...}")?;
         let Some(items) = v.as_array() else {
             self.wrong_type("$.trajectories", v, "an array");
@@ -439,6 +463,7 @@ impl Checker {
                 }
             }
             self.uri(&path, map);
+            self.trajectory_source(&path, map, has_crs);
         }
         Some(seen.into_keys().collect())
     }

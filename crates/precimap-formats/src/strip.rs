@@ -8,6 +8,8 @@
 //! header must give an error, never a huge allocation or an arithmetic overflow.
 
 use crate::atomic::PendingFile;
+use crate::gps_time::TimeConvention;
+use crate::strip_crs::{declare_crs, header_crs, DeclaredCrs, StripCrs, StripDeclarations};
 use crate::FormatError;
 use las::point::Format;
 use las::{Builder, Header, PointData, PointDataBuilder, Reader, Transform, Vector, Version, Writer};
@@ -89,6 +91,10 @@ pub struct StripInfo {
     pub compressed: bool,
     pub bounds_min: [f64; 3],
     pub bounds_max: [f64; 3],
+    /// What the point records' GPS times count (the header's global-encoding bit 0).
+    pub time_convention: TimeConvention,
+    /// The CRS the file declares in its VLRs.
+    pub crs: Option<StripCrs>,
 }
 
 fn is_laz_path(path: &Path) -> bool {
@@ -370,7 +376,17 @@ pub fn strip_info(path: &Path) -> Result<StripInfo, FormatError> {
         compressed: format.is_compressed,
         bounds_min: [b.min.x, b.min.y, b.min.z],
         bounds_max: [b.max.x, b.max.y, b.max.z],
+        time_convention: time_convention(&header),
+        crs: header_crs(&header),
     })
+}
+
+fn time_convention(header: &Header) -> TimeConvention {
+    if header.gps_time_type().is_standard() {
+        TimeConvention::AdjustedStandard
+    } else {
+        TimeConvention::WeekSeconds
+    }
 }
 
 /// Reads the fields estimation needs. The whole strip is held in memory (bounded by strip size).
@@ -689,6 +705,18 @@ impl StripWriter {
         system_identifier: &str,
         generating_software: &str,
     ) -> Result<Self, FormatError> {
+        Self::create_with(path, offset, scale, system_identifier, generating_software, StripDeclarations::default())
+    }
+
+    /// [`StripWriter::create`] with a CRS and a GPS time convention declared in the header.
+    pub fn create_with(
+        path: &Path,
+        offset: [f64; 3],
+        scale: f64,
+        system_identifier: &str,
+        generating_software: &str,
+        declarations: StripDeclarations<'_>,
+    ) -> Result<Self, FormatError> {
         if !(scale.is_finite() && scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
             return Err(FormatError::file(
                 path,
@@ -710,8 +738,16 @@ impl StripWriter {
         b.transforms = Vector { x: axis(offset[0]), y: axis(offset[1]), z: axis(offset[2]) };
         b.system_identifier = system_identifier.to_string();
         b.generating_software = generating_software.to_string();
-        let header =
+        if declarations.adjusted_standard_time {
+            b.gps_time_type = las::GpsTimeType::Standard;
+        }
+        let mut header =
             b.into_header().map_err(|e| FormatError::file(path, format!("cannot create strip header: {e}")))?;
+        if let Some(wkt) = declarations.wkt {
+            header
+                .set_wkt_crs(wkt.as_bytes().to_vec())
+                .map_err(|e| FormatError::file(path, format!("cannot declare the CRS: {e}")))?;
+        }
         let transforms = *header.transforms();
         let batch = PointDataBuilder::new().for_header(&header).build();
         let out = OutStrip::create(path, header)?;
@@ -791,7 +827,7 @@ pub fn rewrite_strip(
     dst: &Path,
     mut new_xyz: impl FnMut(usize, [f64; 3]) -> [f64; 3],
 ) -> Result<u64, FormatError> {
-    rewrite(src, dst, false, |i, xyz, _| new_xyz(i, xyz))
+    rewrite(src, dst, false, None, |i, xyz, _| new_xyz(i, xyz))
 }
 
 /// [`rewrite_strip`] that also hands `new_xyz` each point's GPS time, so a caller that places
@@ -802,13 +838,26 @@ pub fn rewrite_strip_timed(
     dst: &Path,
     new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
 ) -> Result<u64, FormatError> {
-    rewrite(src, dst, true, new_xyz)
+    rewrite(src, dst, true, None, new_xyz)
+}
+
+/// [`rewrite_strip_timed`] that makes the copy declare `crs` when the source declares no CRS: a
+/// WKT VLR in LAS 1.4, GeoTIFF keys before. A source that declares one keeps its own VLRs (the
+/// caller checks that it is the same CRS).
+pub fn rewrite_strip_declaring(
+    src: &Path,
+    dst: &Path,
+    crs: DeclaredCrs<'_>,
+    new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
+) -> Result<u64, FormatError> {
+    rewrite(src, dst, true, Some(crs), new_xyz)
 }
 
 fn rewrite(
     src: &Path,
     dst: &Path,
     need_time: bool,
+    declare: Option<DeclaredCrs<'_>>,
     mut new_xyz: impl FnMut(usize, [f64; 3], f64) -> [f64; 3],
 ) -> Result<u64, FormatError> {
     let mut source = Source::open(src)?;
@@ -823,7 +872,10 @@ fn rewrite(
     b.vlrs.retain(|v| !las::laz::is_laszip_vlr(v));
     b.evlrs.retain(|v| !las::laz::is_laszip_vlr(v));
     b.point_format.is_compressed = is_laz_path(dst);
-    let header = b.into_header().map_err(|e| FormatError::file(src, format!("cannot copy the header: {e}")))?;
+    let mut header = b.into_header().map_err(|e| FormatError::file(src, format!("cannot copy the header: {e}")))?;
+    if let Some(crs) = declare {
+        declare_crs(src, &mut header, crs)?;
+    }
     let t = *header.transforms();
     let mut out = OutStrip::create(dst, header)?;
     let mut pd = source.batch_buffer();

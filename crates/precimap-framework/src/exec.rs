@@ -10,7 +10,7 @@ use crate::codec::{
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
-    CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldResult, MomentsResult, SegmentResult,
+    CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput, FieldResult, MomentsResult, SegmentResult,
     SolveResult, StripInput, TaskInput, TrajectoryInput, BLOCKS_PREFIX, OUTPUT_ACCELERATED, OUTPUT_CORRECTIONS,
     OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
@@ -265,7 +265,8 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
         Some(data) => data,
         None => {
             let path = local.path.clone();
-            let data = blocking(move || precimap_formats::read_trajectory_csv(&path))
+            let field = t.field.clone();
+            let data = blocking(move || read_trajectory_file(&path, field.as_ref()))
                 .await?
                 .map_err(|e| TaskError::permanent(format!("trajectory {} ({}): {e}", t.id, t.uri)))?;
             let data = Arc::new(data);
@@ -275,22 +276,44 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
             data
         }
     };
+    let clock = t.field.as_ref().map_or_else(Default::default, |f| {
+        precimap_formats::trajectory::trajectory_clock(&f.trajectory, f.gps_week, data.times()[0])
+    });
     Ok(TrajectoryEntry {
         id: t.id.clone(),
         path: PathBuf::from(&t.uri),
         data,
         mean_lever_arm: Vec3::from(t.mean_lever_arm),
+        clock,
+        georef: georeference(t.field.as_ref())?,
     })
 }
 
+/// A trajectory file in its manifest format, in the processing frame of a field campaign. The
+/// accuracy file (reported only) is not read by tasks.
+fn read_trajectory_file(path: &Path, field: Option<&FieldInput>) -> Result<Trajectory, PipelineError> {
+    let Some(f) = field else { return Ok(precimap_formats::read_trajectory_csv(path)?) };
+    let frame =
+        f.crs.frame().map_err(|e| PipelineError::Input { what: "manifest $.crs".into(), message: e.to_string() })?;
+    let loaded = precimap_formats::trajectory::load_trajectory(path, &f.trajectory, None, Some(&frame), f.gps_week)?;
+    Ok(loaded.trajectory)
+}
+
+fn georeference(field: Option<&FieldInput>) -> Result<Option<Arc<precimap_formats::crs::Georeference>>, TaskError> {
+    field
+        .map(|f| f.crs.georeference().map(Arc::new).map_err(|e| TaskError::permanent(format!("manifest $.crs: {e}"))))
+        .transpose()
+}
+
 /// The pipeline's view of a strip whose file is at `path`.
-fn strip_entry(s: &StripInput, path: &Path) -> StripEntry {
-    StripEntry {
+fn strip_entry(s: &StripInput, path: &Path) -> Result<StripEntry, TaskError> {
+    Ok(StripEntry {
         id: s.id.clone(),
         path: path.to_path_buf(),
         trajectory: s.trajectory,
         lever_arm: Vec3::from(s.lever_arm),
-    }
+        georef: georeference(s.field.as_ref())?,
+    })
 }
 
 fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
@@ -299,6 +322,7 @@ fn strip_trajectory(s: &StripInput) -> TrajectoryInput {
         id: s.trajectory_id.clone(),
         uri: s.trajectory_uri.clone(),
         mean_lever_arm: [0.0; 3],
+        field: s.field.clone(),
     }
 }
 
@@ -358,7 +382,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let params = required(params)?;
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
-            let entry = strip_entry(&strip, &local.path);
+            let entry = strip_entry(&strip, &local.path)?;
             let index = strip.index;
             let prepared = blocking(move || {
                 prepare_strip_chunks(&entry, index, &traj, &params, &SegmentParams::default()).map(|p| {
@@ -634,7 +658,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             let (corrections, _) = read_corrections(ctx, &corrections).await?;
             let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
             let local = ctx.local(&strip.uri).await?;
-            let entry = strip_entry(&strip, &local.path);
+            let entry = strip_entry(&strip, &local.path)?;
             let name = format!("strips/{}", precimap_pipeline::tasks::export_strip_name(&entry));
             let key = format!("{prefix}/out/{tag}/{name}");
             let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
@@ -740,7 +764,8 @@ mod tests {
         let ctx = TaskContext::new(objects.clone(), dir.path().join("scratch"));
         let key = "inputs/u/trajectories/v01.csv";
         objects.put(key, Bytes::from(csv(400, 0.0))).await.unwrap();
-        let input = TrajectoryInput { index: 0, id: "v01".into(), uri: key.into(), mean_lever_arm: [0.0; 3] };
+        let input =
+            TrajectoryInput { index: 0, id: "v01".into(), uri: key.into(), mean_lever_arm: [0.0; 3], field: None };
 
         let first = read_trajectory(&ctx, &input).await.unwrap();
         assert_eq!(ctx.trajectories.len(), 1);

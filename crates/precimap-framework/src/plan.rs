@@ -85,6 +85,9 @@ pub struct StripInput {
     pub trajectory_id: String,
     pub trajectory_uri: String,
     pub lever_arm: [f64; 3],
+    /// A field campaign's CRS and how the strip's trajectory is read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<FieldInput>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -94,6 +97,28 @@ pub struct TrajectoryInput {
     pub uri: String,
     /// Mean lever arm of the trajectory's scanners (see `precimap_pipeline::campaign`).
     pub mean_lever_arm: [f64; 3],
+    /// A field campaign's CRS and how the trajectory is read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<FieldInput>,
+}
+
+/// What a task of a field campaign (a manifest with `crs`) needs to read a trajectory and place
+/// strips: the manifest's CRS and GPS week and the trajectory's entry (format, CRS, layout).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct FieldInput {
+    pub crs: precimap_formats::CrsSpec,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gps_week: Option<u32>,
+    pub trajectory: precimap_formats::TrajectoryRef,
+}
+
+/// The field input of `manifest`'s trajectory `index`, for a manifest with `crs`.
+fn field_input(manifest: &Manifest, index: usize) -> Option<FieldInput> {
+    manifest.crs.as_ref().map(|crs| FieldInput {
+        crs: crs.clone(),
+        gps_week: manifest.gps_week,
+        trajectory: manifest.trajectories[index].clone(),
+    })
 }
 
 /// A trajectory's corrections as a task reads them: the recorded object, or zeros over its
@@ -455,6 +480,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
                 trajectory_id: s.trajectory.clone(),
                 trajectory_uri: manifest.trajectories[t as usize].uri.clone(),
                 lever_arm,
+                field: field_input(manifest, t as usize),
             }
         })
         .collect();
@@ -465,7 +491,13 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         .map(|(i, t)| {
             let (sum, n) = lever_sums[i];
             let mean = if n > 0 { sum.map(|v| v / n as f64) } else { [0.0; 3] };
-            TrajectoryInput { index: i as u32, id: t.id.clone(), uri: t.uri.clone(), mean_lever_arm: mean }
+            TrajectoryInput {
+                index: i as u32,
+                id: t.id.clone(),
+                uri: t.uri.clone(),
+                mean_lever_arm: mean,
+                field: field_input(manifest, i),
+            }
         })
         .collect();
     let state = PlanState {
@@ -522,6 +554,8 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
     // is the manifest without them, so a large campaign holds its input list once per table.
     let spec = Manifest {
         name: manifest.name.clone(),
+        crs: manifest.crs.clone(),
+        gps_week: manifest.gps_week,
         scanners: manifest.scanners.clone(),
         trajectories: Vec::new(),
         strips: Vec::new(),
@@ -1176,6 +1210,7 @@ mod tests {
                 id: "v01".into(),
                 uri: "trajectories/v01.csv".into(),
                 mean_lever_arm: [0.0; 3],
+                field: None,
             },
             anchor_spacing_m: 0.5,
             corrections,

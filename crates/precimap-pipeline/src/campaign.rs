@@ -1,9 +1,11 @@
-//! A campaign as the pipeline sees it: the validated manifest, every trajectory read, and every
-//! strip resolved to a file inside the manifest's folder.
+//! A campaign as the pipeline sees it: the validated manifest, every trajectory read into the
+//! processing frame, and every strip resolved to a file inside the manifest's folder.
 
 use crate::error::PipelineError;
 use precimap_core::{Parameters, Trajectory, Vec3};
-use precimap_formats::{load_manifest, read_trajectory_csv, resolve_uri, Manifest};
+use precimap_formats::crs::Georeference;
+use precimap_formats::trajectory::{load_trajectory, LoadedTrajectoryClock};
+use precimap_formats::{load_manifest, resolve_uri, Manifest};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -16,6 +18,10 @@ pub struct TrajectoryEntry {
     /// Mean lever arm of the scanners whose strips use this trajectory: the corrected body pose
     /// is the one that moves these scan heads as the corrections say.
     pub mean_lever_arm: Vec3,
+    /// What the trajectory's times count, to put its strips' times on the same scale.
+    pub clock: LoadedTrajectoryClock,
+    /// The processing frame of a field campaign (outputs are written in its CRS).
+    pub georef: Option<Arc<Georeference>>,
 }
 
 #[derive(Debug)]
@@ -24,6 +30,8 @@ pub struct StripEntry {
     pub path: PathBuf,
     pub trajectory: u32,
     pub lever_arm: Vec3,
+    /// The processing frame and the strip files' CRS of a field campaign.
+    pub georef: Option<Arc<Georeference>>,
 }
 
 #[derive(Debug)]
@@ -33,6 +41,19 @@ pub struct Campaign {
     pub params: Parameters,
     pub trajectories: Vec<TrajectoryEntry>,
     pub strips: Vec<StripEntry>,
+}
+
+/// The georeference of a manifest with `$.crs`.
+pub fn manifest_georeference(manifest: &Manifest) -> Result<Option<Arc<Georeference>>, PipelineError> {
+    manifest
+        .crs
+        .as_ref()
+        .map(|spec| {
+            spec.georeference()
+                .map(Arc::new)
+                .map_err(|e| PipelineError::Input { what: "manifest $.crs".to_string(), message: e.to_string() })
+        })
+        .transpose()
 }
 
 impl Campaign {
@@ -49,15 +70,34 @@ impl Campaign {
                 message: format!("uri {uri:?}: {problem}"),
             })
         };
+        let georef = manifest_georeference(&manifest)?;
         let mut trajectories = Vec::with_capacity(manifest.trajectories.len());
         for t in &manifest.trajectories {
-            let path = resolve(&t.uri, &format!("trajectory {}", t.id))?;
-            let data = read_trajectory_csv(&path)?;
+            let what = format!("trajectory {}", t.id);
+            let path = resolve(&t.uri, &what)?;
+            let accuracy = t.accuracy_uri.as_deref().map(|u| resolve(u, &what)).transpose()?;
+            let frame = georef.as_deref().map(|g| &g.frame);
+            let loaded = load_trajectory(&path, t, accuracy.as_deref(), frame, manifest.gps_week)?;
+            if let Some(a) = &loaded.accuracy {
+                let [h_median, h_max, heading_median, heading_max] = a.summary();
+                // The estimator's prior is one σ per campaign (parameters), not per epoch: the
+                // accuracy file is reported so that the parameters can be set from it.
+                tracing::info!(
+                    trajectory = %t.id,
+                    horizontal_sigma_median_m = h_median,
+                    horizontal_sigma_max_m = h_max,
+                    heading_sigma_median_deg = heading_median,
+                    heading_sigma_max_deg = heading_max,
+                    "trajectory accuracy file read (reported only; the prior σ comes from the parameters)"
+                );
+            }
             trajectories.push(TrajectoryEntry {
                 id: t.id.clone(),
                 path,
-                data: Arc::new(data),
+                clock: loaded.clock(),
+                data: Arc::new(loaded.trajectory),
                 mean_lever_arm: Vec3::zeros(),
+                georef: georef.clone(),
             });
         }
         let mut strips = Vec::with_capacity(manifest.strips.len());
@@ -78,7 +118,13 @@ impl Campaign {
             let lever_arm = Vec3::from(scanner.lever_arm_m);
             lever_sums[trajectory].0 += lever_arm;
             lever_sums[trajectory].1 += 1;
-            strips.push(StripEntry { id: s.id.clone(), path, trajectory: trajectory as u32, lever_arm });
+            strips.push(StripEntry {
+                id: s.id.clone(),
+                path,
+                trajectory: trajectory as u32,
+                lever_arm,
+                georef: georef.clone(),
+            });
         }
         for (t, (sum, n)) in trajectories.iter_mut().zip(lever_sums) {
             if n > 0 {

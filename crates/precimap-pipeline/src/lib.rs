@@ -5,6 +5,7 @@
 
 pub mod campaign;
 pub mod error;
+pub mod field;
 pub mod qc;
 pub mod report;
 pub mod run;

@@ -101,20 +101,8 @@ fn prepare_strip_chunks_observed(
     segment_params: &SegmentParams,
     phase_done: &mut dyn FnMut(PreparePhase),
 ) -> Result<PreparedStrip, PipelineError> {
-    let points = precimap_formats::read_strip(&entry.path)?;
+    let points = crate::field::read_strip_in_frame(entry, traj)?;
     phase_done(PreparePhase::Decode);
-    let (start, end) = traj.data.time_span();
-    if let Some((t_first, t_last)) = points.gps_time_span().filter(|&(first, last)| first < start || last > end) {
-        return Err(PipelineError::Input {
-            what: format!("strip {} ({})", entry.id, entry.path.display()),
-            message: format!(
-                "its GPS times span {t_first:.3}–{t_last:.3} s but trajectory {} ({}) covers only {start:.3}–{end:.3} s; \
-                 supply a trajectory that covers the whole strip, or cut the strip to the trajectory's span",
-                traj.id,
-                traj.path.display()
-            ),
-        });
-    }
     let samples = StripSamples {
         x: &points.x,
         y: &points.y,
@@ -241,20 +229,54 @@ pub fn export_strip_file(
     dst: &Path,
 ) -> Result<u64, PipelineError> {
     let mut uncovered = None;
+    let mut unmapped = None;
     let mut cursor = GeometryCursor::new(&traj.data, &entry.lever_arm, anchor_spacing_m);
-    let written =
-        precimap_formats::rewrite_strip_timed(&entry.path, dst, |i, xyz, gps_time| match cursor.at(gps_time, xyz) {
+    let convention = crate::field::strip_time_convention(entry)?;
+    let mut offset = None;
+    let georef = entry.georef.as_deref();
+    let correct = |i: usize, xyz: [f64; 3], gps_time: f64| {
+        let offset = *offset
+            .get_or_insert_with(|| precimap_formats::trajectory::strip_clock(convention, gps_time, &traj.clock).0);
+        let local = match georef.map(|g| g.local_from_strip(xyz)) {
+            None => xyz,
+            Some(Ok(p)) => p,
+            Some(Err(e)) => {
+                unmapped.get_or_insert((i, e));
+                return xyz;
+            }
+        };
+        let moved = match cursor.at(gps_time + offset, local) {
             Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
             None => {
                 uncovered.get_or_insert(i);
+                return xyz;
+            }
+        };
+        match georef.map(|g| g.strip_from_local(moved)) {
+            None => moved,
+            Some(Ok(p)) => p,
+            Some(Err(e)) => {
+                unmapped.get_or_insert((i, e));
                 xyz
             }
-        })?;
+        }
+    };
+    let written = match georef {
+        Some(g) => {
+            let crs = precimap_formats::DeclaredCrs { epsg: g.strip_crs.epsg(), wkt: g.strip_crs.wkt() };
+            precimap_formats::rewrite_strip_declaring(&entry.path, dst, crs, correct)?
+        }
+        None => precimap_formats::rewrite_strip_timed(&entry.path, dst, correct)?,
+    };
+    let what = || format!("strip {} ({})", entry.id, entry.path.display());
     if let Some(i) = uncovered {
         return Err(PipelineError::Input {
-            what: format!("strip {} ({})", entry.id, entry.path.display()),
+            what: what(),
             message: format!("point {i} lies outside trajectory {}'s time span", traj.id),
         });
+    }
+    if let Some((i, e)) = unmapped {
+        return Err(PipelineError::Input { what: what(), message: format!("point {i}: {e}") });
     }
     Ok(written)
 }
@@ -281,8 +303,9 @@ pub fn export_trajectory_task(
     Ok(dst)
 }
 
-/// A trajectory's corrections table and correction plot, as (path inside a result folder,
-/// bytes): what both drivers write beside the corrected trajectory. `exported` are the
+/// A trajectory's corrections table and correction plot (and in a field campaign the WKT of its
+/// CRS), as (path inside a result folder, bytes): what both drivers write beside the corrected
+/// trajectory. `exported` are the
 /// corrections as exported, `estimated` and `covariance` as for
 /// [`corrections_in_vehicle_frame`].
 pub fn corrections_outputs(
@@ -291,10 +314,18 @@ pub fn corrections_outputs(
     exported: &TrajectoryCorrections,
     estimated: (u32, u32),
     covariance: Option<&[AnchorCovariance]>,
-) -> [(String, Vec<u8>); 2] {
+) -> Vec<(String, Vec<u8>)> {
     let rows = corrections_in_vehicle_frame(&entry.data, anchor_spacing_m, exported, estimated, covariance);
     let (plot_name, plot) = crate::qc::trajectory_plot(&entry.id, anchor_spacing_m, &rows);
-    [(corrections_table_name(&entry.id), corrections_table(&rows).into_bytes()), (plot_name, plot.into_bytes())]
+    let mut out = vec![
+        (corrections_table_name(&entry.id), corrections_table(&rows).into_bytes()),
+        (plot_name, plot.into_bytes()),
+    ];
+    if let Some(g) = &entry.georef {
+        // The exported trajectory's CRS, beside it where GIS tools look for it.
+        out.push((format!("trajectories/{}.prj", entry.id), g.frame.crs().wkt().as_bytes().to_vec()));
+    }
+    out
 }
 
 /// The folder of the per-anchor corrections tables inside a result folder.
@@ -491,7 +522,9 @@ fn trajectory_last_anchor(trajectory: &precimap_core::Trajectory, anchor_spacing
     ((trajectory.length_m() / anchor_spacing_m).floor() as u32).saturating_add(1)
 }
 
-/// Writes `entry`'s corrected trajectory CSV to `dst`.
+/// Writes `entry`'s corrected trajectory CSV to `dst`; in a field campaign in grid coordinates of
+/// the processing CRS (angles about the grid axes; its WKT is written beside it, see
+/// [`corrections_outputs`]).
 pub fn export_trajectory_file(
     entry: &TrajectoryEntry,
     anchor_spacing_m: f64,
@@ -508,9 +541,23 @@ pub fn export_trajectory_file(
         let delta = so3_exp(&Vec3::new(x[3], x[4], x[5]));
         let rotated: Mat3 = delta * r;
         let lever = r * entry.mean_lever_arm;
-        positions.push(c + Vec3::new(x[0], x[1], x[2]) + (lever - delta * lever));
-        let (roll, pitch, yaw) = rpy_from_rot(&rotated);
-        rpy.push([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()]);
+        let position = c + Vec3::new(x[0], x[1], x[2]) + (lever - delta * lever);
+        match &entry.georef {
+            // Field campaigns: grid coordinates and angles about the grid axes of the processing CRS.
+            Some(g) => {
+                let (grid, angles) =
+                    precimap_formats::navigation::grid_pose(&g.frame, &position, &rotated).map_err(|e| {
+                        PipelineError::Input { what: format!("trajectory {}", entry.id), message: e.to_string() }
+                    })?;
+                positions.push(Vec3::from(grid));
+                rpy.push(angles);
+            }
+            None => {
+                let (roll, pitch, yaw) = rpy_from_rot(&rotated);
+                positions.push(position);
+                rpy.push([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()]);
+            }
+        }
     }
     precimap_formats::write_trajectory_csv(dst, t.times(), &positions, &rpy)?;
     Ok(())
@@ -605,6 +652,8 @@ mod tests {
             path: PathBuf::from("t.csv"),
             data: Arc::new(data),
             mean_lever_arm: Vec3::zeros(),
+            clock: Default::default(),
+            georef: None,
         };
         // Estimated on anchors 40..=160 with a trend of 1 mm per anchor in x.
         let corrections = TrajectoryCorrections {

@@ -20,6 +20,7 @@
 
 pub mod config;
 pub mod drive;
+pub mod field;
 pub mod gnss;
 pub mod process;
 pub mod rng;
@@ -285,11 +286,13 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
 
     let manifest = Manifest {
         name: config.name.clone(),
+        crs: None,
+        gps_week: None,
         scanners: Head::mounted(config.scanner.heads)
             .iter()
             .map(|&h| (h.name().to_string(), ScannerSpec { lever_arm_m: h.lever_arm(config), boresight_deg: [0.0; 3] }))
             .collect(),
-        trajectories: trajectories.iter().map(|t| TrajectoryRef { id: t.id.clone(), uri: t.uri.clone() }).collect(),
+        trajectories: trajectories.iter().map(|t| TrajectoryRef::csv(t.id.clone(), t.uri.clone())).collect(),
         strips: strips
             .iter()
             .map(|s| StripRef {

@@ -1,0 +1,156 @@
+//! A simulated campaign run twice: in its local frame, and as it comes from the field (SBET in
+//! geographic coordinates with a wander angle and GPS week seconds, LAZ in WGS 84 / UTM zone 32N
+//! with adjusted standard GPS time). The adjusted points agree point for point.
+
+use precimap_formats::gps_time::TimeConvention;
+use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, strip_info, TrajectoryRef};
+use precimap_pipeline::{run_campaign, PipelineError, RunOptions};
+use std::path::Path;
+
+fn run(manifest: &Path, out: &Path) -> Result<precimap_pipeline::Report, PipelineError> {
+    run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false, assignments: false }, &|_| {})
+}
+
+#[test]
+fn a_field_campaign_matches_its_local_frame_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let local = dir.path().join("local");
+    let field = dir.path().join("field");
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 3);
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    precimap_sim::field::write_field_campaign(&local, &field, config.origin, true).unwrap();
+    let (out_local, out_field) = (dir.path().join("out-local"), dir.path().join("out-field"));
+    let report_local = run(&local.join("manifest.json"), &out_local).unwrap();
+    let report_field = run(&field.join("manifest.json"), &out_field).unwrap();
+    assert_eq!(report_local.points_total, report_field.points_total);
+    assert_eq!(report_local.iterations.len(), report_field.iterations.len());
+
+    let manifest = load_manifest(&field.join("manifest.json")).unwrap();
+    let georef = manifest.crs.as_ref().unwrap().georeference().unwrap();
+    let mut worst = 0.0f64;
+    for s in &manifest.strips {
+        let path = out_field.join(format!("strips/{}.laz", s.id));
+        let info = strip_info(&path).unwrap();
+        assert_eq!(info.crs.as_ref().and_then(|c| c.epsg), Some(32632), "{}: {:?}", s.id, info.crs);
+        assert_eq!(info.time_convention, TimeConvention::AdjustedStandard);
+        let a = read_strip(&out_local.join(format!("strips/{}.las", s.id))).unwrap();
+        let b = read_strip(&path).unwrap();
+        assert_eq!(a.len(), b.len());
+        for i in 0..a.len() {
+            assert_eq!(a.gps_time[i], b.gps_time[i], "{} point {i}", s.id);
+            let p = georef.local_from_strip([b.x[i], b.y[i], b.z[i]]).unwrap();
+            let d = ((p[0] - a.x[i]).powi(2) + (p[1] - a.y[i]).powi(2) + (p[2] - a.z[i]).powi(2)).sqrt();
+            worst = worst.max(d);
+        }
+    }
+    eprintln!("largest difference of an adjusted point, field vs local run: {:.4} mm", worst * 1e3);
+    assert!(worst <= 0.5e-3, "{worst} m");
+
+    // The exported trajectories are in the grid, their CRS beside them; read back with that CRS
+    // they are the local run's poses.
+    let frame = &georef.frame;
+    for t in &manifest.trajectories {
+        let prj = std::fs::read_to_string(out_field.join(format!("trajectories/{}.prj", t.id))).unwrap();
+        assert_eq!(prj, frame.crs().wkt());
+        let spec = TrajectoryRef { crs: Some(32632), ..TrajectoryRef::csv(&t.id, "x.csv") };
+        let csv = out_field.join(format!("trajectories/{}.csv", t.id));
+        let grid = precimap_formats::trajectory::load_trajectory(&csv, &spec, None, Some(frame), None).unwrap();
+        let want = read_trajectory_csv(&out_local.join(format!("trajectories/{}.csv", t.id))).unwrap();
+        let mut worst = (0.0f64, 0.0f64);
+        for i in 0..want.len() {
+            worst.0 = worst.0.max((grid.trajectory.positions()[i] - want.positions()[i]).norm());
+            let r = grid.trajectory.rotations()[i].transpose() * want.rotations()[i];
+            worst.1 = worst.1.max(precimap_core::geom::so3_log(&r).norm().to_degrees());
+        }
+        assert!(worst.0 < 0.5e-3 && worst.1 < 1e-4, "trajectory {}: {worst:?}", t.id);
+    }
+}
+
+#[test]
+fn a_strip_in_another_crs_or_time_is_refused_naming_both() {
+    let dir = tempfile::tempdir().unwrap();
+    let local = dir.path().join("local");
+    let field = dir.path().join("field");
+    let mut config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 5);
+    config.drive.passes = 2;
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    precimap_sim::field::write_field_campaign(&local, &field, config.origin, false).unwrap();
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(field.join("manifest.json")).unwrap()).unwrap();
+    manifest["crs"]["strips"] = serde_json::Value::from(25832);
+    std::fs::write(field.join("other-crs.json"), manifest.to_string()).unwrap();
+    let e = run(&field.join("other-crs.json"), &dir.path().join("o1")).unwrap_err().to_string();
+    assert!(e.contains("EPSG:32632") && e.contains("EPSG:25832") && e.contains("ETRS89 / UTM zone 32N"), "{e}");
+
+    // The SBET of pass 1 under the strips of pass 0: the times do not overlap.
+    manifest["crs"].as_object_mut().unwrap().remove("strips");
+    let uri = manifest["trajectories"][1]["uri"].clone();
+    manifest["trajectories"][0]["uri"] = uri;
+    std::fs::write(field.join("other-time.json"), manifest.to_string()).unwrap();
+    let e = run(&field.join("other-time.json"), &dir.path().join("o2")).unwrap_err().to_string();
+    assert!(e.contains("s of GPS week") && e.contains("adjusted standard GPS time"), "{e}");
+    assert!(e.matches("GPS week").count() >= 2, "both ranges in both conventions: {e}");
+}
+
+/// The measurement behind processing in a local Cartesian frame rather than in the projected grid
+/// (docs/design/field-inputs.md): the same field campaign run with its grid coordinates taken as
+/// if they were metric (trajectories as grid CSV, strips as they are, no `crs`), its adjusted
+/// points mapped back and compared with the local-frame run. Run with
+/// `cargo test -p precimap-cli --test field -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn processing_in_the_grid_instead_costs_this_much() {
+    let dir = tempfile::tempdir().unwrap();
+    let local = dir.path().join("local");
+    let field = dir.path().join("field");
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 3);
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    precimap_sim::field::write_field_campaign(&local, &field, config.origin, false).unwrap();
+    let manifest = load_manifest(&field.join("manifest.json")).unwrap();
+    let georef = manifest.crs.as_ref().unwrap().georeference().unwrap();
+    // The grid campaign: trajectories as grid CSV, the field strips, no CRS.
+    let mut grid = manifest.clone();
+    grid.crs = None;
+    for t in &mut grid.trajectories {
+        let data = read_trajectory_csv(&local.join(format!("trajectories/{}.csv", t.id))).unwrap();
+        let (mut positions, mut rpy) = (Vec::new(), Vec::new());
+        for (p, r) in data.positions().iter().zip(data.rotations()) {
+            let (g, a) = precimap_formats::navigation::grid_pose(&georef.frame, p, r).unwrap();
+            positions.push(precimap_core::Vec3::from(g));
+            rpy.push(a);
+        }
+        t.uri = format!("trajectories/{}-grid.csv", t.id);
+        t.format = precimap_formats::TrajectoryFormat::Csv;
+        precimap_formats::write_trajectory_csv(&field.join(&t.uri), data.times(), &positions, &rpy).unwrap();
+    }
+    std::fs::write(field.join("grid.json"), serde_json::to_string(&grid).unwrap()).unwrap();
+    let (out_local, out_grid) = (dir.path().join("out-local"), dir.path().join("out-grid"));
+    run(&local.join("manifest.json"), &out_local).unwrap();
+    run(&field.join("grid.json"), &out_grid).unwrap();
+    let mut diffs = Vec::new();
+    for s in &manifest.strips {
+        let a = read_strip(&out_local.join(format!("strips/{}.las", s.id))).unwrap();
+        let b = read_strip(&out_grid.join(format!("strips/{}.las", s.id))).unwrap();
+        // The input strips differ by the grid's distortion already; compare the adjustments.
+        let ia = read_strip(&local.join(format!("strips/{}.las", s.id))).unwrap();
+        let ib = read_strip(&field.join(format!("strips/{}.las", s.id))).unwrap();
+        for i in 0..a.len() {
+            let pb = georef.local_from_strip([b.x[i], b.y[i], b.z[i]]).unwrap();
+            let qb = georef.local_from_strip([ib.x[i], ib.y[i], ib.z[i]]).unwrap();
+            let moved_grid = [pb[0] - qb[0], pb[1] - qb[1], pb[2] - qb[2]];
+            let moved_local = [a.x[i] - ia.x[i], a.y[i] - ia.y[i], a.z[i] - ia.z[i]];
+            let d = (0..3).map(|k| (moved_grid[k] - moved_local[k]).powi(2)).sum::<f64>().sqrt();
+            diffs.push(d);
+        }
+    }
+    diffs.sort_by(f64::total_cmp);
+    let q = |f: f64| diffs[((diffs.len() - 1) as f64 * f) as usize] * 1e3;
+    eprintln!(
+        "grid processing vs local frame, difference of the adjustment per point: median {:.3} mm, 95% {:.3} mm, \
+         max {:.3} mm ({} points)",
+        q(0.5),
+        q(0.95),
+        q(1.0),
+        diffs.len()
+    );
+}
