@@ -15,12 +15,13 @@ fn main() {
     let scene = street(points, 7);
     let geo = StripGeometry { x: &scene.x, y: &scene.y, z: &scene.z, head: &scene.head };
     let params = SegmentParams::default();
-    let mut best = f64::INFINITY;
+    let (mut best, mut best_wall) = (f64::INFINITY, f64::INFINITY);
     let mut out = None;
     for _ in 0..repeat.max(1) {
-        let started = Instant::now();
+        let (started, cpu) = (Instant::now(), thread_cpu_s());
         let result = segment_unordered(&geo, &scene.time, &params);
-        best = best.min(started.elapsed().as_secs_f64());
+        best = best.min(thread_cpu_s() - cpu);
+        best_wall = best_wall.min(started.elapsed().as_secs_f64());
         out = Some(result);
     }
     let out = out.expect("one pass");
@@ -35,10 +36,12 @@ fn main() {
     }
     let s = &out.segmentation.stats;
     println!(
-        "{points} points, voxel {:.3} m: {:.3} s (fastest of {repeat}) = {:.0} k points/s per core\n  \
+        "{points} points, voxel {:.3} m: {:.3} thread CPU s ({:.3} s wall, fastest of {repeat}) = {:.0} k points/s \
+         per core\n  \
          with a normal {:.1} %, mean error {:.2}°, within 3° {:.1} %; segmented {:.1} % in {} segments",
         out.voxel_m,
         best,
+        best_wall,
         points as f64 / best / 1e3,
         100.0 * with as f64 / points as f64,
         sum_deg / with.max(1) as f64,
@@ -46,6 +49,15 @@ fn main() {
         100.0 * s.points_segmented as f64 / points as f64,
         s.segments
     );
+}
+
+/// CPU seconds of this thread (Linux `/proc/thread-self/schedstat`; wall-clock robust on a
+/// shared machine).
+fn thread_cpu_s() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+        .map_or(f64::NAN, |ns| ns as f64 * 1e-9)
 }
 
 struct Scene {
