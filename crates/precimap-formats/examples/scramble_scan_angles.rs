@@ -13,7 +13,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Err("usage: scramble_scan_angles IN.las OUT.las".into());
     };
     let points = read_strip(&input)?;
-    let mut writer = StripWriter::create(&output, [0.0; 3], 1e-4, "scrambled", "precimap example")?;
+    // Offsets near the points: 0.1 mm units must fit 32 bits.
+    let offset = match points.len() {
+        0 => [0.0; 3],
+        _ => [points.x[0].round(), points.y[0].round(), points.z[0].round()],
+    };
+    let mut writer = StripWriter::create(&output, offset, 1e-4, "scrambled", "precimap example")?;
     let mut state = 0x2545_F491_4F6C_DD1Du64;
     for k in 0..points.len() {
         state ^= state << 13;
