@@ -38,9 +38,8 @@ fn ground_and_wall(points: usize, seed: u64) -> Cloud {
             (x, 6.0 + noise, 0.05 * x - 0.12 + h, 1)
         } else {
             let (x, y) = (8.0 * rand(), 5.8 * rand());
-            let n = [-0.05, 0.02, 1.0];
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) as f64;
-            let len = len.sqrt();
+            let n: [f64; 3] = [-0.05, 0.02, 1.0];
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
             let z = 0.05 * x - 0.02 * y;
             (x + noise * n[0] / len, y + noise * n[1] / len, z + noise / len, 0)
         };
