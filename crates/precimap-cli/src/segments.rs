@@ -126,7 +126,9 @@ fn colour(id: u32) -> [u8; 3] {
 }
 
 fn write_png(path: &Path, prepared: &precimap_estimate::PreparedStrip, range: Option<(u32, u32)>) -> Result<()> {
-    let image = &prepared.image;
+    let Some(image) = &prepared.image else {
+        bail!("the strip's normals came from 3-D neighbours (its scan pattern makes no scan image): there is no image to draw");
+    };
     let (first, last) = range.unwrap_or((0, image.columns.saturating_sub(1)));
     let last = last.min(image.columns.saturating_sub(1));
     if first > last {

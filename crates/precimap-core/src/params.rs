@@ -123,6 +123,16 @@ pub struct Parameters {
     /// moved this far since the last used one; repeated revolutions add no geometry and make
     /// scan-image neighbourhoods degenerate.
     pub min_revolution_advance_m: f64,
+    /// Where the points' normals and segments come from: `auto` (the scan image of a rotating
+    /// head when its pattern is recognised, else neighbours in 3-D), `scan_image` or
+    /// `neighbours` (docs/design/preprocessing.md).
+    pub normals: NormalSource,
+    /// A strip of which a smaller share of points becomes usable (a normal, a segment, within
+    /// `max_range_m`) stops the run with an error naming the strip and the likely reason, as does
+    /// a campaign whose last iteration observes no point (no overlap between passes).
+    pub min_usable_share: f64,
+    /// Turns those errors into warnings: the run goes on with what it can use.
+    pub allow_low_usable_share: bool,
     /// Edge of a latent-map cell (voxel) holding local surface models.
     pub cell_size_m: f64,
     /// Points join a cell's surface model when their normals agree within this angle.
@@ -305,6 +315,9 @@ impl Default for Parameters {
             tile_overlap_m: 0.3,
             max_range_m: 100.0,
             min_revolution_advance_m: 0.03,
+            normals: NormalSource::Auto,
+            min_usable_share: 0.5,
+            allow_low_usable_share: false,
             cell_size_m: 1.0,
             normal_group_angle_deg: 30.0,
             segment_surfaces: true,
@@ -334,6 +347,20 @@ impl Default for Parameters {
             latent_map_grid_m: 0.1,
         }
     }
+}
+
+/// The source of the points' normals and segments ([`Parameters::normals`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NormalSource {
+    /// The scan image when the strip's pattern is recognised as a rotating head's, else 3-D
+    /// neighbours.
+    #[default]
+    Auto,
+    /// Always the scan image.
+    ScanImage,
+    /// Always 3-D neighbours (any pattern).
+    Neighbours,
 }
 
 /// The paper's schedule (§7.1) — grid 10 cm → 2 cm (most) → 1 cm, threshold 0.3 m → 7 mm,
@@ -530,6 +557,12 @@ impl Parameters {
             out.push(ParameterProblem {
                 field: "min_revolution_advance_m".into(),
                 problem: "must be zero or positive".into(),
+            });
+        }
+        if !(0.0..=1.0).contains(&self.min_usable_share) {
+            out.push(ParameterProblem {
+                field: "min_usable_share".into(),
+                problem: format!("must be a share in [0, 1], got {}", self.min_usable_share),
             });
         }
         if !(self.tile_overlap_m.is_finite() && self.tile_overlap_m >= 0.0) {

@@ -28,6 +28,7 @@ pub use prepare::{
     PrepareStats, PreparedStrip, ScanImage, SegmentParams, SegmentStats, StripContext, StripSamples, DROPPED_SEGMENT,
     NO_SEGMENT,
 };
+pub use prepare::{usable_share_problem, TIME_GAP_S};
 pub use solve::{extend_corrections, solve_trajectory, TrajectorySolution};
 pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
 pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, LatentGather, TileEstimate, UsedPoint};

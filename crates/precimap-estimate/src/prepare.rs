@@ -1,12 +1,14 @@
 //! Per-strip preparation (the `segment_strip` map task): point geometry against the
 //! trajectory, the scan image (rows = measurement within a scanner revolution, columns =
 //! revolutions, per channel; [`precimap_segment::ScanImage`]), RANSAC normals and the
-//! Felzenszwalb–Huttenlocher segmentation ([`precimap_segment::segment_strip`]), and the
-//! segmented points keyed into tiles with a border overlap.
+//! Felzenszwalb–Huttenlocher segmentation ([`precimap_segment::segment_strip`]), or, for a strip
+//! whose pattern makes no scan image, normals and segments from 3-D neighbours
+//! ([`precimap_segment::segment_unordered`]); then the segmented points keyed into tiles with a
+//! border overlap.
 
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
 use precimap_core::geom::rotate_small;
-use precimap_core::{Parameters, TileKey, Trajectory, Vec3};
+use precimap_core::{NormalSource, Parameters, TileKey, Trajectory, Vec3};
 pub use precimap_segment::{PixelNormal, ScanImage, SegmentParams, SegmentStats, DROPPED_SEGMENT, NO_SEGMENT};
 use precimap_segment::{StripGeometry, NO_POINT};
 use std::collections::HashMap;
@@ -45,6 +47,8 @@ pub enum PrepareError {
     Empty,
     #[error("columns differ in length ({0})")]
     Shape(String),
+    #[error("parameters.normals is scan_image, but {reason}, which would take far more memory than the points; set parameters.normals to auto or neighbours")]
+    ScanImageTooLarge { reason: String },
 }
 
 /// Geometry of one measurement relative to its trajectory.
@@ -201,8 +205,8 @@ pub struct PreparedStrip {
     /// Per point (file order): segment id, [`NO_SEGMENT`] (no normal, small region) or
     /// [`DROPPED_SEGMENT`] (revolution dropped at standstill).
     pub segment: Vec<u32>,
-    /// The scan image (row and column of every point).
-    pub image: ScanImage,
+    /// The scan image (row and column of every point), when the normals came from it.
+    pub image: Option<ScanImage>,
     /// Per point (file order): its normal, facing the scanner, if the fit succeeded (what the
     /// chunks carry; kept for evaluation against truth).
     pub normals: Vec<Option<PixelNormal>>,
@@ -215,6 +219,10 @@ pub struct PrepareStats {
     pub points_with_normal: u64,
     /// Emitted point copies, including border duplicates.
     pub points_emitted: u64,
+    /// Points emitted at least once: a normal, a segment, within `max_range_m` (what
+    /// `min_usable_share` is measured on).
+    #[serde(default)]
+    pub points_usable: u64,
     pub revolutions: u64,
     pub rows_per_revolution: u32,
     pub revolution_period_s: f64,
@@ -222,11 +230,99 @@ pub struct PrepareStats {
     pub last_anchor: u32,
     pub time_start: f64,
     pub time_end: f64,
+    /// Seconds between consecutive points more than [`TIME_GAP_S`] apart, summed.
+    #[serde(default)]
+    pub time_in_gaps_s: f64,
     /// The strip had no scan angles (all equal); rows came from the beam directions instead
     /// ([`reconstructed_scan_angles`]).
     #[serde(default)]
     pub scan_angles_reconstructed: bool,
+    /// Where the normals came from: the scan image or 3-D neighbours (never `auto`).
+    #[serde(default)]
+    pub normal_source: NormalSource,
+    /// Why the scan image was not used, when `parameters.normals` is `auto` and it was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scan_image_refused: Option<String>,
     pub segmentation: SegmentStats,
+}
+
+/// A pause between consecutive points longer than this (seconds) is a gap in the acquisition.
+pub const TIME_GAP_S: f64 = 1.0;
+/// With `normals: auto`, a scan image whose normals cover a smaller share of the points is not
+/// the strip's pattern: its normals come from 3-D neighbours instead.
+const AUTO_MIN_NORMAL_SHARE: f64 = 0.1;
+/// With `normals: auto`, a scan image with more pixels per point is not the strip's pattern (a
+/// rotating head's image is mostly full; a pattern the image misreads spreads over millions of
+/// columns, and its grid would cost far more memory than the points).
+const MAX_PIXELS_PER_POINT: u64 = 16;
+
+/// With `normals: scan_image`, an image with more pixels per point than this is refused with an
+/// error rather than built (its grid would take far more memory than the points).
+const MAX_FORCED_PIXELS_PER_POINT: u64 = 64;
+
+/// Why `image` (before standstill thinning) is not a rotating head's scan image; `None`: it is.
+fn image_refusal(image: &ScanImage) -> Option<String> {
+    let points = image.row.len().max(1) as u64;
+    let pixels = image.rows as u64 * image.columns as u64;
+    if image.rows < 8 || image.columns < 3 {
+        Some(format!("its scan angles make no scan image ({} rows × {} revolutions)", image.rows, image.columns))
+    } else if pixels > MAX_PIXELS_PER_POINT * points {
+        Some(format!(
+            "its scan image would have {} rows × {} revolutions, {:.0} pixels per point",
+            image.rows,
+            image.columns,
+            pixels as f64 / points as f64
+        ))
+    } else {
+        None
+    }
+}
+
+/// Seconds of the strip's span that fall in gaps between points over [`TIME_GAP_S`].
+fn time_in_gaps(times: &[f64]) -> f64 {
+    times.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > TIME_GAP_S).sum()
+}
+
+/// Why a prepared strip is not usable enough: `None` when at least `min_share` of its points
+/// are usable, else what is wrong and the likely reason (a gap-ridden acquisition, a pattern
+/// that gave no normals, too few normals, or normals that formed no segments).
+pub fn usable_share_problem(stats: &PrepareStats, min_share: f64) -> Option<String> {
+    let points = stats.points.max(1) as f64;
+    let share = stats.points_usable as f64 / points;
+    if share >= min_share {
+        return None;
+    }
+    let normals = stats.points_with_normal as f64 / points;
+    let span = stats.time_end - stats.time_start;
+    let reason = if span > 0.0 && stats.time_in_gaps_s > 0.5 * span {
+        format!(
+            "time gaps: {:.0} s of its {:.0} s lie in pauses over {TIME_GAP_S} s between points, so it is not one \
+             continuous acquisition",
+            stats.time_in_gaps_s, span
+        )
+    } else if let Some(refused) = stats.scan_image_refused.as_deref().filter(|_| normals < min_share) {
+        format!(
+            "scan pattern not recognised ({refused}); normals from 3-D neighbours cover {:.1} % of the points \
+             (too sparse or too noisy for a plane fit?)",
+            100.0 * normals
+        )
+    } else if normals < min_share {
+        format!("too few normals: {:.1} % of the points got one", 100.0 * normals)
+    } else {
+        format!(
+            "{:.1} % of the points have a normal, but most lie in regions under the minimum segment size or \
+             beyond max_range_m",
+            100.0 * normals
+        )
+    };
+    Some(format!(
+        "only {:.1} % of its {} points are usable (a normal, a segment, within max_range_m), below \
+         parameters.min_usable_share {:.0} %: {reason}. Check the strip and its trajectory, choose \
+         parameters.normals, or set parameters.allow_low_usable_share to go on with what is usable",
+        100.0 * share,
+        stats.points,
+        100.0 * min_share
+    ))
 }
 
 /// Identity of a strip inside a campaign.
@@ -311,44 +407,89 @@ pub fn prepare_strip_observed(
     let geometry = strip_geometry(samples, ctx)?;
     let head = &geometry.head;
     phase_done(PreparePhase::Geometry);
-    let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
-        reconstructed_scan_angles(head, samples, ctx.trajectory_data)
-    } else {
-        None
-    };
-    let scan_angles_reconstructed = reconstructed.is_some();
-    let angles = reconstructed.as_deref().unwrap_or(samples.scan_angle_deg);
-    let mut image = ScanImage::build(angles, samples.gps_time, samples.channel);
-    drop(reconstructed);
-    image.thin_standstill(head, ctx.params.min_revolution_advance_m);
-    let grid = image.grid();
-    phase_done(PreparePhase::ScanImage);
     let geo = StripGeometry { x: samples.x, y: samples.y, z: samples.z, head };
-    let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
-    phase_done(PreparePhase::Normals);
-    let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
-    phase_done(PreparePhase::Segmentation);
-    let links = Links { image: &image, grid: &grid };
-    let chunks = emit_tiles(samples, ctx, &geometry, &links, &segmentation.normals, &segmentation.segment);
-    drop(grid);
+    let mut scan = None;
+    let mut refused = None;
+    let mut scan_angles_reconstructed = false;
+    if ctx.params.normals != NormalSource::Neighbours {
+        let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
+            reconstructed_scan_angles(head, samples, ctx.trajectory_data)
+        } else {
+            None
+        };
+        scan_angles_reconstructed = reconstructed.is_some();
+        let angles = reconstructed.as_deref().unwrap_or(samples.scan_angle_deg);
+        let mut image = ScanImage::build(angles, samples.gps_time, samples.channel);
+        drop(reconstructed);
+        // Judged before the standstill thinning, whose column tables are as wide as the image.
+        match image_refusal(&image) {
+            Some(reason) if ctx.params.normals == NormalSource::Auto => {
+                refused = Some(reason);
+                phase_done(PreparePhase::ScanImage);
+            }
+            Some(reason) if image.rows as u64 * image.columns as u64 > MAX_FORCED_PIXELS_PER_POINT * n as u64 => {
+                return Err(PrepareError::ScanImageTooLarge { reason });
+            }
+            _ => {
+                image.thin_standstill(head, ctx.params.min_revolution_advance_m);
+                let grid = image.grid();
+                phase_done(PreparePhase::ScanImage);
+                let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
+                phase_done(PreparePhase::Normals);
+                let with = normals.iter().filter(|n| n.is_some()).count();
+                if ctx.params.normals == NormalSource::Auto && (with as f64) < AUTO_MIN_NORMAL_SHARE * n as f64 {
+                    refused = Some(format!(
+                        "its scan image ({} rows × {} revolutions) gave only {:.1} % of the points a normal",
+                        image.rows,
+                        image.columns,
+                        100.0 * with as f64 / n as f64
+                    ));
+                } else {
+                    let segmentation =
+                        precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
+                    phase_done(PreparePhase::Segmentation);
+                    scan = Some((image, grid, segmentation));
+                }
+            }
+        }
+    }
+    let (image, links, segmentation, normal_source) = match scan {
+        Some((image, grid, segmentation)) => {
+            (Some(image), Links::Image { grid }, segmentation, NormalSource::ScanImage)
+        }
+        None => {
+            let out = precimap_segment::segment_unordered(&geo, samples.gps_time, ctx.segment);
+            phase_done(PreparePhase::Normals);
+            phase_done(PreparePhase::Segmentation);
+            (None, Links::Explicit(out.links), out.segmentation, NormalSource::Neighbours)
+        }
+    };
+    let (chunks, points_usable) =
+        emit_tiles(samples, ctx, &geometry, &links.of(image.as_ref()), &segmentation.normals, &segmentation.segment);
+    drop(links);
     phase_done(PreparePhase::Tiling);
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.anchor.iter().copied().min().unwrap_or(0);
     let last_anchor = geometry.anchor.iter().copied().max().unwrap_or(0) + 1;
+    let image_stats = image.as_ref().map_or((0, 0, 0.0), |i| (i.columns as u64, i.rows, i.period_s));
     Ok(PreparedStrip {
         chunks,
         stats: PrepareStats {
             points: n as u64,
             points_with_normal: segmentation.stats.points_with_normal,
             points_emitted: emitted,
-            revolutions: image.columns as u64,
-            rows_per_revolution: image.rows,
-            revolution_period_s: image.period_s,
+            points_usable,
+            revolutions: image_stats.0,
+            rows_per_revolution: image_stats.1,
+            revolution_period_s: image_stats.2,
             first_anchor,
             last_anchor,
             time_start: samples.gps_time[0],
             time_end: samples.gps_time[n - 1],
+            time_in_gaps_s: time_in_gaps(samples.gps_time),
             scan_angles_reconstructed,
+            normal_source,
+            scan_image_refused: refused,
             segmentation: segmentation.stats,
         },
         segment: segmentation.segment,
@@ -529,29 +670,49 @@ pub fn reconstructed_scan_angles(
     )
 }
 
-/// Scan-image neighbour links: next row in the same revolution (wrapping round), same row in the
-/// next revolution. Looked up in the pixel grid for the emitted points only, rather than stored
-/// for every point.
-struct Links<'a> {
-    image: &'a ScanImage,
-    grid: &'a [u32],
+/// Where a point's two mesh neighbours come from: the scan image's pixel grid (next row in the
+/// same revolution, wrapping round; same row in the next revolution), looked up for the emitted
+/// points only, or the 3-D neighbour fallback's tangent links.
+enum Links {
+    Image { grid: Vec<u32> },
+    Explicit(Vec<[u32; 2]>),
+}
+
+impl Links {
+    fn of<'a>(&'a self, image: Option<&'a ScanImage>) -> LinkView<'a> {
+        match (self, image) {
+            (Links::Image { grid }, Some(image)) => LinkView::Image { image, grid },
+            (Links::Explicit(links), _) => LinkView::Explicit(links),
+            (Links::Image { .. }, None) => LinkView::Explicit(&[]),
+        }
+    }
+}
+
+enum LinkView<'a> {
+    Image { image: &'a ScanImage, grid: &'a [u32] },
+    Explicit(&'a [[u32; 2]]),
 }
 
 // Links are read straight from the grid: its empty pixels must read as "no neighbour".
 const _: () = assert!(NO_POINT == NO_NEIGHBOUR);
 
-impl Links<'_> {
+impl LinkView<'_> {
     /// `(right, down)` of point `k` (in the image: not dropped), or [`NO_NEIGHBOUR`].
     #[inline]
     fn of(&self, k: usize) -> (u32, u32) {
-        let rows = self.image.rows as usize;
-        let row = self.image.row[k] as usize;
-        let px = self.image.column[k] as usize * rows + row;
-        // Rows wrap around: the revolution is a circle.
-        let next = if row + 1 < rows { px + 1 } else { px + 1 - rows };
-        let right = if rows > 2 { self.grid[next] } else { NO_NEIGHBOUR };
-        let down = self.grid.get(px + rows).copied().unwrap_or(NO_NEIGHBOUR);
-        (right, down)
+        match self {
+            LinkView::Image { image, grid } => {
+                let rows = image.rows as usize;
+                let row = image.row[k] as usize;
+                let px = image.column[k] as usize * rows + row;
+                // Rows wrap around: the revolution is a circle.
+                let next = if row + 1 < rows { px + 1 } else { px + 1 - rows };
+                let right = if rows > 2 { grid[next] } else { NO_NEIGHBOUR };
+                let down = grid.get(px + rows).copied().unwrap_or(NO_NEIGHBOUR);
+                (right, down)
+            }
+            LinkView::Explicit(links) => links.get(k).map_or((NO_NEIGHBOUR, NO_NEIGHBOUR), |l| (l[0], l[1])),
+        }
     }
 }
 
@@ -559,10 +720,10 @@ fn emit_tiles(
     samples: &StripSamples<'_>,
     ctx: &StripContext<'_>,
     geometry: &HeadGeometry,
-    links: &Links<'_>,
+    links: &LinkView<'_>,
     normals: &[Option<PixelNormal>],
     segment: &[u32],
-) -> Vec<TileChunk> {
+) -> (Vec<TileChunk>, u64) {
     let params = ctx.params;
     // Points per tile, in acquisition order. Consecutive points mostly fall in the tiles of the
     // previous point: a small cache of recent tiles saves the map look-up.
@@ -570,12 +731,14 @@ fn emit_tiles(
     let mut index: HashMap<TileKey, usize> = HashMap::new();
     let mut recent: [(TileKey, usize); 4] = [(TileKey { tx: i32::MIN, ty: i32::MIN }, 0); 4];
     let max_range2 = params.max_range_m * params.max_range_m;
+    let mut usable = 0u64;
     for k in 0..samples.len() {
         let r = geometry.r(samples, k);
         if segment[k] >= DROPPED_SEGMENT || normals[k].is_none() || r[0] * r[0] + r[1] * r[1] + r[2] * r[2] > max_range2
         {
             continue;
         }
+        usable += 1;
         for key in TileKey::with_overlap(samples.x[k], samples.y[k], params.tile_size_m, params.tile_overlap_m) {
             let slot = match recent.iter().find(|(r, _)| *r == key) {
                 Some(&(_, slot)) => slot,
@@ -595,7 +758,7 @@ fn emit_tiles(
     tiles.sort_unstable_by_key(|(key, _)| *key);
     // Global point index → index inside the tile being emitted (reset after each tile).
     let mut local = vec![NO_NEIGHBOUR; samples.len()];
-    tiles
+    let chunks = tiles
         .into_iter()
         .map(|(key, globals)| {
             let (ox, oy) = key.origin(params.tile_size_m);
@@ -628,254 +791,9 @@ fn emit_tiles(
             }
             chunk
         })
-        .collect()
+        .collect();
+    (chunks, usable)
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A straight drive over flat ground scanned by one rotating head: the scan image must have
-    /// the simulated rows and columns, and normals must point up.
-    #[test]
-    fn scan_image_links_and_normals_on_flat_ground() {
-        let speed = 10.0;
-        let times: Vec<f64> = (0..=400).map(|i| 1000.0 + i as f64 * 0.005).collect();
-        let positions = times.iter().map(|t| Vec3::new((t - 1000.0) * speed, 0.0, 2.0)).collect();
-        let traj = Trajectory::new(times, positions, vec![[0.0; 3]; 401]).unwrap();
-        let rows = 360u32;
-        let rate = 50.0;
-        let (mut x, mut y, mut z, mut t, mut a) = (vec![], vec![], vec![], vec![], vec![]);
-        for rev in 0..60 {
-            for j in 0..rows {
-                let phi = -180.0 + j as f64 * 360.0 / rows as f64;
-                let time = 1000.1 + rev as f64 / rate + j as f64 / (rate * rows as f64);
-                let c = (time - 1000.0) * speed;
-                // Beam in the y–z plane; only downward beams hit the ground (z = 0).
-                let dir = Vec3::new(0.0, phi.to_radians().sin(), phi.to_radians().cos());
-                if dir.z > -0.3 {
-                    continue;
-                }
-                let s = -2.0 / dir.z;
-                x.push(c);
-                y.push(dir.y * s);
-                z.push(0.0);
-                t.push(time);
-                a.push(phi as f32);
-            }
-        }
-        let channel = vec![0u8; x.len()];
-        let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
-        let params = Parameters::default();
-        let segment = SegmentParams::default();
-        let ctx = StripContext {
-            strip: 3,
-            trajectory: 1,
-            trajectory_data: &traj,
-            lever_arm: Vec3::zeros(),
-            params: &params,
-            segment: &segment,
-        };
-        let prepared = prepare_strip(&samples, &ctx).unwrap();
-        assert_eq!(prepared.stats.rows_per_revolution, rows);
-        assert_eq!(prepared.stats.revolutions, 60);
-        assert!((prepared.stats.revolution_period_s - 0.02).abs() < 1e-9);
-        // Interior points all get upward normals; only the image border loses some. Flat ground
-        // is one segment.
-        assert!(prepared.stats.points_with_normal as f64 > 0.9 * prepared.stats.points as f64);
-        let sizes: Vec<usize> = (0..prepared.stats.segmentation.segments as u32)
-            .map(|s| prepared.segment.iter().filter(|&&x| x == s).count())
-            .collect();
-        assert_eq!(prepared.stats.segmentation.segments, 1, "{sizes:?} {:?}", prepared.stats.segmentation);
-        assert!(prepared.segment.iter().filter(|&&s| s == 0).count() as f64 > 0.9 * prepared.stats.points as f64);
-        for chunk in &prepared.chunks {
-            for nrm in &chunk.normal {
-                assert!(nrm[2] > 0.999, "{nrm:?}");
-            }
-            assert!(chunk.right.iter().filter(|&&r| r != NO_NEIGHBOUR).count() > chunk.len() / 2);
-        }
-        // The anchor coordinate follows arc length: first point at 1 m → anchor 2.
-        assert_eq!(prepared.stats.first_anchor, 2);
-    }
-
-    /// A strip without scan angles (all 0) gets its scan image from the beam directions: with the
-    /// scan plane turned 30° in the vehicle and the vehicle heading 20°, the image has the same
-    /// size, the same points get normals and the ground is still one segment.
-    #[test]
-    fn strip_without_scan_angles_gets_its_rows_from_the_beam_directions() {
-        let speed = 10.0;
-        let heading = 20f64.to_radians();
-        let times: Vec<f64> = (0..=400).map(|i| 1000.0 + i as f64 * 0.005).collect();
-        let positions =
-            times.iter().map(|t| Vec3::new(heading.cos(), heading.sin(), 0.0) * ((t - 1000.0) * speed)).collect();
-        let traj = Trajectory::new(times, positions, vec![[0.0, 0.0, 20.0]; 401]).unwrap();
-        let rows = 300u32;
-        let rate = 40.0;
-        let turn = 30f64.to_radians();
-        let (mut x, mut y, mut z, mut t, mut a) = (vec![], vec![], vec![], vec![], vec![]);
-        for rev in 0..50 {
-            for j in 0..rows {
-                let phi = -180.0 + j as f64 * 360.0 / rows as f64;
-                let time = 1000.1 + rev as f64 / rate + j as f64 / (rate * rows as f64);
-                let pose = traj.pose_at(time).unwrap();
-                let (sp, cp) = phi.to_radians().sin_cos();
-                // The plane of (0, sin φ, cos φ) turned about the body's z axis.
-                let body = Vec3::new(-turn.sin() * sp, turn.cos() * sp, cp);
-                let dir = pose.rotation * body;
-                // Only downward beams hit the ground (z = 0); the head is 2 m up.
-                if dir.z > -0.3 {
-                    continue;
-                }
-                let p = pose.position + dir * (-2.0 / dir.z);
-                x.push(p.x);
-                y.push(p.y);
-                z.push(0.0);
-                t.push(time);
-                a.push(phi as f32);
-            }
-        }
-        let traj_head = Trajectory::new(
-            traj.times().to_vec(),
-            traj.positions().iter().map(|p| p + Vec3::new(0.0, 0.0, 2.0)).collect(),
-            traj.rpy_deg().to_vec(),
-        )
-        .unwrap();
-        let channel = vec![0u8; x.len()];
-        let zeros = vec![0f32; x.len()];
-        let params = Parameters::default();
-        let segment = SegmentParams::default();
-        let ctx = StripContext {
-            strip: 0,
-            trajectory: 0,
-            trajectory_data: &traj_head,
-            lever_arm: Vec3::zeros(),
-            params: &params,
-            segment: &segment,
-        };
-        let with = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
-        let without = StripSamples { scan_angle_deg: &zeros, ..with };
-        let known = prepare_strip(&with, &ctx).unwrap();
-        let rebuilt = prepare_strip(&without, &ctx).unwrap();
-        assert!(!known.stats.scan_angles_reconstructed && rebuilt.stats.scan_angles_reconstructed);
-        assert_eq!(known.stats.rows_per_revolution, rows);
-        assert_eq!(rebuilt.stats.rows_per_revolution, rows);
-        // The simulated angle wraps at the nadir, inside the ground fan; the reconstruction puts
-        // the seam in the sky, so its first and last revolutions are halves: one column more.
-        assert_eq!(rebuilt.stats.revolutions, known.stats.revolutions + 1);
-        assert!(known.stats.points_with_normal as f64 > 0.9 * known.stats.points as f64);
-        assert!(rebuilt.stats.points_with_normal as f64 >= 0.99 * known.stats.points_with_normal as f64);
-        assert_eq!(rebuilt.stats.segmentation.segments, 1);
-        // Same angular steps between consecutive beams; columns advance only at the seam.
-        for k in 0..x.len() - 1 {
-            let step = |image: &ScanImage| (image.row[k + 1] + rows - image.row[k]) % rows;
-            if known.image.column[k + 1] == known.image.column[k] {
-                assert_eq!(step(&rebuilt.image), step(&known.image), "point {k}");
-            }
-            let advance = rebuilt.image.column[k + 1] - rebuilt.image.column[k];
-            assert!(advance <= 1, "point {k}: {advance}");
-        }
-    }
-
-    /// Beams that do not lie in one plane are not a rotating scanner's: no angles are made up.
-    #[test]
-    fn scattered_beams_give_no_reconstructed_angles() {
-        let times: Vec<f64> = (0..=10).map(|i| i as f64 * 0.1).collect();
-        let positions = times.iter().map(|t| Vec3::new(*t, 0.0, 0.0)).collect();
-        let traj = Trajectory::new(times, positions, vec![[0.0; 3]; 11]).unwrap();
-        let mut cursor = GeometryCursor::new(&traj, &Vec3::zeros(), 0.5);
-        let (mut x, mut y, mut z, mut t) = (vec![], vec![], vec![], vec![]);
-        let mut head = vec![];
-        for k in 0..500 {
-            let time = k as f64 * 0.001;
-            // Directions spread over a sphere (golden-angle spiral).
-            let h = 1.0 - 2.0 * (k as f64 + 0.5) / 500.0;
-            let r = (1.0 - h * h).sqrt();
-            let phi = k as f64 * 2.399_963;
-            let p = [time + 5.0 * r * phi.cos(), 5.0 * r * phi.sin(), 5.0 * h];
-            head.push(cursor.at(time, p).unwrap().t0);
-            x.push(p[0]);
-            y.push(p[1]);
-            z.push(p[2]);
-            t.push(time);
-        }
-        let zeros = vec![0f32; x.len()];
-        let channel = vec![0u8; x.len()];
-        let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &zeros, channel: &channel };
-        assert!(scan_angles_missing(&zeros));
-        assert!(reconstructed_scan_angles(&head, &samples, &traj).is_none());
-    }
-
-    /// The cursor gives what the full interpolation gives (pose at t, rotation times lever arm,
-    /// arc length), in time order, backwards, at sample times and at both ends; outside the span
-    /// nothing.
-    #[test]
-    fn geometry_cursor_matches_the_interpolated_pose() {
-        let times: Vec<f64> = (0..50).map(|i| 100.0 + i as f64 * 0.01 + (i % 3) as f64 * 0.002).collect();
-        let positions = times.iter().map(|t| Vec3::new((t - 100.0) * 12.0, (t * 3.0).sin(), 0.1 * t)).collect();
-        // Mostly 0.3° per sample (the series branch), every fifth sample a 3° jump (closed form).
-        let rpy = (0..50)
-            .map(|i| {
-                [(i as f64 * 0.3).sin() * 0.2, i as f64 * 0.05, i as f64 * 0.3 + if i % 5 == 0 { 3.0 } else { 0.0 }]
-            })
-            .collect();
-        let traj = Trajectory::new(times.clone(), positions, rpy).unwrap();
-        let lever = Vec3::new(0.8, -0.4, 1.9);
-        let mut ts: Vec<f64> = (0..2000).map(|k| 100.0 + k as f64 * 0.000_26).filter(|t| *t <= times[49]).collect();
-        ts.extend(times.iter().copied());
-        ts.extend([times[49], times[0], 100.2345, 100.0001, times[49]]);
-        let mut cursor = GeometryCursor::new(&traj, &lever, 0.5);
-        let p = [3.0, 4.0, 5.0];
-        for &t in &ts {
-            let g = cursor.at(t, p).unwrap();
-            let pose = traj.pose_at(t).unwrap();
-            let t0 = pose.position + pose.rotation * lever;
-            for k in 0..3 {
-                assert!((g.t0[k] - t0[k]).abs() < 1e-12, "t {t}: {:?} vs {t0:?}", g.t0);
-                assert!((g.r[k] - (p[k] - t0[k])).abs() < 1e-12);
-            }
-            let u = traj.arc_length_at(t).unwrap() / 0.5;
-            assert_eq!(g.anchor, u.floor() as u32, "t {t}");
-            assert!((g.lambda as f64 - u.fract()).abs() < 1e-6, "t {t}");
-        }
-        assert!(cursor.at(times[0] - 1e-9, p).is_none());
-        assert!(cursor.at(times[49] + 1e-9, p).is_none());
-        assert!(cursor.at(f64::NAN, p).is_none());
-        assert!(cursor.at(100.3, p).is_some());
-    }
-
-    #[test]
-    fn uncovered_and_unordered_points_are_reported() {
-        let traj =
-            Trajectory::new(vec![0.0, 1.0], vec![Vec3::zeros(), Vec3::new(1.0, 0.0, 0.0)], vec![[0.0; 3]; 2]).unwrap();
-        let params = Parameters::default();
-        let segment = SegmentParams::default();
-        let ctx = StripContext {
-            strip: 0,
-            trajectory: 0,
-            trajectory_data: &traj,
-            lever_arm: Vec3::zeros(),
-            params: &params,
-            segment: &segment,
-        };
-        let xs = [0.0, 0.0];
-        let ch = [0u8, 0];
-        let samples =
-            StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 2.0], scan_angle_deg: &[0.0, 1.0], channel: &ch };
-        assert_eq!(
-            prepare_strip(&samples, &ctx).unwrap_err(),
-            PrepareError::NotCovered { index: 1, time: 2.0, start: 0.0, end: 1.0 }
-        );
-        let samples =
-            StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 0.4], scan_angle_deg: &[0.0, 1.0], channel: &ch };
-        assert!(matches!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotInOrder { index: 1, .. }));
-        let samples = StripSamples {
-            x: &[0.0, f64::NAN],
-            y: &xs,
-            z: &xs,
-            gps_time: &[0.5, 0.6],
-            scan_angle_deg: &[0.0, 1.0],
-            channel: &ch,
-        };
-        assert_eq!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotFinite { index: 1, field: "x" });
-    }
-}
+mod tests;

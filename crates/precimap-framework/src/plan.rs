@@ -20,7 +20,7 @@ use precimap_jobs::{
     StagePlanner, StageSpan, StageSpec, StripRecord, TileRecord, TrajectoryRecord, Transition,
 };
 use precimap_pipeline::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
-use precimap_pipeline::{after_iteration, effective_step, iteration_report, AfterIteration, Place};
+use precimap_pipeline::{after_iteration, effective_step, iteration_report, overlap_problem, AfterIteration, Place};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -603,6 +603,13 @@ impl StagePlanner for CampaignPlanner {
                 (tiles, task_s) = after_prepare(&mut state, &finished.tasks)?;
                 state.prepare_s = wall_seconds(finished, task_s);
                 if state.tiles.is_empty() {
+                    let ids: Vec<&str> = state.strips.iter().map(|s| s.id.as_str()).collect();
+                    if let Some(problem) = overlap_problem(0, None, &ids) {
+                        if !state.params.allow_low_usable_share {
+                            return Err(problem);
+                        }
+                        tracing::warn!("campaign {}: {problem}", state.name);
+                    }
                     // Nothing overlaps: every correction stays zero.
                     export_stage(&state)
                 } else {
@@ -1005,7 +1012,15 @@ fn after_solve(
             }
         }
         AfterIteration::Done { converged } => {
-            state.converged = converged;
+            let ids: Vec<&str> = state.strips.iter().map(|s| s.id.as_str()).collect();
+            let problem = overlap_problem(state.tiles.len(), state.iterations.last(), &ids);
+            if let Some(problem) = &problem {
+                if !state.params.allow_low_usable_share {
+                    return Err(problem.clone());
+                }
+                tracing::warn!("campaign {}: {problem}", state.name);
+            }
+            state.converged = converged && problem.is_none();
             export_stage(state)
         }
     };

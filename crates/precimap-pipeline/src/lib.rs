@@ -15,6 +15,6 @@ pub use campaign::Campaign;
 pub use error::PipelineError;
 pub use report::Report;
 pub use run::{
-    after_iteration, effective_step, iteration_report, run_campaign, trajectory_report, AfterIteration, Place,
-    Progress, RunOptions,
+    after_iteration, effective_step, iteration_report, overlap_problem, run_campaign, trajectory_report,
+    AfterIteration, Place, Progress, RunOptions,
 };

@@ -30,6 +30,16 @@ pub struct StripReport {
     /// The strip had no scan angles; its scan image was built from reconstructed ones.
     #[serde(default)]
     pub scan_angles_reconstructed: bool,
+    /// Points with a normal and a segment within `max_range_m` (what `min_usable_share` is
+    /// measured on).
+    #[serde(default)]
+    pub points_usable: u64,
+    /// Where the normals came from: `scan_image` or `neighbours` (3-D neighbours).
+    #[serde(default)]
+    pub normal_source: precimap_core::NormalSource,
+    /// Why the scan image was not used, under `normals: auto`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scan_image_refused: Option<String>,
     pub tiles: usize,
 }
 
@@ -44,6 +54,9 @@ impl StripReport {
             revolutions: stats.revolutions,
             rows_per_revolution: stats.rows_per_revolution,
             scan_angles_reconstructed: stats.scan_angles_reconstructed,
+            points_usable: stats.points_usable,
+            normal_source: stats.normal_source,
+            scan_image_refused: stats.scan_image_refused.clone(),
             tiles,
         }
     }

@@ -83,6 +83,13 @@ pub fn prepare_all(
         points_total += outcome.stats.points;
         strips.push(StripReport::new(&entry.id, &outcome.stats, outcome.tiles.len()));
     }
+    let ids: Vec<&str> = campaign.strips.iter().map(|s| s.id.as_str()).collect();
+    if let Some(problem) = overlap_problem(tiles.len(), None, &ids) {
+        if !campaign.params.allow_low_usable_share {
+            return Err(PipelineError::Input { what: format!("campaign {}", campaign.name), message: problem });
+        }
+        tracing::warn!("campaign {}: {problem}", campaign.name);
+    }
     // A trajectory without strips keeps one zero anchor (it is exported unchanged).
     for r in &mut anchor_ranges {
         if r.0 == u32::MAX {
@@ -309,7 +316,19 @@ pub fn run_campaign(
                 step_index = next;
             }
             AfterIteration::Done { converged: c } => {
-                converged = c;
+                let ids: Vec<&str> = campaign.strips.iter().map(|s| s.id.as_str()).collect();
+                let problem = overlap_problem(prepared.tiles.len(), iterations.last(), &ids);
+                if let Some(problem) = &problem {
+                    if !campaign.params.allow_low_usable_share {
+                        return Err(PipelineError::Input {
+                            what: format!("campaign {}", campaign.name),
+                            message: problem.clone(),
+                        });
+                    }
+                    tracing::warn!("campaign {}: {problem}", campaign.name);
+                }
+                // Nothing observed is nothing adjusted, however still the corrections stood.
+                converged = c && problem.is_none();
                 break;
             }
         }
@@ -501,6 +520,33 @@ pub fn iteration_report(
         anderson_coefficients: Vec::new(),
         seconds,
     }
+}
+
+/// Why a campaign cannot be adjusted, shared by both drivers: after preparation (`last`:
+/// `None`) no tile holds a usable point; after the last iteration, it observed no point (no
+/// surface seen by two passes within the threshold). `strips`: the campaign's strip ids.
+pub fn overlap_problem(tiles: usize, last: Option<&IterationReport>, strips: &[&str]) -> Option<String> {
+    let names = if strips.len() > 8 {
+        format!("{} and {} more", strips[..8].join(", "), strips.len() - 8)
+    } else {
+        strips.join(", ")
+    };
+    if tiles == 0 {
+        return Some(format!(
+            "no usable point in any strip ({names}): no strip yielded a point with a normal and a segment; \
+             see each strip's points_usable in the log"
+        ));
+    }
+    let last = last?;
+    (last.points_used == 0).then(|| {
+        format!(
+            "no overlap: the last iteration observed no point among the strips ({names}); no surface was seen by \
+             two passes within its threshold {:.3} m. \
+             Check that the strips cover the same place and that their trajectories are in one coordinate system \
+             and time base; parameters.allow_low_usable_share goes on regardless",
+            last.threshold_m
+        )
+    })
 }
 
 /// What follows an iteration on schedule step `step_index`.

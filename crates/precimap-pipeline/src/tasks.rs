@@ -7,6 +7,7 @@ use crate::error::PipelineError;
 use precimap_core::corrections::{apply, AnchorCovariance, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey, Vec3};
+use precimap_estimate::usable_share_problem;
 use precimap_estimate::{
     estimate_tile_recording, prepare_strip_observed, AnchorBlock, GeometryCursor, LatentGather, PreparePhase,
     PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate,
@@ -119,11 +120,19 @@ fn prepare_strip_chunks_observed(
         params,
         segment: segment_params,
     };
-    prepare_strip_observed(&samples, &ctx, phase_done).map_err(|source| PipelineError::Prepare {
+    let prepared = prepare_strip_observed(&samples, &ctx, phase_done).map_err(|source| PipelineError::Prepare {
         strip: entry.id.clone(),
         path: entry.path.clone(),
         source,
-    })
+    })?;
+    if let Some(problem) = usable_share_problem(&prepared.stats, params.min_usable_share) {
+        let what = format!("strip {} ({})", entry.id, entry.path.display());
+        if !params.allow_low_usable_share {
+            return Err(PipelineError::Input { what, message: problem });
+        }
+        tracing::warn!("{what}: {problem}");
+    }
+    Ok(prepared)
 }
 
 /// Reads the chunks of one tile (strips in the given order).

@@ -4,15 +4,19 @@
 //! surface relative to the noise, jump relative to the beam spacing) and C1 (normal angle)
 //! continuity, and the Felzenszwalb–Huttenlocher graph segmentation ([`segment`]) groups them
 //! into continuous regions; regions smaller than a threshold (tree foliage, noise) are removed.
+//! A strip whose pattern makes no scan image gets the same from its neighbours in 3-D
+//! ([`segment_unordered`]).
 //!
 //! Pure: slices in, vectors out, no I/O. Memory is a few words per point of one strip.
 
 mod fh;
 mod image;
+mod neighbours;
 mod normals;
 
 pub use fh::{felzenszwalb_huttenlocher, felzenszwalb_huttenlocher_from, UnionFind};
 pub use image::{ScanImage, DROPPED, NO_POINT};
+pub use neighbours::{segment_unordered, UnorderedSegmentation};
 pub use normals::{estimate_normals, NormalMethod, PixelNormal};
 
 /// Segment id of a point that belongs to no segment (no normal, or a removed small region).
@@ -22,6 +26,7 @@ pub const DROPPED_SEGMENT: u32 = u32::MAX - 1;
 
 /// Parameters of the segmentation; the defaults are what the simulated campaigns were tuned with.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct SegmentParams {
     /// Half-width of the image window of the normal fit: the 3×3 ring plus the pixels along the
     /// row and column out to this distance (2 → 12 neighbours), at most 8.
@@ -54,6 +59,12 @@ pub struct SegmentParams {
     /// heavier than `merge_max`, i.e. within the noise).
     pub min_region_points: u32,
     pub merge_max: f64,
+    /// Neighbours per point of the 3-D neighbour fallback ([`segment_unordered`]): its plane fit
+    /// and its segmentation graph, at most 32.
+    pub neighbours: u32,
+    /// The fallback's neighbours are measured at most this far apart in time (seconds): points of
+    /// one pass, never the same place seen again later in the strip.
+    pub neighbour_max_dt_s: f64,
 }
 
 impl Default for SegmentParams {
@@ -73,6 +84,8 @@ impl Default for SegmentParams {
             fh_k: 3.0,
             min_region_points: 15,
             merge_max: 1.0,
+            neighbours: 12,
+            neighbour_max_dt_s: 2.0,
         }
     }
 }
@@ -150,19 +163,30 @@ pub fn segment_with_normals(
             *id = DROPPED_SEGMENT;
         }
     }
+    let in_image = image.column.iter().filter(|&&c| c != DROPPED).count() as u64;
+    finish_segmentation(normals, segment, in_image)
+}
+
+/// A segmentation's statistics from its normals and regions (`points_in_image`: the points that
+/// took part).
+pub(crate) fn finish_segmentation(
+    normals: Vec<Option<PixelNormal>>,
+    regions: Regions,
+    points_in_image: u64,
+) -> Segmentation {
     let mut stats = SegmentStats {
-        points_in_image: image.column.iter().filter(|&&c| c != DROPPED).count() as u64,
+        points_in_image,
         points_with_normal: normals.iter().filter(|n| n.is_some()).count() as u64,
         ..Default::default()
     };
-    stats.points_segmented = segment.ids.iter().filter(|&&s| s < DROPPED_SEGMENT).count() as u64;
+    stats.points_segmented = regions.ids.iter().filter(|&&s| s < DROPPED_SEGMENT).count() as u64;
     stats.points_in_small_regions = stats.points_with_normal - stats.points_segmented;
-    stats.regions = segment.regions;
-    stats.segments = segment.segments;
-    Segmentation { normals, segment: segment.ids, stats }
+    stats.regions = regions.regions;
+    stats.segments = regions.segments;
+    Segmentation { normals, segment: regions.ids, stats }
 }
 
-struct Regions {
+pub(crate) struct Regions {
     ids: Vec<u32>,
     regions: u64,
     segments: u64,
@@ -263,8 +287,15 @@ fn segment(
             link(grid[pixel + rows]);
         }
     }
-    let mut uf =
-        felzenszwalb_huttenlocher_from(uf, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
+    let uf = felzenszwalb_huttenlocher_from(uf, edges, params.fh_k, params.min_region_points, params.merge_max as f32);
+    label_regions(uf, normals, params.min_region_points)
+}
+
+/// Dense segment ids (in order of first point) of the components of `uf` with at least
+/// `min_region_points` points; points without a normal and those of smaller components get
+/// [`NO_SEGMENT`].
+pub(crate) fn label_regions(mut uf: UnionFind, normals: &[Option<PixelNormal>], min_region_points: u32) -> Regions {
+    let n = normals.len();
     let mut ids = vec![NO_SEGMENT; n];
     let mut label: Vec<u32> = vec![NO_SEGMENT; n];
     let (mut regions, mut segments) = (0u64, 0u64);
@@ -275,7 +306,7 @@ fn segment(
         let root = uf.find(k as u32) as usize;
         if label[root] == NO_SEGMENT {
             regions += 1;
-            if uf.size(root as u32) >= params.min_region_points {
+            if uf.size(root as u32) >= min_region_points {
                 label[root] = segments as u32;
                 segments += 1;
             } else {

@@ -347,11 +347,42 @@ pub fn estimate_normals(
     out
 }
 
+/// The plane through the origin (a centre point) and neighbours `rel` (relative to it, at most
+/// [`MAX_NEIGHBOURS`]; more are ignored), by `method`, with the planarity test of the scan-image
+/// fit: the normal of a point whose neighbours come from somewhere other than a scan image.
+pub(crate) fn fit_neighbourhood(
+    rel: &[[f32; 3]],
+    tol: f32,
+    seed: u64,
+    params: &SegmentParams,
+    budget: &Budget,
+) -> Option<[f64; 3]> {
+    let mut cand = Candidates::new();
+    for q in rel.iter().take(MAX_NEIGHBOURS) {
+        let i = cand.m;
+        (cand.x[i], cand.y[i], cand.z[i]) = (q[0], q[1], q[2]);
+        cand.len2[i] = q[0] * q[0] + q[1] * q[1] + q[2] * q[2];
+        cand.slot[i] = i as u8;
+        cand.m += 1;
+    }
+    if cand.m + 1 < params.min_inliers as usize {
+        return None;
+    }
+    cand.close();
+    match params.method {
+        NormalMethod::LeastSquares => plane_fit((0..cand.m).map(|i| cand.point(i))),
+        NormalMethod::Ransac => ransac(&cand, tol, seed, params.min_inliers, budget, &[]),
+    }
+}
+
+/// Most neighbours [`fit_neighbourhood`] uses.
+pub(crate) const MAX_FIT_NEIGHBOURS: usize = MAX_NEIGHBOURS;
+
 /// RANSAC's adaptive stopping rule: once the best plane holds a share w of the neighbours, a
 /// further hypothesis is all-inlier with probability ≈ w², so after N = ln(1 − p) / ln(1 − w²)
 /// hypotheses one of them was with probability p = 99 %: more would most likely find the same
 /// plane again (a pixel next to an edge, whose own side has 50–75 % of the window).
-struct Budget {
+pub(crate) struct Budget {
     /// `[m][inliers]` → hypotheses, at most [`HYPOTHESES`].
     table: Vec<[u32; MAX_NEIGHBOURS + 2]>,
 }
@@ -359,7 +390,7 @@ struct Budget {
 impl Budget {
     const CONFIDENCE: f64 = 0.99;
 
-    fn new() -> Self {
+    pub(crate) fn new() -> Self {
         let table = (0..=MAX_NEIGHBOURS)
             .map(|m| {
                 let mut row = [HYPOTHESES; MAX_NEIGHBOURS + 2];
