@@ -10,6 +10,7 @@ mod error;
 pub mod latent_map;
 pub mod manifest;
 pub mod segments;
+mod sniff;
 pub mod strip;
 pub mod trajectory_csv;
 
