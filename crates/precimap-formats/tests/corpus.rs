@@ -102,11 +102,7 @@ fn independent_check(python: &str, src: &Path, dst: &Path) -> Result<(), String>
     if out.status.success() {
         Ok(())
     } else {
-        Err(format!(
-            "laspy + LASzip: {}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        ))
+        Err(format!("laspy + LASzip: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
     }
 }
 
@@ -141,7 +137,11 @@ fn compare_with_las(src: &Path, dst: &Path, raised: bool) -> Result<(), String> 
         return Err(format!("version {}, expected {version}", hb.version()));
     }
     if ha.transforms() != hb.transforms() || ha.number_of_points() != hb.number_of_points() {
-        return Err(format!("transforms or point count differ ({} vs {})", hb.number_of_points(), ha.number_of_points()));
+        return Err(format!(
+            "transforms or point count differ ({} vs {})",
+            hb.number_of_points(),
+            ha.number_of_points()
+        ));
     }
     if !raised && points_by_return(src) != points_by_return(dst) {
         return Err(format!("points by return {:?}, source {:?}", points_by_return(dst), points_by_return(src)));
@@ -384,7 +384,10 @@ fn constant_or_non_increasing_gps_time_is_refused() {
     // Interleaved channels go back and forth but advance: accepted.
     let path = dir.path().join("interleaved.las");
     let mut interleaved = points(500);
-    interleaved.iter_mut().enumerate().for_each(|(i, p)| p.gps_time = Some(10.0 + (i / 2) as f64 - (i % 2) as f64 * 0.5));
+    interleaved
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, p)| p.gps_time = Some(10.0 + (i / 2) as f64 - (i % 2) as f64 * 0.5));
     write_las(&path, (1, 2), 1, &interleaved);
     assert_eq!(read_strip(&path).unwrap().len(), 500);
 }

@@ -58,7 +58,10 @@ pub(super) fn plan_output(path: &Path, source: &Header, compressed: bool) -> Res
         Ok(header) => Ok(header),
         Err(first) if source.version() < las14 => {
             let header = output_header(source, compressed, Some(las14)).and_then(dry_run).map_err(|e| {
-                FormatError::file(path, format!("cannot be written back ({first}; as LAS 1.4: {e}); re-export the strip"))
+                FormatError::file(
+                    path,
+                    format!("cannot be written back ({first}; as LAS 1.4: {e}); re-export the strip"),
+                )
             })?;
             tracing::warn!(strip = %path.display(), reason = %first, "the corrected strip will be LAS 1.4");
             Ok(header)
@@ -99,7 +102,10 @@ pub fn rewrite_strip_timed(
 enum Stop {
     Failed(FormatError),
     /// A return number the output's LAS version cannot count.
-    ReturnNumber { index: u64, value: u8 },
+    ReturnNumber {
+        index: u64,
+        value: u8,
+    },
 }
 
 impl From<FormatError> for Stop {
@@ -124,8 +130,9 @@ fn rewrite(
         Ok(n) => Ok(n),
         Err(Stop::Failed(e)) => Err(e),
         Err(Stop::ReturnNumber { index, value }) => {
-            let raised = output_header(&source, compressed, Some(Version::new(1, 4)))
-                .map_err(|e| FormatError::file(src, format!("cannot be written back as LAS 1.4 ({e}); re-export it")))?;
+            let raised = output_header(&source, compressed, Some(Version::new(1, 4))).map_err(|e| {
+                FormatError::file(src, format!("cannot be written back as LAS 1.4 ({e}); re-export it"))
+            })?;
             tracing::warn!(
                 strip = %src.display(),
                 point = index,
@@ -151,8 +158,11 @@ fn rewrite_as(
     let mut source = Source::open(src)?;
     let format = *source.header.point_format();
     // Records without GPS time pass NaN; only the timed variant reads it, and it refuses them.
-    let gps_at = (need_time && format.has_gps_time)
-        .then_some(if format.is_extended { layout::EXT_GPS } else { layout::LEGACY_GPS });
+    let gps_at = (need_time && format.has_gps_time).then_some(if format.is_extended {
+        layout::EXT_GPS
+    } else {
+        layout::LEGACY_GPS
+    });
     let legacy_returns = !format.is_extended && header.version() < Version::new(1, 4);
     let t = *header.transforms();
     let mut out = OutStrip::create(dst, header)?;
