@@ -9,7 +9,9 @@
 #       garage: Garage, a distributed S3 server run as a single node on 127.0.0.1:3900;
 #         `cargo install garage` on first use (8 min on a fast machine, 28-77 min on a shared
 #         2-core one);
-#   - headless Chromium for the dashboard test (Debian's package, installed on first use).
+#   - headless Chromium for the dashboard test (Debian's package, installed on first use);
+#   - a Python with laspy and LASzip, the independent reader the LAS/LAZ corpus test checks
+#     rewritten files with (a cached virtualenv from PyPI, installed on first use).
 # `--install-only` installs what is missing and starts nothing.
 set -euo pipefail
 log() { echo "services: $*" >&2; }
@@ -113,8 +115,20 @@ TOML
     sleep 1
 }
 
+# The LAS/LAZ corpus test's independent reader: laspy over LASzip (C++), no code shared with
+# the Rust las/laz crates.
+LASPY_VENV=${PRECIMAP_LASPY_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/precimap/laspy-venv}
+install_laspy() {
+    if ! "$LASPY_VENV/bin/python" -c 'import laspy, laszip' 2>/dev/null; then
+        log "installing laspy and laszip into $LASPY_VENV (first time only)"
+        python3 -m venv "$LASPY_VENV" >&2
+        "$LASPY_VENV/bin/pip" install --quiet --disable-pip-version-check laspy==2.7.0 laszip==0.3.0 >&2
+    fi
+}
+
 install_s3_server
 install_chromium
+install_laspy
 [ "${1:-}" = --install-only ] && exit 0
 
 if ! pg_isready -h 127.0.0.1 -p 5432 -q 2>/dev/null; then
@@ -144,6 +158,7 @@ export PRECIMAP_TEST_CHROMIUM=$CHROMIUM
 export PRECIMAP_TEST_CHROMEDRIVER=$CHROMEDRIVER
 export PRECIMAP_TEST_POSTGRES=postgres://postgres@127.0.0.1:5432/postgres
 export PRECIMAP_TEST_S3=s3://$BUCKET/test
+export PRECIMAP_TEST_LASPY=$LASPY_VENV/bin/python
 export AWS_ACCESS_KEY_ID=$ACCESS_KEY
 export AWS_SECRET_ACCESS_KEY=$SECRET_KEY
 export AWS_REGION=$REGION

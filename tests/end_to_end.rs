@@ -422,6 +422,36 @@ fn the_binary_runs_the_documented_commands() {
     assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
 }
 
+/// A failed run names the strip as the manifest does (never the job store's copy of it) and
+/// leaves no working copies behind, on both drivers, unless `--keep-work`.
+#[test]
+fn a_failed_run_names_the_manifests_file_and_leaves_no_copies() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 8);
+    let las = campaign.join("strips/v02-right.las");
+    let bytes = std::fs::read(&las).unwrap();
+    std::fs::write(&las, &bytes[..bytes.len() / 2]).unwrap();
+    let exe = env!("CARGO_BIN_EXE_precimap");
+    for (args, leftover) in [(&[][..], ".precimap"), (&["--in-process"][..], "work")] {
+        for keep in [false, true] {
+            let out = dir.path().join(format!("out-{leftover}-{keep}"));
+            let mut cmd = std::process::Command::new(exe);
+            cmd.arg("run").arg(campaign.join("manifest.json")).arg("--out").arg(&out).args(args);
+            if keep {
+                cmd.arg("--keep-work");
+            }
+            let output = cmd.output().unwrap();
+            assert_eq!(output.status.code(), Some(1));
+            let stderr = String::from_utf8_lossy(&output.stderr);
+            // The message (the log lines above it are for operators and name store keys).
+            let error = stderr.lines().find(|l| l.starts_with("error:")).unwrap_or_default();
+            assert!(error.contains("strips/v02-right.las") && error.contains("truncated"), "{stderr}");
+            assert!(!error.contains("store") && !error.contains("inputs/") && !stderr.contains("panicked"), "{stderr}");
+            assert_eq!(out.join(leftover).exists(), keep, "{args:?} keep-work {keep}: {leftover}");
+        }
+    }
+}
+
 /// A truncated LAZ strip fails its own preparation task with an error naming the file and where
 /// it breaks; the other strips prepare normally.
 #[test]

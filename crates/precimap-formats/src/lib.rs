@@ -14,6 +14,7 @@ pub mod manifest;
 pub mod navigation;
 pub mod sbet;
 pub mod segments;
+mod sniff;
 pub mod strip;
 pub mod strip_crs;
 pub mod trajectory;

@@ -29,6 +29,9 @@ fn trim(line: &[u8]) -> &[u8] {
 fn parse(path: &Path, bytes: &[u8]) -> Result<Trajectory, FormatError> {
     // Spreadsheet exports often start with a UTF-8 byte-order mark; it is not part of the header.
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    if let Some(problem) = crate::sniff::binary_problem(bytes, "CSV trajectory") {
+        return Err(FormatError::file(path, problem));
+    }
     let mut lines = bytes.split(|&b| b == b'\n');
     check_header(path, lines.next().unwrap_or_default())?;
 

@@ -277,26 +277,60 @@ pub struct EmbeddedOptions {
 
 /// The embedded default: SQLite in `OUT/.precimap/jobs.db`, a file store in
 /// `OUT/.precimap/store`, `concurrency` in-process executors; results land in `OUT` exactly as
-/// the in-process driver writes them.
+/// the in-process driver writes them. Errors name inputs as the manifest does, and a failed run
+/// leaves no copies of them behind unless `keep_state`.
 pub async fn run_embedded(
     manifest_path: &Path,
     options: &EmbeddedOptions,
-    mut progress: impl FnMut(&RunStatus),
+    progress: impl FnMut(&RunStatus),
 ) -> Result<CampaignRecord, FrameworkError> {
     let state = options.out_dir.join(".precimap");
     if state.exists() {
         std::fs::remove_dir_all(&state).map_err(|e| FrameworkError::io(&state, e))?;
     }
     std::fs::create_dir_all(&state).map_err(|e| FrameworkError::io(&state, e))?;
-    let state = state.canonicalize().map_err(|e| FrameworkError::io(&state, e))?;
+    let result = run_embedded_in(&state, manifest_path, options, progress).await;
+    if result.is_err() && !options.keep_state {
+        // Best effort: the error being returned matters more than a leftover folder.
+        let _ = std::fs::remove_dir_all(&state);
+    }
+    result
+}
+
+/// Store keys of uploaded inputs and the URIs the user's manifest gave them, longest key first
+/// (so that no key is replaced inside a longer one).
+fn manifest_names(original: &Manifest, uploaded: &Manifest) -> Vec<(String, String)> {
+    let uris = |m: &Manifest| -> Vec<String> {
+        m.trajectories.iter().map(|t| t.uri.clone()).chain(m.strips.iter().map(|s| s.uri.clone())).collect()
+    };
+    let mut names: Vec<(String, String)> = uris(uploaded).into_iter().zip(uris(original)).collect();
+    names.sort_by_key(|(key, _)| std::cmp::Reverse(key.len()));
+    names
+}
+
+fn with_manifest_names(message: &str, names: &[(String, String)]) -> String {
+    names.iter().fold(message.to_string(), |m, (key, uri)| m.replace(key.as_str(), uri))
+}
+
+async fn run_embedded_in(
+    state: &Path,
+    manifest_path: &Path,
+    options: &EmbeddedOptions,
+    mut progress: impl FnMut(&RunStatus),
+) -> Result<CampaignRecord, FrameworkError> {
+    let state = state.canonicalize().map_err(|e| FrameworkError::io(state, e))?;
     let jobs = JobStore::connect(&format!("sqlite://{}", state.join("jobs.db").display())).await?;
     let objects = Objects::from_url(&format!("file://{}", state.join("store").display()))?;
     let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
+    let original = precimap_formats::load_manifest(manifest_path)?;
     let manifest = upload_local_inputs(&objects, manifest_path).await?;
+    let names = manifest_names(&original, &manifest);
     let id = match framework.submit(&manifest).await {
         Ok(id) => id,
         Err(SubmitError::Framework(e)) => return Err(e),
-        Err(e @ SubmitError::Invalid { .. }) => return Err(FrameworkError::Invalid(e.to_string())),
+        Err(e @ SubmitError::Invalid { .. }) => {
+            return Err(FrameworkError::Invalid(with_manifest_names(&e.to_string(), &names)))
+        }
     };
     let ctx = TaskContext::new(objects.clone(), state.join("scratch"));
     // `--keep-work` keeps the work files in the store beside the job database.
@@ -336,7 +370,7 @@ pub async fn run_embedded(
         return Err(FrameworkError::CampaignFailed {
             id,
             state: campaign.state.as_str().to_string(),
-            error: campaign.error.clone().unwrap_or_default(),
+            error: with_manifest_names(campaign.error.as_deref().unwrap_or_default(), &names),
         });
     }
     framework.download_results(id, &options.out_dir).await?;

@@ -80,9 +80,14 @@ impl TaskError {
         Self { permanent, message: e.to_string() }
     }
 
-    /// Prefixes the message with the store key of the input it concerns (local paths of a file
-    /// store or a scratch download mean nothing to the user).
-    pub fn naming(mut self, key: &str) -> Self {
+    /// Names the input by its store key, the name the manifest gave it: every mention of `local`
+    /// (the file store's copy or a scratch download, which mean nothing to the user) becomes the
+    /// key, and the message starts with the key if it did not name it.
+    pub fn naming(mut self, key: &str, local: &Path) -> Self {
+        let local = local.display().to_string();
+        if !local.is_empty() {
+            self.message = self.message.replace(&local, key);
+        }
         if !self.message.contains(key) {
             self.message = format!("{key}: {}", self.message);
         }

@@ -268,7 +268,7 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
             let field = t.field.clone();
             let data = blocking(move || read_trajectory_file(&path, field.as_ref()))
                 .await?
-                .map_err(|e| TaskError::permanent(format!("trajectory {} ({}): {e}", t.id, t.uri)))?;
+                .map_err(|e| TaskError::permanent(format!("trajectory {}: {e}", t.id)).naming(&t.uri, &local.path))?;
             let data = Arc::new(data);
             if let Some(file) = file {
                 ctx.trajectories.insert(file, Arc::clone(&data));
@@ -393,7 +393,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 })
             })
             .await?
-            .map_err(|e| TaskError::from_pipeline(e).naming(&strip.uri))?;
+            .map_err(|e| TaskError::from_pipeline(e).naming(&strip.uri, &local.path))?;
             drop(local);
             let (stats, chunks, segments) = prepared;
             let mut outputs = Vec::with_capacity(chunks.len() + 1);
@@ -669,7 +669,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 Ok(())
             })
             .await
-            .map_err(|e| e.naming(&strip.uri))?;
+            .map_err(|e| e.naming(&strip.uri, &local.path))?;
             drop(local);
             let result = ExportResult {
                 points: points.load(std::sync::atomic::Ordering::Relaxed),

@@ -227,7 +227,22 @@ pub fn iterate(
 }
 
 /// Runs a whole campaign in-process and writes `OUT/strips`, `OUT/trajectories`, `OUT/report.json`.
+/// A failed run leaves no working files (`OUT/work`) behind unless `keep_work`.
 pub fn run_campaign(
+    manifest: &Path,
+    options: &RunOptions,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<Report, PipelineError> {
+    let result = run_campaign_in(manifest, options, progress);
+    let work = options.out_dir.join("work");
+    if result.is_err() && !options.keep_work && work.exists() {
+        // Best effort: the error being returned matters more than a leftover folder.
+        let _ = std::fs::remove_dir_all(&work);
+    }
+    result
+}
+
+fn run_campaign_in(
     manifest: &Path,
     options: &RunOptions,
     progress: &(dyn Fn(Progress) + Sync),
