@@ -15,6 +15,155 @@ pub(super) struct Barrier {
     pub(super) state: CampaignState,
 }
 
+/// The stage's done tasks with their outputs, as the planner sees them (in `$tx`).
+macro_rules! finished_stage {
+    ($tx:ident, $id:expr, $stage:expr, $iteration:expr) => {{
+        let (id, stage, iteration): (Uuid, &str, i32) = ($id, $stage, $iteration);
+        let rows: Vec<FinishedRow> = sqlx::query_as(
+            "SELECT id, kind, key, result, created_at_ms, finished_at_ms FROM tasks \
+             WHERE campaign = $1 AND stage = $2 AND iteration = $3 AND state = 'done'",
+        )
+        .bind(id)
+        .bind(stage)
+        .bind(iteration)
+        .fetch_all(&mut *$tx)
+        .await?;
+        let outs: Vec<(i64, String, String)> = sqlx::query_as(
+            "SELECT o.task_id, o.name, o.object_key FROM task_outputs o JOIN tasks t ON t.id = o.task_id \
+             WHERE t.campaign = $1 AND t.stage = $2 AND t.iteration = $3 AND t.state = 'done'",
+        )
+        .bind(id)
+        .bind(stage)
+        .bind(iteration)
+        .fetch_all(&mut *$tx)
+        .await?;
+        let span_ms = stage_span(&rows);
+        FinishedStage { stage: stage.to_string(), iteration, tasks: finished_tasks(rows, outs), span_ms }
+    }};
+}
+
+/// Records what a transition carries besides its next step: the plan state, tiles and the
+/// iteration's statistics.
+macro_rules! record_transition {
+    ($self:ident, $tx:ident, $id:expr, $tr:expr) => {{
+        let (id, tr): (Uuid, &Transition) = ($id, $tr);
+        let set_plan = $self.sql("UPDATE campaigns SET plan_state = $2, updated_at_ms = NOW_MS WHERE id = $1");
+        sqlx::query(&set_plan).bind(id).bind(Json(&tr.plan_state)).execute(&mut *$tx).await?;
+        for t in &tr.tiles {
+            sqlx::query(
+                "INSERT INTO tiles (campaign, key, strips, points) VALUES ($1, $2, $3, $4) \
+                 ON CONFLICT (campaign, key) DO UPDATE SET strips = excluded.strips, points = excluded.points",
+            )
+            .bind(id)
+            .bind(&t.key)
+            .bind(Json(&t.strips))
+            .bind(t.points)
+            .execute(&mut *$tx)
+            .await?;
+        }
+        if let Some(it) = &tr.iteration {
+            let q = $self.sql(
+                "INSERT INTO iterations (campaign, iteration, stats, recorded_at_ms) VALUES ($1, $2, $3, NOW_MS) \
+                 ON CONFLICT (campaign, iteration) DO UPDATE SET stats = excluded.stats, \
+                 recorded_at_ms = excluded.recorded_at_ms",
+            );
+            sqlx::query(&q).bind(id).bind(it.iteration).bind(Json(&it.stats)).execute(&mut *$tx).await?;
+        }
+    }};
+}
+
+/// Moves the campaign to the stage `$spec` and enqueues its tasks: `Err(message)` if the
+/// planner's stage cannot be entered (the campaign must fail), else whether it has tasks.
+macro_rules! enter_stage {
+    ($self:ident, $tx:ident, $id:expr, $spec:expr) => {{
+        let (id, spec): (Uuid, &StageSpec) = ($id, $spec);
+        if let Err(msg) = check_unique_tasks(spec) {
+            Err(format!("planner: {msg}"))
+        } else {
+            let existing: i64 =
+                sqlx::query_scalar("SELECT count(*) FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3")
+                    .bind(id)
+                    .bind(&spec.stage)
+                    .bind(spec.iteration)
+                    .fetch_one(&mut *$tx)
+                    .await?;
+            if existing > 0 {
+                Err(format!("planner: stage {} iteration {} was already run", spec.stage, spec.iteration))
+            } else {
+                let q = $self.sql("UPDATE campaigns SET stage = $2, iteration = $3, updated_at_ms = NOW_MS WHERE id = $1");
+                sqlx::query(&q).bind(id).bind(&spec.stage).bind(spec.iteration).execute(&mut *$tx).await?;
+                let msg = format!("stage {} iteration {}: {} tasks", spec.stage, spec.iteration, spec.tasks.len());
+                event!($self, $tx, id, "stage", None::<i64>, &msg);
+                info!(campaign = %id, stage = %spec.stage, iteration = spec.iteration,
+                    tasks = spec.tasks.len(), "stage enqueued");
+                if !spec.tasks.is_empty() {
+                    insert_tasks!($self, $tx, id, spec);
+                }
+                Ok(!spec.tasks.is_empty())
+            }
+        }
+    }};
+}
+
+/// Runs the planner from the finished stage `$finished` and applies its transitions until one
+/// enqueues tasks or ends the campaign (stages without tasks are finished at once); evaluates to
+/// the campaign's state afterwards.
+macro_rules! apply_plan {
+    ($self:ident, $tx:ident, $campaign:ident, $finished:expr, $planner:expr) => {{
+        let id = $campaign.id;
+        let planner: &dyn StagePlanner = $planner;
+        let mut planned = planner.plan(&$campaign, &$finished);
+        let mut empty_stages = 0;
+        loop {
+            let tr = match planned {
+                Err(msg) => {
+                    fail_campaign!($self, $tx, id, &msg);
+                    break CampaignState::Failed;
+                }
+                Ok(tr) => tr,
+            };
+            record_transition!($self, $tx, id, &tr);
+            $campaign.plan_state = tr.plan_state;
+            let spec = match tr.next {
+                Next::Succeed => {
+                    let q = $self.sql(
+                        "UPDATE campaigns SET state = 'succeeded', updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
+                         WHERE id = $1",
+                    );
+                    sqlx::query(&q).bind(id).execute(&mut *$tx).await?;
+                    event!($self, $tx, id, "succeeded", None::<i64>, "campaign succeeded");
+                    info!(campaign = %id, "campaign succeeded");
+                    break CampaignState::Succeeded;
+                }
+                Next::Fail(msg) => {
+                    fail_campaign!($self, $tx, id, &msg);
+                    break CampaignState::Failed;
+                }
+                Next::Stage(spec) => spec,
+            };
+            match enter_stage!($self, $tx, id, &spec) {
+                Err(msg) => {
+                    fail_campaign!($self, $tx, id, &msg);
+                    break CampaignState::Failed;
+                }
+                Ok(true) => break CampaignState::Running,
+                Ok(false) => {}
+            }
+            // A stage without tasks is finished at once: plan again from it.
+            empty_stages += 1;
+            if empty_stages > MAX_EMPTY_STAGES {
+                let msg = format!("planner produced {MAX_EMPTY_STAGES} stages without tasks in a row");
+                fail_campaign!($self, $tx, id, &msg);
+                break CampaignState::Failed;
+            }
+            $campaign.stage = spec.stage.clone();
+            $campaign.iteration = spec.iteration;
+            let finished = FinishedStage { stage: spec.stage, iteration: spec.iteration, tasks: Vec::new(), span_ms: None };
+            planned = planner.plan(&$campaign, &finished);
+        }
+    }};
+}
+
 impl JobStore {
     /// The stage barrier: if the campaign is running at `stage`/`iteration` and that stage has no
     /// open (queued or leased) task left, runs the planner on the stage's results and applies its
@@ -51,129 +200,13 @@ impl JobStore {
             if !current || open {
                 Barrier { advanced: false, state: campaign.state }
             } else {
-                let rows: Vec<FinishedRow> = sqlx::query_as(
-                    "SELECT id, kind, key, result, created_at_ms, finished_at_ms FROM tasks \
-                     WHERE campaign = $1 AND stage = $2 AND iteration = $3 AND state = 'done'",
-                )
-                .bind(id)
-                .bind(stage)
-                .bind(iteration)
-                .fetch_all(&mut *tx)
-                .await?;
-                let outs: Vec<(i64, String, String)> = sqlx::query_as(
-                    "SELECT o.task_id, o.name, o.object_key FROM task_outputs o JOIN tasks t ON t.id = o.task_id \
-                     WHERE t.campaign = $1 AND t.stage = $2 AND t.iteration = $3 AND t.state = 'done'",
-                )
-                .bind(id)
-                .bind(stage)
-                .bind(iteration)
-                .fetch_all(&mut *tx)
-                .await?;
-                let span_ms = stage_span(&rows);
-                let mut finished =
-                    FinishedStage { stage: stage.to_string(), iteration, tasks: finished_tasks(rows, outs), span_ms };
+                let finished = finished_stage!(tx, id, stage, iteration);
                 if rescue {
                     let msg = format!("stage {stage} iteration {iteration}: all {} tasks done but the stage was not \
                         advanced (its last completer stopped before the barrier); advancing it", finished.tasks.len());
                     event!(self, tx, id, "stage_rescued", None::<i64>, &msg);
                 }
-                let mut planned = planner.plan(&campaign, &finished);
-                let mut empty_stages = 0;
-                let state = loop {
-                    let tr = match planned {
-                        Err(msg) => {
-                            fail_campaign!(self, tx, id, &msg);
-                            break CampaignState::Failed;
-                        }
-                        Ok(tr) => tr,
-                    };
-                    let set_plan = self.sql("UPDATE campaigns SET plan_state = $2, updated_at_ms = NOW_MS WHERE id = $1");
-                    sqlx::query(&set_plan).bind(id).bind(Json(&tr.plan_state)).execute(&mut *tx).await?;
-                    for t in &tr.tiles {
-                        sqlx::query(
-                            "INSERT INTO tiles (campaign, key, strips, points) VALUES ($1, $2, $3, $4) \
-                             ON CONFLICT (campaign, key) DO UPDATE SET strips = excluded.strips, points = excluded.points",
-                        )
-                        .bind(id)
-                        .bind(&t.key)
-                        .bind(Json(&t.strips))
-                        .bind(t.points)
-                        .execute(&mut *tx)
-                        .await?;
-                    }
-                    if let Some(it) = &tr.iteration {
-                        let q = self.sql(
-                            "INSERT INTO iterations (campaign, iteration, stats, recorded_at_ms) VALUES ($1, $2, $3, NOW_MS) \
-                             ON CONFLICT (campaign, iteration) DO UPDATE SET stats = excluded.stats, \
-                             recorded_at_ms = excluded.recorded_at_ms",
-                        );
-                        sqlx::query(&q).bind(id).bind(it.iteration).bind(Json(&it.stats)).execute(&mut *tx).await?;
-                    }
-                    campaign.plan_state = tr.plan_state;
-                    match tr.next {
-                        Next::Succeed => {
-                            let q = self.sql(
-                                "UPDATE campaigns SET state = 'succeeded', updated_at_ms = NOW_MS, finished_at_ms = NOW_MS \
-                                 WHERE id = $1",
-                            );
-                            sqlx::query(&q).bind(id).execute(&mut *tx).await?;
-                            event!(self, tx, id, "succeeded", None::<i64>, "campaign succeeded");
-                            info!(campaign = %id, "campaign succeeded");
-                            break CampaignState::Succeeded;
-                        }
-                        Next::Fail(msg) => {
-                            fail_campaign!(self, tx, id, &msg);
-                            break CampaignState::Failed;
-                        }
-                        Next::Stage(spec) => {
-                            if let Err(msg) = check_unique_tasks(&spec) {
-                                fail_campaign!(self, tx, id, &format!("planner: {msg}"));
-                                break CampaignState::Failed;
-                            }
-                            let existing: i64 = sqlx::query_scalar(
-                                "SELECT count(*) FROM tasks WHERE campaign = $1 AND stage = $2 AND iteration = $3",
-                            )
-                            .bind(id)
-                            .bind(&spec.stage)
-                            .bind(spec.iteration)
-                            .fetch_one(&mut *tx)
-                            .await?;
-                            if existing > 0 {
-                                let msg = format!("planner: stage {} iteration {} was already run", spec.stage, spec.iteration);
-                                fail_campaign!(self, tx, id, &msg);
-                                break CampaignState::Failed;
-                            }
-                            let q = self.sql(
-                                "UPDATE campaigns SET stage = $2, iteration = $3, updated_at_ms = NOW_MS WHERE id = $1",
-                            );
-                            sqlx::query(&q).bind(id).bind(&spec.stage).bind(spec.iteration).execute(&mut *tx).await?;
-                            let msg = format!("stage {} iteration {}: {} tasks", spec.stage, spec.iteration, spec.tasks.len());
-                            event!(self, tx, id, "stage", None::<i64>, &msg);
-                            info!(campaign = %id, stage = %spec.stage, iteration = spec.iteration,
-                                tasks = spec.tasks.len(), "stage enqueued");
-                            if !spec.tasks.is_empty() {
-                                insert_tasks!(self, tx, id, &spec);
-                                break CampaignState::Running;
-                            }
-                            // A stage without tasks is finished at once: plan again from it.
-                            empty_stages += 1;
-                            if empty_stages > MAX_EMPTY_STAGES {
-                                let msg = format!("planner produced {MAX_EMPTY_STAGES} stages without tasks in a row");
-                                fail_campaign!(self, tx, id, &msg);
-                                break CampaignState::Failed;
-                            }
-                            campaign.stage = spec.stage.clone();
-                            campaign.iteration = spec.iteration;
-                            finished = FinishedStage {
-                                stage: spec.stage,
-                                iteration: spec.iteration,
-                                tasks: Vec::new(),
-                                span_ms: None,
-                            };
-                            planned = planner.plan(&campaign, &finished);
-                        }
-                    }
-                };
+                let state = apply_plan!(self, tx, campaign, finished, planner);
                 Barrier { advanced: true, state }
             }
         });

@@ -93,127 +93,9 @@ impl JobStore {
         if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
             return Err(JobError::Invalid(format!("output name `{}` given twice", w[0])));
         }
-        let token = Uuid::new_v4();
         let (stage_open, claimed) = match &self.pool {
-            Pool::Postgres(p) => {
-                // The guarded update, the outputs (a JSON array) and the event in one statement,
-                // committed on its own (one round trip). The campaign row is read, not locked: the
-                // task row is where this races with cancelling, failing or rescuing, since each of
-                // those changes every open task of the campaign (and a stage advances only once none
-                // is open). With `next`, the same statement claims a task, only if the completion
-                // went through (`EXISTS (SELECT 1 FROM d)`): a stale token claims nothing.
-                let (updated, claimed) = match next {
-                    None => {
-                        let q = self.sql(&format!("WITH {PG_DONE_CTES} SELECT count(*) FROM d"));
-                        let updated: i64 = sqlx::query_scalar(&q)
-                            .bind(task.id)
-                            .bind(task.lease_token)
-                            .bind(Json(&outcome.result))
-                            .bind(Json(&outcome.outputs))
-                            .fetch_one(p)
-                            .await?;
-                        (updated, None)
-                    }
-                    Some((worker, lease)) => {
-                        let q = self.sql(&format!(
-                            "WITH {PG_DONE_CTES}, {} \
-                             SELECT (SELECT count(*) FROM d) AS done, claimed.* FROM (SELECT 1) AS one \
-                             LEFT JOIN claimed ON TRUE",
-                            pg_claim_ctes(5, "EXISTS (SELECT 1 FROM d)")
-                        ));
-                        let row = sqlx::query(&q)
-                            .bind(task.id)
-                            .bind(task.lease_token)
-                            .bind(Json(&outcome.result))
-                            .bind(Json(&outcome.outputs))
-                            .bind(token)
-                            .bind(duration_ms(lease))
-                            .bind(worker)
-                            .fetch_one(p)
-                            .await?;
-                        let claimed = match row.try_get::<Option<i64>, _>("id")? {
-                            None => None,
-                            Some(id) => {
-                                let r: ClaimRow = (
-                                    id,
-                                    row.try_get("campaign")?,
-                                    row.try_get("stage")?,
-                                    row.try_get("iteration")?,
-                                    row.try_get("kind")?,
-                                    row.try_get("key")?,
-                                    row.try_get("input")?,
-                                    row.try_get("attempt")?,
-                                    row.try_get("lease_token")?,
-                                    row.try_get("lease_expires_at_ms")?,
-                                );
-                                Some(claimed_task(r, worker))
-                            }
-                        };
-                        (row.try_get::<i64, _>("done")?, claimed)
-                    }
-                };
-                if updated == 0 {
-                    return Err(JobError::LeaseLost);
-                }
-                let open = if claimed.as_ref().is_some_and(|c| same_stage(c, task)) {
-                    true
-                } else {
-                    // A new statement, so a new snapshot that includes this commit.
-                    sqlx::query_scalar::<_, i64>(STAGE_OPEN)
-                        .bind(task.campaign)
-                        .bind(&task.stage)
-                        .bind(task.iteration)
-                        .fetch_optional(p)
-                        .await?
-                        .is_some()
-                };
-                (open, claimed)
-            }
-            Pool::Sqlite(p) => {
-                let done = self.sql(LITE_DONE);
-                let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
-                let n = sqlx::query(&done)
-                    .bind(task.id)
-                    .bind(task.lease_token)
-                    .bind(Json(&outcome.result))
-                    .execute(&mut *tx)
-                    .await?
-                    .rows_affected();
-                if n == 0 {
-                    return Err(JobError::LeaseLost);
-                }
-                let msg = format!("{} {} done (attempt {})", task.kind, task.key, task.attempt);
-                event!(self, tx, task.campaign, "done", Some(task.id), &msg);
-                if !outcome.outputs.is_empty() {
-                    let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
-                    qb.push_values(&outcome.outputs, |mut b, o| {
-                        b.push_bind(task.id)
-                            .push_bind(task.campaign)
-                            .push_bind(o.name.as_str())
-                            .push_bind(o.object_key.as_str());
-                    });
-                    qb.build().execute(&mut *tx).await?;
-                }
-                // Writers are serialised, so this count under the write lock is exact.
-                let open = sqlx::query_scalar::<_, i64>(STAGE_OPEN)
-                    .bind(task.campaign)
-                    .bind(&task.stage)
-                    .bind(task.iteration)
-                    .fetch_optional(&mut *tx)
-                    .await?
-                    .is_some();
-                // A stage that closes here advances first (below), so the claim can take the
-                // next stage's first task.
-                let claimed = match next {
-                    Some((worker, lease)) if open => {
-                        let q = self.sql(LITE_CLAIM);
-                        lite_claim!(self, tx, &q, token, duration_ms(lease), worker).map(|r| claimed_task(r, worker))
-                    }
-                    _ => None,
-                };
-                tx.commit().await?;
-                (open, claimed)
-            }
+            Pool::Postgres(p) => self.commit_done_postgres(p, task, &outcome, next).await?,
+            Pool::Sqlite(p) => self.commit_done_sqlite(p, task, &outcome, next).await?,
         };
         if stage_open {
             return Ok((Completion { stage_finished: false, campaign_state: CampaignState::Running }, claimed));
@@ -229,6 +111,147 @@ impl JobStore {
         };
         Ok((completion, claimed))
     }
+
+    /// PostgreSQL: commits the completion (and the claim for `next`); returns whether the stage
+    /// is still open, and the claimed task.
+    ///
+    /// The guarded update, the outputs (a JSON array) and the event in one statement, committed
+    /// on its own (one round trip). The campaign row is read, not locked: the task row is where
+    /// this races with cancelling, failing or rescuing, since each of those changes every open
+    /// task of the campaign (and a stage advances only once none is open). With `next`, the same
+    /// statement claims a task, only if the completion went through (`EXISTS (SELECT 1 FROM d)`):
+    /// a stale token claims nothing.
+    async fn commit_done_postgres(
+        &self,
+        p: &PgPool,
+        task: &ClaimedTask,
+        outcome: &TaskOutcome,
+        next: Option<(&str, Duration)>,
+    ) -> Result<(bool, Option<ClaimedTask>), JobError> {
+        let (updated, claimed) = match next {
+            None => {
+                let q = self.sql(&format!("WITH {PG_DONE_CTES} SELECT count(*) FROM d"));
+                let updated: i64 = sqlx::query_scalar(&q)
+                    .bind(task.id)
+                    .bind(task.lease_token)
+                    .bind(Json(&outcome.result))
+                    .bind(Json(&outcome.outputs))
+                    .fetch_one(p)
+                    .await?;
+                (updated, None)
+            }
+            Some((worker, lease)) => {
+                let q = self.sql(&format!(
+                    "WITH {PG_DONE_CTES}, {} \
+                     SELECT (SELECT count(*) FROM d) AS done, claimed.* FROM (SELECT 1) AS one \
+                     LEFT JOIN claimed ON TRUE",
+                    pg_claim_ctes(5, "EXISTS (SELECT 1 FROM d)")
+                ));
+                let row = sqlx::query(&q)
+                    .bind(task.id)
+                    .bind(task.lease_token)
+                    .bind(Json(&outcome.result))
+                    .bind(Json(&outcome.outputs))
+                    .bind(Uuid::new_v4())
+                    .bind(duration_ms(lease))
+                    .bind(worker)
+                    .fetch_one(p)
+                    .await?;
+                let claimed = claimed_from_row(&row, worker)?;
+                (row.try_get::<i64, _>("done")?, claimed)
+            }
+        };
+        if updated == 0 {
+            return Err(JobError::LeaseLost);
+        }
+        let open = if claimed.as_ref().is_some_and(|c| same_stage(c, task)) {
+            true
+        } else {
+            // A new statement, so a new snapshot that includes this commit.
+            sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+                .bind(task.campaign)
+                .bind(&task.stage)
+                .bind(task.iteration)
+                .fetch_optional(p)
+                .await?
+                .is_some()
+        };
+        Ok((open, claimed))
+    }
+
+    /// SQLite: commits the completion (and, if the stage stays open, the claim for `next`) in
+    /// one write transaction; returns whether the stage is still open, and the claimed task.
+    async fn commit_done_sqlite(
+        &self,
+        p: &SqlitePool,
+        task: &ClaimedTask,
+        outcome: &TaskOutcome,
+        next: Option<(&str, Duration)>,
+    ) -> Result<(bool, Option<ClaimedTask>), JobError> {
+        let done = self.sql(LITE_DONE);
+        let mut tx = p.begin_with("BEGIN IMMEDIATE").await?;
+        let n = sqlx::query(&done)
+            .bind(task.id)
+            .bind(task.lease_token)
+            .bind(Json(&outcome.result))
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        if n == 0 {
+            return Err(JobError::LeaseLost);
+        }
+        let msg = format!("{} {} done (attempt {})", task.kind, task.key, task.attempt);
+        event!(self, tx, task.campaign, "done", Some(task.id), &msg);
+        if !outcome.outputs.is_empty() {
+            let mut qb = QueryBuilder::new("INSERT INTO task_outputs (task_id, campaign, name, object_key) ");
+            qb.push_values(&outcome.outputs, |mut b, o| {
+                b.push_bind(task.id)
+                    .push_bind(task.campaign)
+                    .push_bind(o.name.as_str())
+                    .push_bind(o.object_key.as_str());
+            });
+            qb.build().execute(&mut *tx).await?;
+        }
+        // Writers are serialised, so this count under the write lock is exact.
+        let open = sqlx::query_scalar::<_, i64>(STAGE_OPEN)
+            .bind(task.campaign)
+            .bind(&task.stage)
+            .bind(task.iteration)
+            .fetch_optional(&mut *tx)
+            .await?
+            .is_some();
+        // A stage that closes here advances first (in `finish`), so the claim can take the next
+        // stage's first task.
+        let claimed = match next {
+            Some((worker, lease)) if open => {
+                let q = self.sql(LITE_CLAIM);
+                lite_claim!(self, tx, &q, Uuid::new_v4(), duration_ms(lease), worker).map(|r| claimed_task(r, worker))
+            }
+            _ => None,
+        };
+        tx.commit().await?;
+        Ok((open, claimed))
+    }
+}
+
+/// The claimed task in the row of the combined completion and claim (PostgreSQL), if any.
+fn claimed_from_row(row: &sqlx::postgres::PgRow, worker: &str) -> Result<Option<ClaimedTask>, JobError> {
+    let Some(id) = row.try_get::<Option<i64>, _>("id")? else {
+        return Ok(None);
+    };
+    let r: ClaimRow = (
+        id,
+        row.try_get("campaign")?,
+        row.try_get("stage")?,
+        row.try_get("iteration")?,
+        row.try_get("kind")?,
+        row.try_get("key")?,
+        row.try_get("input")?,
+        row.try_get("attempt")?,
+        row.try_get("lease_token")?,
+        row.try_get("lease_expires_at_ms")?,
+    );
+    Ok(Some(claimed_task(r, worker)))
 }
 
 /// The two tasks belong to the same stage of the same campaign.
