@@ -368,7 +368,7 @@ mod tests {
         let name = format!("precimap_t_{}", Uuid::new_v4().simple());
         let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test PostgreSQL server");
         sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut conn).await.unwrap();
-        let url = crate::bench::with_database(&admin, &name);
+        let url = crate::with_database(&admin, &name);
         // One connection, so every statement below runs on the claim's connection.
         let opts = StoreOptions { max_connections: 1, durable_claims: false, ..StoreOptions::default() };
         let store = JobStore::connect_with(&url, opts).await.unwrap();
