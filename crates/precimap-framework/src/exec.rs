@@ -17,8 +17,7 @@ use crate::plan::{
 use bytes::Bytes;
 use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::trajectory::Trajectory;
-use precimap_core::Vec3;
-use precimap_estimate::anderson::{self, TrajectoryHistory};
+use precimap_core::{Parameters, Vec3};
 use precimap_estimate::{SegmentParams, TileChunk};
 use precimap_jobs::{OutputKey, TaskOutcome};
 use precimap_pipeline::campaign::{StripEntry, TrajectoryEntry};
@@ -32,6 +31,14 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime};
 use uuid::Uuid;
+
+mod accelerate;
+mod estimate;
+mod export;
+mod field;
+mod report;
+mod segment;
+mod solve;
 
 /// What one task invocation may use.
 #[derive(Clone, Debug)]
@@ -375,43 +382,9 @@ fn corrupt_positions(detail: String) -> TaskError {
 
 /// Runs a task; `token` is its lease token (part of every output key).
 pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result<TaskOutcome, TaskError> {
-    let started = Instant::now();
-    let tag = attempt_tag(token);
+    let at = Attempt { ctx, tag: attempt_tag(token), started: Instant::now() };
     match input {
-        TaskInput::SegmentStrip { prefix, strip, params } => {
-            let params = required(params)?;
-            let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
-            let local = ctx.local(&strip.uri).await?;
-            let entry = strip_entry(&strip, &local.path)?;
-            let index = strip.index;
-            let prepared = blocking(move || {
-                prepare_strip_chunks(&entry, index, &traj, &params, &SegmentParams::default()).map(|p| {
-                    let segments = precimap_formats::encode_segments(&p.segment);
-                    // Each decoded chunk is dropped once encoded: the strip is held once, not twice.
-                    let encoded: Vec<_> = p.chunks.into_iter().map(|c| (c.tile, c.encode())).collect();
-                    (p.stats, encoded, segments)
-                })
-            })
-            .await?
-            .map_err(|e| TaskError::from_pipeline(e).naming(&strip.uri, &local.path))?;
-            drop(local);
-            let (stats, chunks, segments) = prepared;
-            let mut outputs = Vec::with_capacity(chunks.len() + 1);
-            // The segmentation is a result too (evaluate measures its purity).
-            let name = format!("{SEGMENTS_PREFIX}{}.seg", strip.id);
-            let key = format!("{prefix}/out/{tag}/{name}");
-            ctx.put(&key, segments).await?;
-            outputs.push(OutputKey { name, object_key: key });
-            let mut tiles = Vec::with_capacity(chunks.len());
-            for (tile, bytes) in chunks {
-                let key = format!("{prefix}/tiles/{tile}/{}.{tag}.chunk", strip.id);
-                ctx.put(&key, bytes).await?;
-                outputs.push(OutputKey { name: tile.to_string(), object_key: key });
-                tiles.push(tile);
-            }
-            let result = SegmentResult { strip: strip.index, stats, tiles, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs })
-        }
+        TaskInput::SegmentStrip { prefix, strip, params } => segment::segment_strip(&at, prefix, strip, params).await,
         TaskInput::EstimateTile {
             prefix,
             iteration,
@@ -424,145 +397,24 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             std_map,
             latent_map,
         } => {
-            let params = required(params)?;
-            let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
-            let bytes = ctx.get_many(&chunk_keys).await?;
-            let decoded: Vec<(String, Bytes)> = chunk_keys.into_iter().zip(bytes).collect();
-            let mut all = vec![TrajectoryCorrections::zeros(0, 0); trajectories as usize];
-            for (c, read) in corrections.iter().zip(read_corrections_many(ctx, &corrections).await?) {
-                let slot = all
-                    .get_mut(c.trajectory as usize)
-                    .ok_or_else(|| TaskError::permanent(format!("tile {tile}: unknown trajectory {}", c.trajectory)))?;
-                *slot = read;
-            }
-            let (estimate, latent_map) = blocking(move || {
-                // Each object's bytes are dropped once decoded, as the in-process driver reads them.
-                let chunks = decoded
-                    .into_iter()
-                    .map(|(key, bytes)| {
-                        TileChunk::decode(&bytes).map_err(|e| TaskError::permanent(format!("tile chunk {key}: {e}")))
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                let gather = precimap_estimate::LatentGather { std_map, map: latent_map };
-                let mut estimate =
-                    precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, gather)
-                        .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
-                let map =
-                    match estimate.latent_map.take() {
-                        Some(points) => Some(precimap_formats::encode_latent_map(&points).map_err(|e| {
-                            TaskError::permanent(format!("tile {tile}: latent map does not encode: {e}"))
-                        })?),
-                        None => None,
-                    };
-                Ok::<_, TaskError>((estimate, map))
-            })
-            .await??;
-            let mut objects = Vec::with_capacity(estimate.blocks.len() + 1);
-            for tb in &estimate.blocks {
-                let key = format!("{prefix}/it/{iteration}/blocks/{}/{tile}.{tag}.blk", tb.trajectory);
-                objects.push((format!("{BLOCKS_PREFIX}{}", tb.trajectory), key, encode_blocks(&tb.blocks)));
-            }
-            if let Some(field) = &estimate.field {
-                let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");
-                objects.push((OUTPUT_FIELD.into(), key, encode_field(field)));
-            }
-            if let Some(map) = &estimate.latent_std {
-                let key = format!("{prefix}/it/{iteration}/latent-std/{tile}.{tag}.json");
-                objects.push((OUTPUT_LATENT_STD.into(), key, to_bytes(map)?));
-            }
-            if let Some(bytes) = latent_map {
-                let key = format!("{prefix}/it/{iteration}/latent/{tile}.{tag}.las");
-                objects.push((precimap_pipeline::tasks::latent_map_name(tile), key, bytes));
-            }
-            let outputs = ctx.put_many(objects).await?;
-            let result = EstimateResult { stats: estimate.stats, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+            let task = estimate::TileTask {
+                prefix,
+                iteration,
+                tile,
+                step,
+                params,
+                trajectories,
+                chunks,
+                corrections,
+                std_map,
+                latent_map,
+            };
+            estimate::estimate_tile(&at, task).await
         }
         TaskInput::SolveField { prefix, iteration, params, trajectories, positions, current, previous, equations } => {
-            let params = required(params)?;
-            let mut outputs = Vec::with_capacity(2 * current.len() + 1);
-            // The anchors' positions: read once from the trajectory files by the first field task
-            // of the campaign, then from the object it wrote.
-            let positions = match &positions {
-                Some(key) => {
-                    let bytes = ctx.get(key).await?;
-                    decode_positions(&bytes)
-                        .map_err(|e| TaskError::permanent(format!("anchor positions object {key}: {e}")))?
-                }
-                None => {
-                    let mut positions = Vec::with_capacity(trajectories.len());
-                    for (t, c) in trajectories.iter().zip(&current) {
-                        let entry = read_trajectory(ctx, t).await?;
-                        positions.push(anchor_positions(&entry, params.anchor_spacing_m, c.anchors));
-                    }
-                    let key = format!("{prefix}/anchors/positions.{tag}.bin");
-                    ctx.put(&key, encode_positions(&positions)).await?;
-                    outputs.push(OutputKey { name: OUTPUT_POSITIONS.into(), object_key: key });
-                    positions
-                }
-            };
-            // One list per trajectory (solve_field checks each list's length against its anchors).
-            if positions.len() != current.len() {
-                return Err(corrupt_positions(format!("{} trajectories for {}", positions.len(), current.len())));
-            }
-            let corrections = read_corrections_many(ctx, &current).await?;
-            let before = read_corrections_many(ctx, previous.as_deref().unwrap_or_default()).await?;
-            let mut decoded = Vec::with_capacity(equations.len());
-            for (key, bytes) in equations.iter().zip(ctx.get_many(&equations).await?) {
-                decoded
-                    .push(decode_field(&bytes).map_err(|e| TaskError::permanent(format!("field object {key}: {e}")))?);
-            }
-            let solved = blocking(move || {
-                let field_trajectories: Vec<_> = corrections
-                    .iter()
-                    .zip(&positions)
-                    .map(|(c, p)| precimap_estimate::FieldTrajectory { positions: p, corrections: c })
-                    .collect();
-                let field = precimap_estimate::solve_field(decoded.iter(), &field_trajectories, &params)?;
-                // Momentum carries only what the field cannot represent (as in the in-process driver).
-                let before = if params.field_free_momentum && !before.is_empty() {
-                    precimap_estimate::field::remove_field_share(
-                        &field_trajectories,
-                        &before,
-                        params.common_mode_field_m,
-                        precimap_estimate::field::rotation_axes(&params),
-                    )?
-                } else {
-                    before
-                };
-                let start: Vec<_> = corrections.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
-                let before: Vec<_> = before.iter().zip(&positions).map(|(c, p)| field.apply(p, c)).collect();
-                let figures = (field.largest(&positions), field.rotation_deg(), field.nodes.len());
-                Ok::<_, precimap_estimate::field::FieldError>((start, before, figures))
-            })
-            .await?
-            .map_err(|e| match e {
-                // solve_field and remove_field_share check the positions against the corrections.
-                precimap_estimate::field::FieldError::Positions { .. }
-                | precimap_estimate::field::FieldError::Trajectories { .. } => corrupt_positions(e.to_string()),
-                e => TaskError::permanent(format!(
-                    "common-mode field: {e}; check parameters.common_mode_field_m and the sigma values"
-                )),
-            })?;
-            let (start, before, (largest, rotation_deg, nodes)) = solved;
-            let mut objects = Vec::with_capacity(start.len() + before.len());
-            for (name, list) in [(START_PREFIX, &start), (PREVIOUS_PREFIX, &before)] {
-                for (t, c) in trajectories.iter().zip(list) {
-                    let key = format!("{prefix}/it/{iteration}/{name}{}.{tag}.bin", t.index);
-                    objects.push((format!("{name}{}", t.index), key, encode_corrections(c, None)));
-                }
-            }
-            outputs.extend(ctx.put_many(objects).await?);
-            let seconds = started.elapsed().as_secs_f64();
-            let result = FieldResult {
-                max_m: largest.translation_m,
-                rotation_deg,
-                heading_max_deg: largest.heading_deg,
-                tilt_max_deg: largest.tilt_deg,
-                nodes,
-                seconds,
-            };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+            let task =
+                field::FieldTask { prefix, iteration, params, trajectories, positions, current, previous, equations };
+            field::solve_field(&at, task).await
         }
         TaskInput::SolveTrajectory {
             prefix,
@@ -576,160 +428,46 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             iteration_start,
             blocks,
         } => {
-            let params = required(params)?;
-            let has_previous = previous.is_some();
-            let mut refs = vec![current];
-            refs.extend(previous);
-            refs.extend(iteration_start);
-            let mut read = read_corrections_many(ctx, &refs).await?.into_iter();
-            let current = read.next().expect("the current corrections");
-            let previous = if has_previous { read.next() } else { None };
-            let iteration_start = read.next();
-            let mut all = Vec::new();
-            for (key, bytes) in blocks.iter().zip(ctx.get_many(&blocks).await?) {
-                all.extend(
-                    decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?,
-                );
-            }
-            let id = trajectory.id.clone();
-            let solution = blocking(move || {
-                // The change between iterations, the field's share included.
-                precimap_estimate::solve_trajectory(
-                    all.iter(),
-                    &current,
-                    previous.as_ref(),
-                    iteration_start.as_ref(),
-                    &params,
-                    step.rotation,
-                    with_sigma,
-                )
-            })
-            .await?
-            .map_err(|e| {
-                TaskError::permanent(format!(
-                    "trajectory {id}: the normal equations could not be solved ({e}); the campaign parameters (sigma values) are probably inconsistent"
-                ))
-            })?;
-            let key = format!("{prefix}/it/{iteration}/corr/{}.{tag}.bin", trajectory.index);
-            ctx.put(&key, encode_corrections(&solution.corrections, solution.covariance.as_deref())).await?;
-            let result = SolveResult {
-                trajectory: trajectory.index,
-                max_change_m: solution.max_change_m,
-                max_change_anchor: solution.max_change_anchor,
-                change_histogram: solution.change_histogram.clone(),
-                report: precimap_pipeline::trajectory_report(&trajectory.id, &solution),
-                seconds: started.elapsed().as_secs_f64(),
+            let task = solve::TrajectoryTask {
+                prefix,
+                iteration,
+                trajectory,
+                step,
+                params,
+                with_sigma,
+                current,
+                previous,
+                iteration_start,
+                blocks,
             };
-            Ok(TaskOutcome {
-                result: to_json(&result)?,
-                outputs: vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }],
-            })
+            solve::solve_trajectory(&at, task).await
         }
         TaskInput::AndersonMoments { trajectory, starts, results } => {
-            // One batch of reads for both lists.
-            let n = starts.len();
-            let mut starts = read_corrections_many(ctx, &[starts, results].concat()).await?;
-            let results = starts.split_off(n);
-            let moments = blocking(move || {
-                let history = TrajectoryHistory { starts: starts.iter().collect(), results: results.iter().collect() };
-                anderson::trajectory_moments(trajectory as usize, &history)
-            })
-            .await?
-            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
-            let result = MomentsResult { trajectory, moments, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs: Vec::new() })
+            accelerate::anderson_moments(&at, trajectory, starts, results).await
         }
         TaskInput::AndersonCombine { prefix, iteration, trajectory, results, coefficients } => {
-            let read = read_corrections_many(ctx, &results).await?;
-            let combined = blocking(move || {
-                anderson::combine(trajectory as usize, &read.iter().collect::<Vec<_>>(), &coefficients)
-            })
-            .await?
-            .map_err(|e| TaskError::permanent(format!("Anderson acceleration: {e}")))?;
-            let key = format!("{prefix}/it/{iteration}/accelerated/{trajectory}.{tag}.bin");
-            ctx.put(&key, encode_corrections(&combined, None)).await?;
-            let result = CombineResult { trajectory, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome {
-                result: to_json(&result)?,
-                outputs: vec![OutputKey { name: OUTPUT_ACCELERATED.into(), object_key: key }],
-            })
+            accelerate::anderson_combine(&at, prefix, iteration, trajectory, results, coefficients).await
         }
         TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
-            let (corrections, _) = read_corrections(ctx, &corrections).await?;
-            let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
-            let local = ctx.local(&strip.uri).await?;
-            let entry = strip_entry(&strip, &local.path)?;
-            let name = format!("strips/{}", precimap_pipeline::tasks::export_strip_name(&entry));
-            let key = format!("{prefix}/out/{tag}/{name}");
-            let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
-            let counter = points.clone();
-            ctx.put_produced(&key, move |dst| {
-                let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, dst)?;
-                counter.store(n, std::sync::atomic::Ordering::Relaxed);
-                Ok(())
-            })
-            .await
-            .map_err(|e| e.naming(&strip.uri, &local.path))?;
-            drop(local);
-            let result = ExportResult {
-                points: points.load(std::sync::atomic::Ordering::Relaxed),
-                seconds: started.elapsed().as_secs_f64(),
-            };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs: vec![OutputKey { name, object_key: key }] })
+            export::export_strip(&at, prefix, strip, anchor_spacing_m, corrections).await
         }
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
-            let (corrections, covariance) = read_corrections(ctx, &corrections).await?;
-            let entry = read_trajectory(ctx, &trajectory).await?;
-            let estimated = (corrections.first_anchor, corrections.last_anchor());
-            let corrections = match params {
-                Some(params) => corrections_for_export(&entry, &corrections, &params),
-                None => corrections,
-            };
-            let name = format!("trajectories/{}.csv", trajectory.id);
-            let key = format!("{prefix}/out/{tag}/{name}");
-            let beside: Vec<(String, String, Vec<u8>)> =
-                corrections_outputs(&entry, anchor_spacing_m, &corrections, estimated, covariance.as_deref())
-                    .into_iter()
-                    .map(|(name, bytes)| (name.clone(), format!("{prefix}/out/{tag}/{name}"), bytes))
-                    .collect();
-            ctx.put_produced(&key, move |dst| export_trajectory_file(&entry, anchor_spacing_m, &corrections, dst))
-                .await?;
-            let mut outputs = vec![OutputKey { name, object_key: key }];
-            outputs.extend(ctx.put_many(beside).await?);
-            let result = ExportResult { points: 0, seconds: started.elapsed().as_secs_f64() };
-            Ok(TaskOutcome { result: to_json(&result)?, outputs })
+            export::export_trajectory(&at, prefix, trajectory, anchor_spacing_m, corrections, params).await
         }
         TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map } => {
-            let key = format!("{prefix}/out/{tag}/report.json");
-            let json = serde_json::to_vec_pretty(&report)
-                .map_err(|e| TaskError::permanent(format!("report does not serialise: {e}")))?;
-            let mut objects = vec![("report.json".to_string(), key, json)];
-            let mut maps = [Vec::new(), Vec::new()];
-            for (list, refs) in maps.iter_mut().zip([&latent_std.first, &latent_std.last]) {
-                let keys: Vec<String> = refs.iter().map(|(_, key)| key.clone()).collect();
-                for ((tile, key), bytes) in refs.iter().zip(ctx.get_many(&keys).await?) {
-                    let map: precimap_estimate::LatentStdMap = serde_json::from_slice(&bytes)
-                        .map_err(|e| TaskError::permanent(format!("latent-map QC object {key}: {e}")))?;
-                    list.push((*tile, map));
-                }
-            }
-            let [first, last] = &maps;
-            let plots = precimap_pipeline::qc::report_plots(&report)
-                .into_iter()
-                .chain(precimap_pipeline::qc::latent_std_plots(tile_size_m, first, last));
-            for (name, svg) in plots {
-                let key = format!("{prefix}/out/{tag}/{name}");
-                objects.push((name, key, svg.into_bytes()));
-            }
-            let mut outputs = ctx.put_many(objects).await?;
-            // The latent map's tiles stay where their estimate tasks recorded them.
-            outputs.extend(latent_map.into_iter().map(|(name, object_key)| OutputKey { name, object_key }));
-            Ok(TaskOutcome { result: serde_json::json!({ "seconds": started.elapsed().as_secs_f64() }), outputs })
+            report::write_report(&at, prefix, report, latent_std, tile_size_m, latent_map).await
         }
     }
 }
 
-/// The parameters a task needs: its own, or the campaign's that the executor filled in
+/// One attempt at a task: where it reads and writes, the tag in its output keys, and when it
+/// started.
+#[derive(Debug)]
+struct Attempt<'a> {
+    ctx: &'a TaskContext,
+    tag: String,
+    started: Instant,
+}
 /// ([`TaskInput::with_campaign_params`]).
 fn required(params: Option<Box<precimap_core::Parameters>>) -> Result<Box<precimap_core::Parameters>, TaskError> {
     params.ok_or_else(|| {

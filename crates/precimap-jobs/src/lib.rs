@@ -5,12 +5,13 @@
 //! its lease token; the completion that closes a stage also plans and enqueues the next one.
 //! Works on SQLite (one machine) and PostgreSQL (many executors).
 
-pub mod bench;
 mod error;
 mod migrations;
 mod store;
 mod types;
+mod url;
 
 pub use error::JobError;
 pub use store::{JobStore, StoreOptions};
 pub use types::*;
+pub use url::with_database;

@@ -18,13 +18,11 @@
 //! backward recursion `Σ_{n−1} = D_{n−1}⁻¹`, `Σ_i = D_i⁻¹ + G_i Σ_{i+1} G_iᵀ`. Nothing larger than a
 //! 6×6 matrix is ever formed.
 
-mod bench;
 mod chol6;
 pub mod generic;
+#[cfg(test)]
 mod rng;
 pub mod sparse;
-
-pub use bench::{bench_solve, synthetic_system};
 
 use chol6::Chol6;
 

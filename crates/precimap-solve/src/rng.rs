@@ -1,5 +1,5 @@
-//! A tiny deterministic generator (SplitMix64) for synthetic systems: benchmarks and tests must
-//! be reproducible and the crate needs no `rand` dependency for it.
+//! A tiny deterministic generator (SplitMix64) for the tests' random systems: tests must be
+//! reproducible and the crate needs no `rand` dependency for it.
 
 #[derive(Clone, Debug)]
 pub(crate) struct SplitMix64(u64);

@@ -60,6 +60,12 @@ impl SymmetricSparse {
         self.lower.len()
     }
 
+    /// The stored entries of the lower triangle as `(row, column, value)` with `row ≥ column`,
+    /// in no particular order.
+    pub fn lower_entries(&self) -> impl Iterator<Item = (usize, usize, f64)> + '_ {
+        self.lower.iter().map(|(&(i, j), &v)| (i as usize, j as usize, v))
+    }
+
     /// Entry (i, j), 0 where nothing was added.
     pub fn get(&self, i: usize, j: usize) -> f64 {
         let key = if i >= j { (i as u32, j as u32) } else { (j as u32, i as u32) };
@@ -632,135 +638,6 @@ fn choose_separator(levels: &[u32], depth: usize) -> usize {
     best.map_or(balanced.1, |(_, l)| l)
 }
 
-/// A field-like system over a street network: nodes on a square grid of `blocks` × `blocks` city
-/// blocks, five nodes of block between streets two nodes wide (15 m nodes: 30 m streets, 75 m
-/// blocks), `per_node` unknowns per node (3: the translation; 4 with the field's heading), each
-/// node coupled to its eight grid neighbours on the streets by a random positive semi-definite
-/// block, plus a weak prior on every unknown. Returns the system, a right-hand side and each
-/// unknown's node position (grid units).
-pub fn street_network_system(blocks: usize, per_node: usize, seed: u64) -> (SymmetricSparse, Vec<f64>, Vec<[f64; 2]>) {
-    let mut rng = crate::rng::SplitMix64::new(seed);
-    let side = 7 * blocks + 2;
-    let street = |x: usize, y: usize| x % 7 < 2 || y % 7 < 2;
-    let mut index = vec![usize::MAX; side * side];
-    let mut nodes = 0;
-    let mut coordinates = Vec::new();
-    for y in 0..side {
-        for x in 0..side {
-            if street(x, y) {
-                index[y * side + x] = nodes;
-                nodes += 1;
-                coordinates.extend(std::iter::repeat_n([x as f64, y as f64], per_node));
-            }
-        }
-    }
-    let mut m = SymmetricSparse::new(per_node * nodes);
-    for y in 0..side {
-        for x in 0..side {
-            let a = index[y * side + x];
-            if a == usize::MAX {
-                continue;
-            }
-            for (dx, dy) in [(1, 0), (0, 1), (1, 1), (-1, 1)] {
-                let (nx, ny) = (x as i64 + dx, y as i64 + dy);
-                if nx < 0 || nx >= side as i64 || ny >= side as i64 {
-                    continue;
-                }
-                let b = index[ny as usize * side + nx as usize];
-                if b == usize::MAX {
-                    continue;
-                }
-                // w (e_a − e_b)(e_a − e_b)ᵀ ⊗ u uᵀ with a random direction u.
-                let u: Vec<f64> = (0..per_node).map(|_| rng.uniform() - 0.5).collect();
-                let w = 1.0 + 1e3 * rng.uniform();
-                for r in 0..per_node {
-                    for c in 0..per_node {
-                        let v = w * u[r] * u[c];
-                        if r >= c {
-                            m.add(per_node * a + r, per_node * a + c, v);
-                            m.add(per_node * b + r, per_node * b + c, v);
-                        }
-                        m.add(per_node * a + r, per_node * b + c, -v);
-                    }
-                }
-            }
-        }
-    }
-    for i in 0..per_node * nodes {
-        m.add(i, i, 1.0);
-    }
-    let rhs = (0..per_node * nodes).map(|_| rng.uniform() - 0.5).collect();
-    (m, rhs, coordinates)
-}
-
-/// Figures of [`bench_street_network`].
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct SparseBench {
-    pub blocks: usize,
-    pub unknowns: usize,
-    /// Stored entries of the matrix's lower triangle.
-    pub stored: usize,
-    /// Stored entries of the factor after the geometric ordering (the field's).
-    pub factor_entries: usize,
-    /// Ordering, factorisation and solve, seconds on the calling thread.
-    pub sparse_s: f64,
-    /// The same with the ordering by level structures (no coordinates).
-    pub level_set_factor_entries: usize,
-    pub level_set_s: f64,
-    /// nalgebra's dense Cholesky of the same system, where it has at most 6,000 unknowns.
-    pub dense_s: Option<f64>,
-    /// Largest difference between the two solutions over the largest entry.
-    pub dense_relative_difference: Option<f64>,
-}
-
-/// Solves [`street_network_system`] with the sparse Cholesky, and with a dense Cholesky where it
-/// is small enough to form.
-pub fn bench_street_network(blocks: usize, per_node: usize) -> Result<SparseBench, SparseError> {
-    let (m, rhs, coordinates) = street_network_system(blocks, per_node, 0x5EED);
-    let n = m.unknowns();
-    let start = std::time::Instant::now();
-    let level_set = m.factorise(usize::MAX)?;
-    std::hint::black_box(level_set.solve(&rhs));
-    let level_set_s = start.elapsed().as_secs_f64();
-    let level_set_factor_entries = level_set.entries();
-    drop(level_set);
-    let start = std::time::Instant::now();
-    let factor = m.factorise_at(usize::MAX, &coordinates)?;
-    let x = std::hint::black_box(factor.solve(&rhs));
-    let sparse_s = start.elapsed().as_secs_f64();
-    let (mut dense_s, mut dense_relative_difference) = (None, None);
-    if n <= 6_000 {
-        let mut dense = nalgebra::DMatrix::<f64>::zeros(n, n);
-        for (&(i, j), &v) in &m.lower {
-            dense[(i as usize, j as usize)] = v;
-            dense[(j as usize, i as usize)] = v;
-        }
-        let b = nalgebra::DVector::from_vec(rhs);
-        let start = std::time::Instant::now();
-        let chol = nalgebra::Cholesky::new(dense).ok_or(SparseError::NotPositiveDefinite {
-            pivot: 0,
-            unknowns: n,
-            value: f64::NAN,
-        })?;
-        let y = std::hint::black_box(chol.solve(&b));
-        dense_s = Some(start.elapsed().as_secs_f64());
-        let scale = y.amax().max(f64::MIN_POSITIVE);
-        dense_relative_difference =
-            Some(x.iter().zip(y.iter()).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max) / scale);
-    }
-    Ok(SparseBench {
-        blocks,
-        unknowns: n,
-        stored: m.stored(),
-        factor_entries: factor.entries(),
-        sparse_s,
-        level_set_factor_entries,
-        level_set_s,
-        dense_s,
-        dense_relative_difference,
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -924,26 +801,5 @@ mod tests {
             out.solve(&[0.0; 2], usize::MAX).unwrap_err(),
             SparseError::OutOfRange { row: 2, column: 0, unknowns: 2 }
         );
-    }
-
-    #[test]
-    fn street_network_system_solves_like_the_dense_solve() {
-        let (sparse, rhs, coordinates) = street_network_system(3, 4, 11);
-        let n = sparse.unknowns();
-        let mut dense = nalgebra::DMatrix::<f64>::zeros(n, n);
-        for i in 0..n {
-            for j in 0..=i {
-                let v = sparse.get(i, j);
-                dense[(i, j)] = v;
-                dense[(j, i)] = v;
-            }
-        }
-        for x in [
-            sparse.solve(&rhs, usize::MAX).unwrap(),
-            sparse.factorise_at(usize::MAX, &coordinates).unwrap().solve(&rhs),
-        ] {
-            let r = &dense * nalgebra::DVector::from_vec(x) - nalgebra::DVector::from_vec(rhs.clone());
-            assert!(r.amax() < 1e-9, "residual {}", r.amax());
-        }
     }
 }

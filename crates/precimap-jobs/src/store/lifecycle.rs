@@ -131,6 +131,36 @@ impl JobStore {
 }
 
 impl JobStore {
+    /// Claims the sweep of one finished campaign (succeeded, failed or cancelled at least `grace`
+    /// ago) whose objects of lost attempts have not been swept yet, oldest first, for `lease`:
+    /// no other executor gets it meanwhile. With `grace` ≥ the task lease, every attempt that was
+    /// running when the campaign finished has lost its lease (its heartbeat fails and it stops)
+    /// before the sweep lists the store. `None` when nothing is due.
+    pub async fn claim_sweep(&self, grace: Duration, lease: Duration) -> Result<Option<Uuid>, JobError> {
+        // The outer conditions are checked again on the row itself: of two racing claimers the
+        // second finds the lease taken (PostgreSQL re-evaluates them after the first commits).
+        let q = self.sql(
+            "UPDATE campaigns SET sweep_lease_until_ms = NOW_MS + $2 WHERE id = (\
+                SELECT id FROM campaigns WHERE state <> 'running' AND swept_at_ms IS NULL \
+                AND finished_at_ms <= NOW_MS - $1 \
+                AND (sweep_lease_until_ms IS NULL OR sweep_lease_until_ms < NOW_MS) \
+                ORDER BY finished_at_ms, id LIMIT 1) \
+             AND swept_at_ms IS NULL AND (sweep_lease_until_ms IS NULL OR sweep_lease_until_ms < NOW_MS) \
+             RETURNING id",
+        );
+        let ms = |d: Duration| i64::try_from(d.as_millis()).unwrap_or(i64::MAX / 4);
+        Ok(with_pool!(self, p => sqlx::query_scalar(&q).bind(ms(grace)).bind(ms(lease)).fetch_optional(p).await?))
+    }
+
+    /// Records that a finished campaign's objects of lost attempts were swept. Called after the
+    /// sweep, so that an executor dying mid-sweep leaves the campaign to the next one once its
+    /// sweep lease has expired.
+    pub async fn mark_swept(&self, campaign: Uuid) -> Result<(), JobError> {
+        let q = self.sql("UPDATE campaigns SET swept_at_ms = NOW_MS WHERE id = $1 AND state <> 'running'");
+        with_pool!(self, p => sqlx::query(&q).bind(campaign).execute(p).await.map(|_| ())?);
+        Ok(())
+    }
+
     /// The campaign's object prefix, `None` if there is no such campaign.
     pub async fn object_prefix(&self, id: Uuid) -> Result<Option<String>, JobError> {
         let q = "SELECT object_prefix FROM campaigns WHERE id = $1";

@@ -21,7 +21,7 @@ pub async fn create_pg_database() -> (String, String) {
     let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test PostgreSQL server");
     sqlx::query(&format!("CREATE DATABASE {name}")).execute(&mut conn).await.expect("create test database");
     conn.close().await.ok();
-    (precimap_jobs::bench::with_database(&admin, &name), name)
+    (precimap_jobs::with_database(&admin, &name), name)
 }
 
 pub async fn drop_pg_database(name: &str) {

@@ -1,4 +1,5 @@
-//! Queue throughput benchmark: claim + complete cycles with N concurrent claimers.
+//! `precimap bench queue`: the job store's claim + complete cycles with N concurrent claimers on
+//! SQLite and PostgreSQL, and the framework's overhead against the in-process driver.
 
 use std::time::{Duration, Instant};
 
@@ -7,10 +8,14 @@ use serde_json::json;
 use sqlx::Connection;
 use uuid::Uuid;
 
-use crate::{
-    Backend, CampaignRecord, ClaimedTask, FinishedStage, JobError, JobStore, NewCampaign, NewTask, Next, OutputKey,
-    QueueConfig, StagePlanner, StageSpec, StoreOptions, TaskOutcome, Transition,
+use crate::overhead::{measure_overhead, FrameworkOverhead};
+use crate::system::{percentile, process_cpu_ms};
+use crate::{BenchError, Progress};
+use precimap_jobs::{
+    with_database, Backend, CampaignRecord, ClaimedTask, FinishedStage, JobError, JobStore, NewCampaign, NewTask, Next,
+    OutputKey, QueueConfig, StagePlanner, StageSpec, StoreOptions, TaskOutcome, Transition,
 };
+use std::path::Path;
 
 /// Figures of one run of [`queue_bench`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -243,17 +248,6 @@ async fn run(
     })
 }
 
-/// CPU time (user + system) of process `pid` (`self` for this one) in ms, from `/proc`; `None`
-/// where there is no such file (another OS, a server on another machine).
-fn process_cpu_ms(pid: &str) -> Option<f64> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // Fields after the parenthesised command name start at field 3 (state); utime and stime are
-    // fields 14 and 15, in clock ticks of 10 ms (USER_HZ is 100 on Linux).
-    let fields: Vec<&str> = stat.get(stat.rfind(')')? + 1..)?.split_whitespace().collect();
-    let ticks = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
-    Some(ticks as f64 * 10.0)
-}
-
 /// CPU time in ms of every other backend connected to the observer's database, by pid; `None`
 /// unless all of them can be read (a server on this machine).
 async fn backends_cpu_ms(
@@ -267,62 +261,72 @@ async fn backends_cpu_ms(
     Ok(pids.into_iter().map(|pid| process_cpu_ms(&pid.to_string()).map(|ms| (pid, ms))).collect())
 }
 
-fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
+/// What `precimap bench queue` measures.
+#[derive(Clone, Debug)]
+pub struct QueueRequest<'a> {
+    /// PostgreSQL server to benchmark on (a fresh database is created and dropped).
+    pub postgres: &'a str,
+    /// Claim + complete cycles per measurement.
+    pub tasks: usize,
+    pub options: QueueBenchOptions,
+    /// The framework's overhead on a simulated campaign of this scale, over this many pairs of
+    /// runs; `None` skips it.
+    pub overhead: Option<(precimap_sim::Scale, usize)>,
+    /// Where the overhead's campaign is cached between runs.
+    pub cache: &'a Path,
 }
 
-/// `url` with its database name replaced by `db` (query string kept).
-pub fn with_database(url: &str, db: &str) -> String {
-    let (base, query) = match url.split_once('?') {
-        Some((b, q)) => (b, Some(q)),
-        None => (url, None),
-    };
-    let authority = base.find("://").map(|i| i + 3).unwrap_or(0);
-    let server = match base[authority..].find('/') {
-        Some(i) => &base[..authority + i],
-        None => base,
-    };
-    match query {
-        Some(q) => format!("{server}/{db}?{q}"),
-        None => format!("{server}/{db}"),
-    }
+#[derive(Debug, Serialize)]
+pub struct QueueBench {
+    pub sqlite: Vec<QueueBenchFigures>,
+    pub postgres: Vec<QueueBenchFigures>,
+    pub postgres_16_cycles_per_s: f64,
+    pub postgres_16_claim_p99_ms: f64,
+    pub overhead: Option<FrameworkOverhead>,
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn database_name_is_replaced() {
-        assert_eq!(with_database("postgres://u@h:5432/postgres", "x"), "postgres://u@h:5432/x");
-        assert_eq!(with_database("postgres://u@h/postgres?sslmode=disable", "x"), "postgres://u@h/x?sslmode=disable");
-        assert_eq!(with_database("postgres://u@h", "x"), "postgres://u@h/x");
+/// Queue figures with 1, 4 and 16 claimers on SQLite and on PostgreSQL, then the framework's
+/// overhead; each measurement's line goes to `progress`.
+pub fn bench_queue(request: &QueueRequest<'_>, progress: Progress<'_>) -> Result<QueueBench, BenchError> {
+    let rt = tokio::runtime::Runtime::new()?;
+    let (mut sqlite, mut pg) = (Vec::new(), Vec::new());
+    for claimers in [1, 4, 16] {
+        let f = rt.block_on(queue_bench_with("sqlite://", claimers, request.tasks, request.options))?;
+        progress(&format!("sqlite     {claimers:>2} claimers: {}", f.text()));
+        sqlite.push(f);
+        let f = rt
+            .block_on(queue_bench_with(request.postgres, claimers, request.tasks, request.options))
+            .map_err(|source| BenchError::Postgres { url: request.postgres.to_string(), source })?;
+        progress(&format!("postgresql {claimers:>2} claimers: {}", f.text()));
+        pg.push(f);
     }
+    let overhead = match request.overhead {
+        None => None,
+        Some((scale, runs)) => Some(measure_overhead(&rt, request.cache, scale, runs, progress)?),
+    };
+    let last = pg.last().cloned();
+    Ok(QueueBench {
+        postgres_16_cycles_per_s: last.as_ref().map_or(0.0, |f| f.cycles_per_s),
+        postgres_16_claim_p99_ms: last.as_ref().map_or(0.0, |f| f.claim_p99_ms),
+        sqlite,
+        postgres: pg,
+        overhead,
+    })
+}
 
-    #[test]
-    fn own_cpu_time_is_read() {
-        let before = process_cpu_ms("self").expect("/proc/self/stat");
-        let mut x = 0u64;
-        let t = Instant::now();
-        while t.elapsed() < Duration::from_millis(100) {
-            x = x.wrapping_add(std::hint::black_box(1));
-        }
-        assert!(x > 0);
-        let spent = process_cpu_ms("self").unwrap() - before;
-        // 100 ms of spinning; the tick is 10 ms and a busy machine may take CPU away from us.
-        assert!((10.0..=1000.0).contains(&spent), "{spent} ms");
-        assert_eq!(process_cpu_ms("0"), None);
-    }
-
-    #[test]
-    fn percentiles() {
-        let mut v: Vec<f64> = (1..=100).map(f64::from).collect();
-        assert_eq!(percentile(&mut v, 0.5), 51.0);
-        assert_eq!(percentile(&mut v, 0.99), 99.0);
-        assert!(percentile(&mut [], 0.5).is_nan());
+impl QueueBenchFigures {
+    /// One line: cycles/s, claim and completion latency, CPU per cycle.
+    pub fn text(&self) -> String {
+        let ms = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.3} ms"));
+        format!(
+            "{:>7.0} cycles/s, claim p50 {:.2} ms, p99 {:.2} ms, completion p99 {:.2} ms, CPU per cycle: client {}, \
+             server {}",
+            self.cycles_per_s,
+            self.claim_p50_ms,
+            self.claim_p99_ms,
+            self.complete_p99_ms,
+            ms(self.client_cpu_ms_per_cycle),
+            ms(self.server_cpu_ms_per_cycle)
+        )
     }
 }

@@ -1,11 +1,11 @@
-//! `cargo run --release -p precimap-jobs --example queue_bench -- URL [TASKS] [CLAIMERS...]`
+//! `cargo run --release -p precimap-bench --example queue_bench -- URL [TASKS] [CLAIMERS...]`
 //! prints one JSON line of figures per claimer count. `PRECIMAP_BENCH_ASYNC_COMMIT=1` turns off
 //! PostgreSQL's `synchronous_commit` (see `StoreOptions::durable_commits`);
 //! `PRECIMAP_BENCH_ASYNC_CLAIMS=1` only for claims (`StoreOptions::durable_claims`);
 //! `PRECIMAP_BENCH_SEPARATE_CLAIMS=1` claims with a statement of its own after each completion
 //! instead of `JobStore::complete_and_claim`.
 
-use precimap_jobs::bench::{queue_bench_with, QueueBenchOptions};
+use precimap_bench::queue::{queue_bench_with, QueueBenchOptions};
 
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
