@@ -39,8 +39,8 @@ step fmt cargo fmt --all -- --check
 step "doc links" python3 scripts/check-links.py
 
 if [ $mode = full ]; then
-    # Installing the S3 server and Chromium (first run only) overlaps the build: the build leaves
-    # a core idle in its serial stretches, and the Chromium download needs none.
+    # Installing the S3 server, Chromium and laspy (first run only) overlaps the build: the build
+    # leaves a core idle in its serial stretches, and the downloads need none.
     mkdir -p target
     ./scripts/services.sh --install-only > target/services-install.log 2>&1 &
     installer=$!
@@ -48,8 +48,7 @@ fi
 
 # Clippy's lints run inside the test build: clippy-driver wraps the workspace's own crates, as
 # `cargo clippy` does in check mode, so the dependencies are compiled once instead of checked and
-# then built (about 800 CPU-seconds less on a fresh machine). The same environment for the test
-# run keeps Cargo from rebuilding.
+# then built. The same environment for the test run keeps Cargo from rebuilding.
 export RUSTC_WORKSPACE_WRAPPER="$(rustc --print sysroot)/bin/clippy-driver"
 export CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
 step "clippy + test build" cargo test --workspace --all-targets --locked --no-run
