@@ -96,7 +96,7 @@ fn a_strip_in_another_crs_or_time_is_refused_naming_both() {
 /// (docs/design/field-inputs.md): the same field campaign run with its grid coordinates taken as
 /// if they were metric (trajectories as grid CSV, strips as they are, no `crs`), its adjusted
 /// points mapped back and compared with the local-frame run. Run with
-/// `cargo test -p precimap-cli --test field -- --ignored --nocapture`.
+/// `cargo test -p precimap-cli --test system field:: -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn processing_in_the_grid_instead_costs_this_much() {

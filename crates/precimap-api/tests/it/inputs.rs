@@ -7,7 +7,7 @@ use axum::http::{Method, StatusCode};
 use precimap_api::ApiState;
 use precimap_framework::CampaignLimits;
 
-mod common;
+use crate::common;
 use common::{call, embedded_state, request, TOKEN};
 
 async fn state(dir: &std::path::Path) -> ApiState {

@@ -448,7 +448,7 @@ fn zero_points() {
     assert_eq!(strip_info(&path).unwrap().point_count, 0);
 }
 
-/// Throughput on ~2M points. `cargo test --release -p precimap-formats --test strip -- --ignored --nocapture`
+/// Throughput on ~2M points. `cargo test --release -p precimap-formats --test it strip:: -- --ignored --nocapture`
 #[test]
 #[ignore]
 fn throughput_2m_points() {

@@ -6,7 +6,7 @@ use axum::http::{header, Method, StatusCode};
 use precimap_api::{app, ApiState, ErrorBody};
 use tower::ServiceExt;
 
-mod common;
+use crate::common;
 use common::{call, embedded_state, request, TOKEN};
 
 async fn state(dir: &std::path::Path) -> ApiState {

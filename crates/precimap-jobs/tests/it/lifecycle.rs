@@ -3,7 +3,7 @@
 //! still write, which campaigns name an input, and deletion returning the inputs no other
 //! campaign names.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -1,6 +1,6 @@
 //! Behaviour of the job store, each scenario on SQLite (temp file) and PostgreSQL (fresh database).
 
-mod common;
+use crate::common;
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
