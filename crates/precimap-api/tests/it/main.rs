@@ -1,5 +1,5 @@
 //! Integration tests, linked as one binary: one link of the whole stack instead of one per file.
 
-mod common;
 mod api;
+mod common;
 mod inputs;
