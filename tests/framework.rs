@@ -10,6 +10,7 @@ use precimap_framework::{
 };
 use precimap_jobs::{CampaignState, JobStore};
 use precimap_pipeline::{run_campaign, RunOptions};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -556,18 +557,22 @@ fn separate_workers_on_postgres_and_s3_survive_kills_and_a_database_restart() {
             restarted = true;
         }
     };
-    // The executor that finished the campaign removes the killed attempts' objects right after
-    // its commit; stopping the executors (SIGKILL) before it is done would cut that short.
-    let orphans = || {
+    // The executor that finished the campaign removes the killed attempts' objects and the work
+    // files right after its commit, and any executor's reconcile sweeps again a lease later (the
+    // first clean-up may be cut short). The campaign is reported finished before either is done,
+    // so the executors run until the store holds the results alone (or a minute passes).
+    let leftovers = || {
         rt.block_on(async {
             let jobs = JobStore::connect(&db).await.unwrap();
-            let (stored, recorded) = stored_and_recorded(&jobs, &Objects::from_url(&store).unwrap(), id).await;
+            let (stored, _) = stored_and_recorded(&jobs, &Objects::from_url(&store).unwrap(), id).await;
+            let results = precimap_framework::lifecycle::result_keys(&jobs, id).await.unwrap();
             jobs.close().await;
-            stored.iter().filter(|k| recorded.binary_search(k).is_err()).count()
+            let results: HashSet<String> = results.into_iter().map(|(_, key)| key).collect();
+            stored.iter().filter(|k| !results.contains(*k)).count()
         })
     };
     let waited = Instant::now();
-    while orphans() > 0 && waited.elapsed() < Duration::from_secs(60) {
+    while leftovers() > 0 && waited.elapsed() < Duration::from_secs(60) {
         std::thread::sleep(Duration::from_millis(200));
     }
     drop(workers);
