@@ -200,7 +200,8 @@ impl MatrixRequest {
 /// The scenarios and size of `fast` whose names contain `filter`.
 pub fn select(fast: bool, filter: Option<&str>) -> (Vec<Scenario>, MatrixSize) {
     let (all, size) = if fast { (fast_subset(), FAST_SIZE) } else { (matrix(), FULL_SIZE) };
-    (all.into_iter().filter(|s| filter.is_none_or(|f| s.name().contains(f))).collect(), size)
+    let wanted = |name: String| filter.is_none_or(|f| f.split(',').any(|part| name.contains(part.trim())));
+    (all.into_iter().filter(|s| wanted(s.name())).collect(), size)
 }
 
 pub fn run_matrix(req: &MatrixRequest) -> Result<Vec<Row>> {
@@ -346,6 +347,7 @@ mod tests {
         }
         assert!(m.iter().any(|s| s.heads == 1));
         assert_eq!(select(false, Some("downtown")).0.len(), 2);
+        assert_eq!(select(false, Some("downtown,oblique/sinusoids")).0.len(), 3);
         assert_eq!(select(true, None).1, FAST_SIZE);
     }
 

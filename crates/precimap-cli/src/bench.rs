@@ -103,7 +103,8 @@ pub enum BenchCommand {
     /// the estimator's defaults and evaluated against its truth; writes a Markdown and a JSON
     /// table (one row per scenario).
     Accuracy {
-        /// Run only the scenarios whose name (e.g. `grid/gauss_markov/4p`) contains this.
+        /// Run only the scenarios whose name (e.g. `grid/gauss_markov/4p`) contains this, or one of
+        /// several comma-separated parts.
         #[arg(long)]
         filter: Option<String>,
         /// The fast subset at a smaller campaign size (what the test suite runs).
