@@ -77,6 +77,12 @@ pub struct Row {
     pub points: u64,
     pub tile_spread_before_mm: f64,
     pub tile_spread_mm: f64,
+    /// The tile spread with each tile's own translation removed: the strips' disagreement that
+    /// no motion shared by all passes at a place explains.
+    pub tile_spread_per_tile_mm: f64,
+    /// The tile spread that strips differing from the truth only by each tile's shared position
+    /// error (the local datum, which relative data cannot observe) would show.
+    pub tile_spread_from_local_datum_mm: f64,
     pub same_surface_mm: SpreadMm,
     pub same_surface_up_mm: SpreadMm,
     pub same_surface_facing_travel_mm: SpreadMm,
@@ -146,6 +152,8 @@ pub fn run_scenario(
         points: summary.points,
         tile_spread_before_mm: e.strip_offset_spread_m.before * 1e3,
         tile_spread_mm: e.strip_offset_spread_m.after * 1e3,
+        tile_spread_per_tile_mm: e.spread_without_tile_shift_m.after * 1e3,
+        tile_spread_from_local_datum_mm: e.spread_from_local_datum_m.after * 1e3,
         same_surface_mm: (&a.all.after).into(),
         same_surface_up_mm: (&a.up.after).into(),
         same_surface_facing_travel_mm: (&a.facing_travel.after).into(),
@@ -281,28 +289,33 @@ fn markdown(rows: &[Row], size: MatrixSize, req: &MatrixRequest, elapsed_s: f64)
         "Millimetres. Same-surface: each strip's distance from the strips' mean on a true surface within a \
          15 m tile (≥ 50 points per strip there, the campaign's shift removed), RMS / p95 / max over (patch, \
          strip) pairs; up = normal within 45° of vertical, travel = horizontal normal within 45° of the \
-         direction of travel, across = the rest. Trajectory: position error RMS without the datum (along / \
+         direction of travel, across = the rest. Tile spread: each strip's mean signed error in a 15 m tile \
+         against the tile's mean over its strips (RMS); per tile: the same with each tile's translation \
+         removed; local datum: the spread that the error shared by all passes at a place alone would give \
+         (relative data cannot see it; ground control can). Trajectory: position error RMS without the datum (along / \
          across / vertical) and 3D with it. σ/noise: the last iteration's residual σ over the range noise. \
          Used: share of surface points used as observations at the end (all / up / travel / across, %).\n"
     );
     let _ = writeln!(
         s,
-        "| scenario | points | tile spread before → after | same-surface | up | travel | across | \
+        "| scenario | points | tile spread before → after | per tile | local datum | same-surface | up | travel | across | \
          trajectory datum-free | with datum | σ/noise | iterations | used % | CPU s |"
     );
-    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let triple = |t: &SpreadMm| format!("{:.2} / {:.2} / {:.2}", t.rms, t.p95, t.max);
     for r in rows {
         let [a, c, v] = r.trajectory_datum_free_mm;
         let u = r.used_share.map(|x| x * 100.0);
         let _ = writeln!(
             s,
-            "| {} | {:.2} M | {:.2} → {:.2} | {} | {} | {} | {} | {:.1} / {:.1} / {:.1} | {:.1} | {:.2} | {}{} \
+            "| {} | {:.2} M | {:.2} → {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {:.1} / {:.1} / {:.1} | {:.1} | {:.2} | {}{} \
              ({:.2}) | {:.0} / {:.0} / {:.0} / {:.0} | {:.0} |",
             r.scenario,
             r.points as f64 / 1e6,
             r.tile_spread_before_mm,
             r.tile_spread_mm,
+            r.tile_spread_per_tile_mm,
+            r.tile_spread_from_local_datum_mm,
             triple(&r.same_surface_mm),
             triple(&r.same_surface_up_mm),
             triple(&r.same_surface_facing_travel_mm),
