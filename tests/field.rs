@@ -1,6 +1,8 @@
 //! A simulated campaign run twice: in its local frame, and as it comes from the field (SBET in
 //! geographic coordinates with a wander angle and GPS week seconds, LAZ in WGS 84 / UTM zone 32N
-//! with adjusted standard GPS time). The adjusted points agree point for point.
+//! with adjusted standard GPS time). The adjusted points agree point for point. With its SMRMSG
+//! accuracy files the field campaign's prior follows the simulated errors, through both drivers
+//! alike.
 
 use precimap_formats::gps_time::TimeConvention;
 use precimap_formats::{load_manifest, read_strip, read_trajectory_csv, strip_info, TrajectoryRef};
@@ -9,6 +11,17 @@ use std::path::Path;
 
 fn run(manifest: &Path, out: &Path) -> Result<precimap_pipeline::Report, PipelineError> {
     run_campaign(manifest, &RunOptions { out_dir: out.to_path_buf(), keep_work: false, assignments: false }, &|_| {})
+}
+
+/// The field manifest without its accuracy files (`no-accuracy.json` beside it): the prior is the
+/// campaign's, as in the local-frame campaign.
+fn without_accuracy(field: &Path) -> std::path::PathBuf {
+    let mut manifest = load_manifest(&field.join("manifest.json")).unwrap();
+    assert!(manifest.trajectories.iter().all(|t| t.accuracy_uri.is_some()), "the simulator writes SMRMSG files");
+    manifest.trajectories.iter_mut().for_each(|t| t.accuracy_uri = None);
+    let path = field.join("no-accuracy.json");
+    std::fs::write(&path, serde_json::to_string(&manifest).unwrap()).unwrap();
+    path
 }
 
 #[test]
@@ -21,7 +34,7 @@ fn a_field_campaign_matches_its_local_frame_run() {
     precimap_sim::field::write_field_campaign(&local, &field, config.origin, true).unwrap();
     let (out_local, out_field) = (dir.path().join("out-local"), dir.path().join("out-field"));
     let report_local = run(&local.join("manifest.json"), &out_local).unwrap();
-    let report_field = run(&field.join("manifest.json"), &out_field).unwrap();
+    let report_field = run(&without_accuracy(&field), &out_field).unwrap();
     assert_eq!(report_local.points_total, report_field.points_total);
     assert_eq!(report_local.iterations.len(), report_field.iterations.len());
 
@@ -153,4 +166,81 @@ fn processing_in_the_grid_instead_costs_this_much() {
         q(1.0),
         diffs.len()
     );
+}
+
+/// The embedded job framework (SQLite and a local store, as `precimap run` runs) gives the
+/// in-process result byte for byte for a field campaign with accuracy files: strips and
+/// trajectories in the grid with their CRS, the latent map and QC in the same CRS.
+#[test]
+fn a_field_campaign_through_the_framework_matches_in_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let (local, field) = (dir.path().join("local"), dir.path().join("field"));
+    let mut config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 3);
+    config.drive.passes = 2;
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    precimap_sim::field::write_field_campaign(&local, &field, config.origin, false).unwrap();
+    let manifest = field.join("manifest.json");
+    let reference = dir.path().join("in-process");
+    run(&manifest, &reference).unwrap();
+    let embedded = dir.path().join("embedded");
+    let options = precimap_framework::EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let record = rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {})).unwrap();
+    assert_eq!(record.state, precimap_jobs::CampaignState::Succeeded);
+    crate::framework::assert_same_results(&reference, &embedded);
+    // The accuracy files changed the result: they reached both drivers' solves.
+    let plain = dir.path().join("no-accuracy");
+    run(&without_accuracy(&field), &plain).unwrap();
+    let name = "trajectories/v01.csv";
+    assert_ne!(std::fs::read(reference.join(name)).unwrap(), std::fs::read(plain.join(name)).unwrap());
+}
+
+/// The accuracy files' prior against the campaign's on the same field campaign (seed 3: a GNSS
+/// outage on pass v02), both results evaluated in the local frame against the truth as
+/// `precimap evaluate` does. Run with `cargo test -p precimap-cli --test system
+/// field::the_accuracy -- --nocapture` for the figures.
+#[test]
+fn the_accuracy_files_prior_does_not_hurt() {
+    let dir = tempfile::tempdir().unwrap();
+    let (local, field) = (dir.path().join("local"), dir.path().join("field"));
+    let config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 3);
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    let week = precimap_sim::field::write_field_campaign(&local, &field, config.origin, false).unwrap();
+    // The SMRMSG of the outage pass reports its drift.
+    let v02 = precimap_formats::sbet::read_smrmsg(&field.join("trajectories/v02.smrmsg")).unwrap();
+    let horizontal: Vec<f64> = v02.position_sigma_m.iter().map(|s| s[0].hypot(s[1])).collect();
+    let largest = horizontal.iter().copied().fold(0.0, f64::max);
+    assert!(largest > 1.4 * horizontal[0], "{largest} vs {}", horizontal[0]);
+    let mut figures = Vec::new();
+    for (name, manifest) in [("campaign σ", without_accuracy(&field)), ("SMRMSG σ", field.join("manifest.json"))] {
+        let out = dir.path().join(format!("out-{}", figures.len()));
+        run(&manifest, &out).unwrap();
+        let in_local = dir.path().join(format!("local-{}", figures.len()));
+        precimap_sim::field::result_to_local(&out, &in_local, config.origin, week).unwrap();
+        let e = precimap_eval::evaluate(&local.join("truth"), &in_local).unwrap();
+        let d = &e.trajectory_error_without_datum_rms_m;
+        let row = [
+            e.same_surface_spread_m.after * 1e3,
+            e.trajectory_error_rms_m.after * 1e3,
+            d.along_track.after * 1e3,
+            d.across_track.after * 1e3,
+            d.vertical.after * 1e3,
+            e.trajectory_rotation_error_rms_deg.after * 1e3,
+        ];
+        eprintln!(
+            "{name}: same-surface spread {:.3} mm, trajectory position RMS {:.2} mm, along/across/vertical w/o the \
+             datum {:.3}/{:.3}/{:.3} mm, attitude RMS {:.3} mdeg",
+            row[0], row[1], row[2], row[3], row[4], row[5]
+        );
+        figures.push(row);
+    }
+    let (campaign, smrmsg) = (figures[0], figures[1]);
+    for (k, what) in ["same-surface spread", "position", "along", "across", "vertical", "attitude"].iter().enumerate() {
+        assert!(
+            smrmsg[k] <= 1.05 * campaign[k],
+            "{what}: {} with the SMRMSG prior, {} without",
+            smrmsg[k],
+            campaign[k]
+        );
+    }
 }

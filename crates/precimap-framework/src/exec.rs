@@ -293,11 +293,38 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
         mean_lever_arm: Vec3::from(t.mean_lever_arm),
         clock,
         georef: georeference(t.field.as_ref())?,
+        accuracy: None,
+        accuracy_uri: String::new(),
     })
 }
 
-/// A trajectory file in its manifest format, in the processing frame of a field campaign. The
-/// accuracy file (reported only) is not read by tasks.
+/// A trajectory's anchor prior over `anchors` from its accuracy file (`None` without one, as
+/// `precimap_pipeline::prior`): the solve and field tasks compute it from their inputs alike.
+async fn read_anchor_prior(
+    ctx: &TaskContext,
+    t: &TrajectoryInput,
+    params: &Parameters,
+    anchors: (u32, u32),
+) -> Result<Option<Vec<[f64; 6]>>, TaskError> {
+    let Some((f, uri)) = t.field.as_ref().and_then(|f| Some((f, f.trajectory.accuracy_uri.clone()?))) else {
+        return Ok(None);
+    };
+    let mut entry = read_trajectory(ctx, t).await?;
+    let local = ctx.local(&uri).await?;
+    let (path, spec, week) = (local.path.clone(), f.trajectory.clone(), f.gps_week);
+    let accuracy = blocking(move || precimap_formats::trajectory::load_accuracy(&path, &spec, week))
+        .await?
+        .map_err(|e| TaskError::permanent(format!("trajectory {}: {e}", t.id)).naming(&uri, &local.path))?;
+    entry.accuracy = Some(Arc::new(accuracy));
+    entry.accuracy_uri = uri.clone();
+    let params = params.clone();
+    blocking(move || precimap_pipeline::prior::anchor_prior(&entry, &params, anchors))
+        .await?
+        .map_err(|e| TaskError::permanent(e.to_string()).naming(&uri, &local.path))
+}
+
+/// A trajectory file in its manifest format, in the processing frame of a field campaign (its
+/// accuracy file is read where the prior is needed, [`read_anchor_prior`]).
 fn read_trajectory_file(path: &Path, field: Option<&FieldInput>) -> Result<Trajectory, PipelineError> {
     let Some(f) = field else { return Ok(precimap_formats::read_trajectory_csv(path)?) };
     let frame =

@@ -48,6 +48,9 @@ pub struct Prepared {
     pub tiles: BTreeMap<TileKey, Vec<usize>>,
     pub anchor_ranges: Vec<(u32, u32)>,
     pub anchor_positions: Vec<Vec<[f64; 3]>>,
+    /// Each anchor's own prior weights, for trajectories with an accuracy file
+    /// ([`crate::prior`]).
+    pub anchor_priors: Vec<Option<Vec<[f64; 6]>>>,
     pub strips: Vec<StripReport>,
     pub points_total: u64,
 }
@@ -102,7 +105,8 @@ pub fn prepare_all(
         .zip(&anchor_ranges)
         .map(|(t, &range)| anchor_positions(t, campaign.params.anchor_spacing_m, range))
         .collect();
-    Ok(Prepared { tiles, anchor_ranges, anchor_positions, strips, points_total })
+    let anchor_priors = crate::prior::anchor_priors(&campaign.trajectories, &campaign.params, &anchor_ranges)?;
+    Ok(Prepared { tiles, anchor_ranges, anchor_positions, anchor_priors, strips, points_total })
 }
 
 /// What one iteration produced.
@@ -180,7 +184,8 @@ pub fn iterate(
         let trajectories: Vec<FieldTrajectory> = corrections
             .iter()
             .zip(&prepared.anchor_positions)
-            .map(|(c, positions)| FieldTrajectory { positions, corrections: c })
+            .zip(&prepared.anchor_priors)
+            .map(|((c, positions), prior)| FieldTrajectory { positions, corrections: c, prior: prior.as_deref() })
             .collect();
         let solved = solve_field(estimates.iter().filter_map(|e| e.field.as_ref()), &trajectories, &campaign.params)
             .map_err(PipelineError::Field)?;
@@ -218,6 +223,7 @@ pub fn iterate(
                 &started_from[t],
                 before,
                 start,
+                prepared.anchor_priors[t].as_deref(),
                 step,
                 place.last,
             )

@@ -193,15 +193,17 @@ pub fn solve_trajectory_task<'a>(
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,
     iteration_start: &TrajectoryCorrections,
+    prior: Option<&[[f64; 6]]>,
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory(
+    precimap_estimate::solve_trajectory_with_prior(
         blocks,
         current,
         previous,
         Some(iteration_start),
         &campaign.params,
+        prior,
         step.rotation,
         with_sigma,
     )
@@ -663,6 +665,8 @@ mod tests {
             mean_lever_arm: Vec3::zeros(),
             clock: Default::default(),
             georef: None,
+            accuracy: None,
+            accuracy_uri: String::new(),
         };
         // Estimated on anchors 40..=160 with a trend of 1 mm per anchor in x.
         let corrections = TrajectoryCorrections {
