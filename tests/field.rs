@@ -188,11 +188,24 @@ fn a_field_campaign_through_the_framework_matches_in_process() {
     let record = rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {})).unwrap();
     assert_eq!(record.state, precimap_jobs::CampaignState::Succeeded);
     crate::framework::assert_same_results(&reference, &embedded);
-    // The accuracy files changed the result: they reached both drivers' solves.
-    let plain = dir.path().join("no-accuracy");
-    run(&without_accuracy(&field), &plain).unwrap();
-    let name = "trajectories/v01.csv";
-    assert_ne!(std::fs::read(reference.join(name)).unwrap(), std::fs::read(plain.join(name)).unwrap());
+    // The latent map and the QC plots state the processing CRS, as the strips and trajectories.
+    let tile = std::fs::read_dir(reference.join("latent")).unwrap().next().unwrap().unwrap().path();
+    let declared = strip_info(&tile).unwrap().crs;
+    assert_eq!(declared.as_ref().and_then(|c| c.epsg), Some(32632), "{}: {declared:?}", tile.display());
+    // Grid coordinates: back in the frame they lie in their tile (15 m, 0.3 m border), and they
+    // are not the frame's own coordinates.
+    let georef = load_manifest(&manifest).unwrap().crs.unwrap().georeference().unwrap();
+    let key: precimap_core::TileKey = tile.file_stem().unwrap().to_str().unwrap().parse().unwrap();
+    let mut moved = 0.0f64;
+    for p in precimap_formats::read_latent_map(&tile).unwrap() {
+        let l = georef.frame.local_from_grid(p.position).unwrap();
+        let (x0, y0) = (f64::from(key.tx) * 15.0, f64::from(key.ty) * 15.0);
+        assert!(l.x > x0 - 0.5 && l.x < x0 + 15.5 && l.y > y0 - 0.5 && l.y < y0 + 15.5, "{l:?} outside {key}");
+        moved = moved.max((l - precimap_core::Vec3::from(p.position)).norm());
+    }
+    assert!(moved > 1e-3, "the map is in the grid, {moved} m from the frame");
+    let qc = std::fs::read_to_string(reference.join("qc/latent-std-last.svg")).unwrap();
+    assert!(qc.contains("processing frame of EPSG:32632 (WGS 84 / UTM zone 32N)"));
 }
 
 /// The accuracy files' prior against the campaign's on the same field campaign (seed 3: a GNSS
@@ -235,6 +248,7 @@ fn the_accuracy_files_prior_does_not_hurt() {
         figures.push(row);
     }
     let (campaign, smrmsg) = (figures[0], figures[1]);
+    assert_ne!(campaign, smrmsg, "the accuracy files reached the solves");
     for (k, what) in ["same-surface spread", "position", "along", "across", "vertical", "attitude"].iter().enumerate() {
         assert!(
             smrmsg[k] <= 1.05 * campaign[k],

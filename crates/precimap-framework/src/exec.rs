@@ -333,6 +333,12 @@ fn read_trajectory_file(path: &Path, field: Option<&FieldInput>) -> Result<Traje
     Ok(loaded.trajectory)
 }
 
+fn georeference_of(
+    crs: Option<&precimap_formats::CrsSpec>,
+) -> Result<Option<precimap_formats::crs::Georeference>, TaskError> {
+    crs.map(|c| c.georeference().map_err(|e| TaskError::permanent(format!("manifest $.crs: {e}")))).transpose()
+}
+
 fn georeference(field: Option<&FieldInput>) -> Result<Option<Arc<precimap_formats::crs::Georeference>>, TaskError> {
     field
         .map(|f| f.crs.georeference().map(Arc::new).map_err(|e| TaskError::permanent(format!("manifest $.crs: {e}"))))
@@ -423,6 +429,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             corrections,
             std_map,
             latent_map,
+            crs,
         } => {
             let task = estimate::TileTask {
                 prefix,
@@ -435,6 +442,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 corrections,
                 std_map,
                 latent_map,
+                crs,
             };
             estimate::estimate_tile(&at, task).await
         }
@@ -481,8 +489,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
             export::export_trajectory(&at, prefix, trajectory, anchor_spacing_m, corrections, params).await
         }
-        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map } => {
-            report::write_report(&at, prefix, report, latent_std, tile_size_m, latent_map).await
+        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map, crs } => {
+            let georef = georeference_of(crs.as_ref())?;
+            report::write_report(&at, prefix, report, latent_std, tile_size_m, latent_map, georef.as_ref()).await
         }
     }
 }

@@ -163,7 +163,8 @@ pub fn iterate(
                 estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, latent })?;
             // Written as each tile finishes, so the map never has to fit in memory whole.
             if let Some(points) = estimate.latent_map.take() {
-                crate::tasks::write_latent_map_tile(work, **tile, &points)?;
+                let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
+                crate::tasks::write_latent_map_tile(work, **tile, &points, georef)?;
             }
             Ok::<_, PipelineError>(estimate)
         })
@@ -409,7 +410,9 @@ fn run_campaign_in(
     let path = out.join("report.json");
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
-    let latent_std = crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std);
+    let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
+    let latent_std =
+        crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, georef);
     crate::tasks::write_plots(out, crate::qc::report_plots(&report).into_iter().chain(latent_std))?;
     Ok(report)
 }

@@ -172,6 +172,23 @@ pub fn result_to_local(result: &Path, out: &Path, origin_grid_m: [f64; 3], week:
             }
         }
     }
+    // The latent map, in the grid with its CRS, back into the frame.
+    let latent = result.join("latent");
+    if latent.is_dir() {
+        let to = out.join("latent");
+        std::fs::create_dir_all(&to).map_err(|source| SimError::Io { path: to.clone(), source })?;
+        let entries = std::fs::read_dir(&latent).map_err(|source| SimError::Io { path: latent.clone(), source })?;
+        for entry in entries {
+            let src = entry.map_err(|source| SimError::Io { path: latent.clone(), source })?.path();
+            let mut points = precimap_formats::read_latent_map(&src)?;
+            for p in &mut points {
+                let local = georef.frame.local_from_grid(p.position).map_err(|e| format_error(&src, e))?;
+                p.position = local.into();
+            }
+            let name = src.file_name().map(std::path::PathBuf::from).unwrap_or_default();
+            precimap_formats::write_latent_map(&to.join(name), &points, None)?;
+        }
+    }
     let report = result.join("report.json");
     std::fs::copy(&report, out.join("report.json")).map_err(|source| SimError::Io { path: report, source })?;
     Ok(())
