@@ -258,3 +258,29 @@ fn the_accuracy_files_prior_does_not_hurt() {
         );
     }
 }
+
+/// An accuracy file with a zero σ stops both drivers with an error naming the file as the
+/// manifest does and the record.
+#[test]
+fn a_nonsense_accuracy_file_is_refused_by_both_drivers() {
+    let dir = tempfile::tempdir().unwrap();
+    let (local, field) = (dir.path().join("local"), dir.path().join("field"));
+    let mut config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, 5);
+    config.drive.passes = 2;
+    precimap_sim::simulate(&config, &local, false).unwrap();
+    precimap_sim::field::write_field_campaign(&local, &field, config.origin, false).unwrap();
+    let path = field.join("trajectories/v02.smrmsg");
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Record 3's down σ (field 3 of 10 f64).
+    bytes[3 * 80 + 3 * 8..3 * 80 + 4 * 8].copy_from_slice(&0f64.to_le_bytes());
+    std::fs::write(&path, bytes).unwrap();
+    let manifest = field.join("manifest.json");
+    let e = run(&manifest, &dir.path().join("in-process")).unwrap_err().to_string();
+    assert!(e.contains("v02.smrmsg") && e.contains("record 3") && e.contains("down σ is 0 m"), "{e}");
+    let options =
+        precimap_framework::EmbeddedOptions { out_dir: dir.path().join("embedded"), concurrency: 2, keep_state: false };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let e = rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {})).unwrap_err().to_string();
+    assert!(e.contains("trajectories/v02.smrmsg: record 3") && e.contains("down σ is 0 m"), "{e}");
+    assert!(!e.contains("inputs/"), "named as the manifest names it: {e}");
+}
