@@ -306,21 +306,31 @@ async fn read_anchor_prior(
     params: &Parameters,
     anchors: (u32, u32),
 ) -> Result<Option<Vec<[f64; 6]>>, TaskError> {
-    let Some((f, uri)) = t.field.as_ref().and_then(|f| Some((f, f.trajectory.accuracy_uri.clone()?))) else {
-        return Ok(None);
-    };
+    let Some((accuracy, uri, local)) = read_accuracy(ctx, t).await? else { return Ok(None) };
     let mut entry = read_trajectory(ctx, t).await?;
-    let local = ctx.local(&uri).await?;
-    let (path, spec, week) = (local.path.clone(), f.trajectory.clone(), f.gps_week);
-    let accuracy = blocking(move || precimap_formats::trajectory::load_accuracy(&path, &spec, week))
-        .await?
-        .map_err(|e| TaskError::permanent(format!("trajectory {}: {e}", t.id)).naming(&uri, &local.path))?;
     entry.accuracy = Some(Arc::new(accuracy));
     entry.accuracy_uri = uri.clone();
     let params = params.clone();
     blocking(move || precimap_pipeline::prior::anchor_prior(&entry, &params, anchors))
         .await?
         .map_err(|e| TaskError::permanent(e.to_string()).naming(&uri, &local.path))
+}
+
+/// A trajectory's accuracy file, read and checked, with its URI and local copy; `None` without
+/// one.
+async fn read_accuracy(
+    ctx: &TaskContext,
+    t: &TrajectoryInput,
+) -> Result<Option<(precimap_formats::sbet::NavAccuracy, String, LocalObject)>, TaskError> {
+    let Some((f, uri)) = t.field.as_ref().and_then(|f| Some((f, f.trajectory.accuracy_uri.clone()?))) else {
+        return Ok(None);
+    };
+    let local = ctx.local(&uri).await?;
+    let (path, spec, week) = (local.path.clone(), f.trajectory.clone(), f.gps_week);
+    let accuracy = blocking(move || precimap_formats::trajectory::load_accuracy(&path, &spec, week))
+        .await?
+        .map_err(|e| TaskError::permanent(format!("trajectory {}: {e}", t.id)).naming(&uri, &local.path))?;
+    Ok(Some((accuracy, uri, local)))
 }
 
 /// A trajectory file in its manifest format, in the processing frame of a field campaign (its
