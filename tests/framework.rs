@@ -29,7 +29,7 @@ fn in_process(manifest: &Path, out: &Path) {
 /// Every corrected strip and trajectory byte-identical (LAS stores coordinates as integers of
 /// 0.1 mm or finer and the CSV writes round-trip floats, so this is equality of the corrections
 /// far below 1e-9 m), and the same iteration statistics.
-fn assert_same_results(a: &Path, b: &Path) {
+pub(crate) fn assert_same_results(a: &Path, b: &Path) {
     for folder in ["strips", "trajectories", "corrections", "segments", "qc", "latent"] {
         let mut names: Vec<_> = std::fs::read_dir(a.join(folder)).unwrap().map(|e| e.unwrap().file_name()).collect();
         names.sort();

@@ -448,7 +448,9 @@ fn run(
 }
 
 fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Result<()> {
-    let evaluation = precimap_eval::evaluate(truth, result)
+    let converted = field_result_in_frame(truth, result)?;
+    let result_in_frame = converted.as_ref().map_or(result, |d| d.path());
+    let evaluation = precimap_eval::evaluate(truth, result_in_frame)
         .with_context(|| format!("evaluating {} against {}", result.display(), truth.display()))?;
     if json {
         outln!("{}", serde_json::to_string_pretty(&evaluation)?);
@@ -456,6 +458,34 @@ fn evaluate(truth: &std::path::Path, result: &std::path::Path, json: bool) -> Re
         outln!("{}", evaluation.summary());
     }
     Ok(())
+}
+
+/// The result of a simulated field campaign (`simulate --field`: its trajectories have a `.prj`)
+/// mapped back into the simulation's frame, where the truth is; `None` for any other result.
+fn field_result_in_frame(truth: &std::path::Path, result: &std::path::Path) -> Result<Option<tempfile::TempDir>> {
+    let trajectories = std::fs::read_dir(result.join("trajectories")).into_iter().flatten().flatten();
+    if !trajectories.into_iter().any(|e| e.path().extension().is_some_and(|x| x == "prj")) {
+        return Ok(None);
+    }
+    let file = [truth.join("truth.json"), truth.join("truth").join("truth.json")]
+        .into_iter()
+        .find(|p| p.is_file())
+        .with_context(|| format!("{}: no truth.json of a simulated campaign", truth.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&file).with_context(|| file.display().to_string())?)
+            .with_context(|| format!("{}: not JSON", file.display()))?;
+    let origin: Option<Vec<f64>> = v["origin"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect());
+    let start = v["trajectories"][0]["start_time"].as_f64();
+    let (Some([e, n, h]), Some(week)) = (
+        origin.and_then(|o| <[f64; 3]>::try_from(o).ok()),
+        start.and_then(precimap_formats::gps_time::week_of_adjusted),
+    ) else {
+        anyhow::bail!("{}: no origin or start time; simulate the campaign again", file.display());
+    };
+    let dir = tempfile::tempdir().context("creating a temporary folder for the field result in the frame")?;
+    precimap_sim::field::result_to_local(result, dir.path(), [e, n, h], week)
+        .with_context(|| format!("{}: mapping the field result into the simulation's frame", result.display()))?;
+    Ok(Some(dir))
 }
 
 #[cfg(test)]

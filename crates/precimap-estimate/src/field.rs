@@ -648,11 +648,13 @@ fn swap_tilt(y: [f64; 20]) -> [f64; 20] {
 
 /// One trajectory as the field sees it: the position of each anchor of `corrections` (same
 /// order; the field acts at the horizontal one, the campaign's rotation about the centre of all
-/// of them) and the current corrections.
+/// of them), the current corrections, and each anchor's prior weights when it has its own (as
+/// `crate::solve_trajectory_with_prior` takes them; `None`: the campaign's).
 #[derive(Debug)]
 pub struct FieldTrajectory<'a> {
     pub positions: &'a [[f64; 3]],
     pub corrections: &'a TrajectoryCorrections,
+    pub prior: Option<&'a [[f64; 6]]>,
 }
 
 /// The solved field: a translation per node.
@@ -706,19 +708,20 @@ struct MotionTerms {
 }
 
 impl MotionTerms {
-    /// A translation term: residual `Σ row·field + ω × d + value` of weight `w`.
-    fn add(&mut self, row: &[(usize, f64)], per_node: usize, d: [f64; 3], value: [f64; 3], w: f64) {
+    /// A translation term: residual `Σ row·field + ω × d + value` of weight `w` per axis.
+    fn add(&mut self, row: &[(usize, f64)], per_node: usize, d: [f64; 3], value: [f64; 3], w: [f64; 3]) {
         // `∂(ω × d)/∂ω = −[d]×`.
         let m = -skew(&Vec3::from(d));
         for &(node, phi) in row {
             for c in 0..3 {
                 for j in 0..3 {
-                    self.coupling[per_node * node + c][j] += w * phi * m[(c, j)];
+                    self.coupling[per_node * node + c][j] += w[c] * phi * m[(c, j)];
                 }
             }
         }
-        self.own += w * m.transpose() * m;
-        self.rhs -= w * m.transpose() * Vec3::from(value);
+        let weighted = Mat3::from_fn(|j, c| w[c] * m[(c, j)]);
+        self.own += weighted * m;
+        self.rhs -= weighted * Vec3::from(value);
     }
 }
 
@@ -1087,6 +1090,11 @@ fn solve_field_within<'a>(
     let prior_rotation = params.sigma_prior_rotation_axes_deg().map(rotation_weight);
     let (smooth_rotation, curvature_rotation) =
         (rotation_weight(params.sigma_smooth_rotation_deg), rotation_weight(params.sigma_curvature_rotation_deg));
+    // An anchor's own prior (translation, rotation weights), else the campaign's.
+    let anchor_prior = |tr: &FieldTrajectory, k: usize| match tr.prior.and_then(|p| p.get(k)) {
+        Some(w) => ([w[0], w[1], w[2]], [w[3], w[4], w[5]]),
+        None => ([prior; 3], prior_rotation),
+    };
     // The field's rotation unknowns: (index within the node, axis).
     let rotation_unknowns: &[(usize, usize)] = match axes {
         0 => &[],
@@ -1101,18 +1109,18 @@ fn solve_field_within<'a>(
     let mut add_term = |row: &[(usize, f64)],
                         d: [f64; 3],
                         value: [f64; 6],
-                        weight: f64,
+                        weight: [f64; 3],
                         rotation_weight: [f64; 3],
                         sees_motion: bool| {
         for &(a, ra) in row {
             for c in 0..3 {
-                rhs[per_node * a + c] -= weight * ra * value[c];
+                rhs[per_node * a + c] -= weight[c] * ra * value[c];
             }
             for &(b, rb) in row {
                 // Each unordered pair of nodes once.
                 if a >= b {
                     for c in 0..3 {
-                        h.add(per_node * a + c, per_node * b + c, weight * ra * rb);
+                        h.add(per_node * a + c, per_node * b + c, weight[c] * ra * rb);
                     }
                 }
             }
@@ -1143,6 +1151,7 @@ fn solve_field_within<'a>(
         let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
         let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
         for (k, row) in rows.iter().enumerate() {
+            let (prior, prior_rotation) = anchor_prior(tr, k);
             add_term(row, d[k], values[k], prior, prior_rotation, true);
             if k + 1 < rows.len() {
                 let mut diff = rows[k + 1].clone();
@@ -1151,7 +1160,7 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k + 1][c] - values[k][c]);
                 let dd = std::array::from_fn(|a| d[k + 1][a] - d[k][a]);
-                add_term(&diff, dd, dv, smooth, [smooth_rotation; 3], false);
+                add_term(&diff, dd, dv, [smooth; 3], [smooth_rotation; 3], false);
             }
             if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
                 let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
@@ -1162,17 +1171,20 @@ fn solve_field_within<'a>(
                 }
                 let dv: [f64; 6] = std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
                 let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
-                add_term(&second, dd, dv, curvature, [curvature_rotation; 3], false);
+                add_term(&second, dd, dv, [curvature; 3], [curvature_rotation; 3], false);
             }
         }
     }
     // The rotation prior sees the motion's rotation directly: it holds the campaign's mean
     // attitude correction.
     if let Some(m) = motion.as_mut() {
-        for v in trajectories.iter().flat_map(|tr| &tr.corrections.values) {
-            for i in 0..3 {
-                m.own[(i, i)] += prior_rotation[i];
-                m.rhs[i] -= prior_rotation[i] * v[3 + i];
+        for tr in trajectories {
+            for (k, v) in tr.corrections.values.iter().enumerate() {
+                let prior_rotation = anchor_prior(tr, k).1;
+                for i in 0..3 {
+                    m.own[(i, i)] += prior_rotation[i];
+                    m.rhs[i] -= prior_rotation[i] * v[3 + i];
+                }
             }
         }
     }
@@ -1495,8 +1507,8 @@ mod tests {
             v[0] += zigzag(k);
         }
         let trajectories = [
-            FieldTrajectory { positions: &positions, corrections: &current },
-            FieldTrajectory { positions: &positions, corrections: &current },
+            FieldTrajectory { positions: &positions, corrections: &current, prior: None },
+            FieldTrajectory { positions: &positions, corrections: &current, prior: None },
         ];
         let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing, 0).unwrap();
         // Inconsistent inputs are errors, not panics.
@@ -1529,7 +1541,7 @@ mod tests {
             (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 0.1 * k as f64, 50.0]).collect();
         let corrections =
             TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 200] };
-        let tr = [FieldTrajectory { positions: &positions, corrections: &corrections }];
+        let tr = [FieldTrajectory { positions: &positions, corrections: &corrections, prior: None }];
         let field = solve_field(std::iter::empty(), &tr, &params).unwrap();
         let shifted = field.apply(&positions, &corrections);
         // Within 1 % (the weak prior on the nodes themselves keeps a trace of it).
@@ -1542,7 +1554,7 @@ mod tests {
         let fine = Parameters { common_mode_field_m: 0.01, ..Default::default() };
         let many: Vec<[f64; 3]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047, 50.0]).collect();
         let long = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 800] };
-        let tr_long = [FieldTrajectory { positions: &many, corrections: &long }];
+        let tr_long = [FieldTrajectory { positions: &many, corrections: &long, prior: None }];
         let field = solve_field(std::iter::empty(), &tr_long, &fine).unwrap();
         assert_eq!(field.nodes.len(), 3200);
         // Each node is touched by one anchor only, so the nodes' own weak prior keeps more of the
@@ -1552,8 +1564,36 @@ mod tests {
         }
         let err = solve_field_within(std::iter::empty(), &tr_long, &fine, 10_000).unwrap_err();
         assert!(matches!(err, FieldError::TooLarge { nodes: 3200, limit: 10_000, .. }), "{err}");
-        let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections }];
+        let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections, prior: None }];
         assert!(matches!(solve_field(std::iter::empty(), &short, &params), Err(FieldError::Positions { .. })));
+    }
+
+    /// Each anchor's own prior weights enter the field's prior: the campaign's weights given per
+    /// anchor change nothing, and where one pass is held a hundred times tighter the shared
+    /// offset the field removes is that pass's.
+    #[test]
+    fn per_anchor_prior_weights_decide_the_shared_offset() {
+        let params = Parameters { common_mode_field_m: 20.0, ..Default::default() };
+        let positions: Vec<[f64; 3]> = (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0, 50.0]).collect();
+        let a = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]; 200] };
+        let b = TrajectoryCorrections { first_anchor: 0, values: vec![[-0.1, 0.0, 0.0, 0.0, 0.0, 0.0]; 200] };
+        let campaign = vec![crate::campaign_prior_weights(&params); 200];
+        let tight = vec![crate::campaign_prior_weights(&params).map(|w| 100.0 * w); 200];
+        let solve = |prior_a: Option<&[[f64; 6]]>| {
+            let tr = [
+                FieldTrajectory { positions: &positions, corrections: &a, prior: prior_a },
+                FieldTrajectory { positions: &positions, corrections: &b, prior: None },
+            ];
+            solve_field(std::iter::empty(), &tr, &params).unwrap()
+        };
+        let plain = solve(None);
+        assert_eq!(solve(Some(&campaign)), plain);
+        // Equal priors: the mean offset (zero) goes, each pass keeps its own.
+        assert!((plain.apply(&positions, &a).values[100][0] - 0.1).abs() < 1e-3);
+        // Pass a held tightly: the field takes nearly all of its offset, b moves with it.
+        let held = solve(Some(&tight));
+        let moved = held.apply(&positions, &a).values[100][0];
+        assert!(moved.abs() < 0.01, "{moved}");
     }
 
     /// Two crossing straight trajectories (a T), 200 anchors each, one of them on a 2 % grade.
@@ -1570,8 +1610,11 @@ mod tests {
         values: &[TrajectoryCorrections],
         params: &Parameters,
     ) -> FieldSolution {
-        let tr: Vec<FieldTrajectory> =
-            positions.iter().zip(values).map(|(p, c)| FieldTrajectory { positions: p, corrections: c }).collect();
+        let tr: Vec<FieldTrajectory> = positions
+            .iter()
+            .zip(values)
+            .map(|(p, c)| FieldTrajectory { positions: p, corrections: c, prior: None })
+            .collect();
         solve_field(std::iter::empty(), &tr, params).unwrap()
     }
 

@@ -374,6 +374,29 @@ pub fn solve_trajectory<'a>(
     estimate_rotation: bool,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, precimap_solve::SolveError> {
+    solve_trajectory_with_prior(blocks, current, previous, change_from, params, None, estimate_rotation, with_sigma)
+}
+
+/// The campaign's prior weights on an anchor's total correction (1/σ²: x, y, z in m⁻², rotations
+/// about x, y, z in rad⁻²), what every anchor gets without a per-anchor prior.
+pub fn campaign_prior_weights(params: &Parameters) -> [f64; 6] {
+    weights(params).0.into()
+}
+
+/// [`solve_trajectory`] with a prior per anchor: `prior[k]` (weights as
+/// [`campaign_prior_weights`]) holds anchor `current.first_anchor + k`; `None`, or an anchor
+/// beyond the slice, takes the campaign's.
+#[allow(clippy::too_many_arguments)]
+pub fn solve_trajectory_with_prior<'a>(
+    blocks: impl IntoIterator<Item = &'a AnchorBlock>,
+    current: &TrajectoryCorrections,
+    previous: Option<&TrajectoryCorrections>,
+    change_from: Option<&TrajectoryCorrections>,
+    params: &Parameters,
+    prior: Option<&[[f64; 6]]>,
+    estimate_rotation: bool,
+    with_sigma: bool,
+) -> Result<TrajectorySolution, precimap_solve::SolveError> {
     let n = current.values.len();
     let first = current.first_anchor;
     let mut sys = BlockTridiagonal::zeros(n);
@@ -396,10 +419,11 @@ pub fn solve_trajectory<'a>(
         }
     }
     filter_weak_directions(&mut sys, if estimate_rotation { 6 } else { 3 }, params.weak_information_ratio);
-    let (prior, smooth) = weights(params);
+    let (campaign_prior, smooth) = weights(params);
     let x = |k: usize| Vec6::from_column_slice(&current.values[k]);
     for k in 0..n {
         let xk = x(k);
+        let prior = prior.and_then(|p| p.get(k)).map_or(campaign_prior, |w| Vec6::from(*w));
         for a in 0..6 {
             sys.diag[k][(a, a)] += prior[a];
             sys.rhs[k][a] -= prior[a] * xk[a];
@@ -650,6 +674,49 @@ mod tests {
         for v in &extended.values {
             assert!(v.iter().zip(&single.values[0]).all(|(x, y)| (x - y).abs() < 1e-9 * y.abs()), "{extended:?}");
         }
+    }
+
+    /// Each anchor's own prior: the campaign's weights given per anchor change nothing, and
+    /// anchors held tighter move less far towards what their data say.
+    #[test]
+    fn per_anchor_prior_weights_replace_the_campaigns() {
+        let params = Parameters { weak_information_ratio: 0.0, ..Default::default() };
+        let current = TrajectoryCorrections { first_anchor: 7, values: vec![[0.0; 6]; 41] };
+        // Data at every anchor asking for 0.5 m in x, as firmly as the campaign's prior.
+        let w = campaign_prior_weights(&params)[0];
+        let blocks: Vec<AnchorBlock> = (7..48)
+            .map(|anchor| {
+                let mut b = AnchorBlock::new(anchor);
+                b.diag[sym_index(0, 0)] = w;
+                b.rhs[0] = w * 0.5;
+                b.observations = 1;
+                b
+            })
+            .collect();
+        let solve = |prior: Option<&[[f64; 6]]>| {
+            solve_trajectory_with_prior(blocks.iter(), &current, None, None, &params, prior, true, true).unwrap()
+        };
+        let plain = solve(None);
+        let campaign = vec![campaign_prior_weights(&params); 41];
+        assert_eq!(solve(Some(&campaign)), plain);
+        assert!((plain.corrections.values[0][0] - 0.25).abs() < 1e-9, "{:?}", plain.corrections.values[0]);
+        let mut tighter = campaign.clone();
+        for w in &mut tighter[20..] {
+            w[0] *= 100.0;
+        }
+        let held = solve(Some(&tighter));
+        for k in 0..41 {
+            let (p, h) = (plain.corrections.values[k][0], held.corrections.values[k][0]);
+            assert!(h <= p + 1e-12, "anchor {k}: {h} vs {p}");
+        }
+        // Where the weights are a hundred times larger the data barely move the anchors (the
+        // smoothness to the looser ones adds a little).
+        for k in 25..41 {
+            assert!(held.corrections.values[k][0] < 0.02, "anchor {k}: {:?}", held.corrections.values[k]);
+        }
+        // The posterior σ follows the prior.
+        let sigma = |s: &TrajectorySolution, k: usize| s.covariance.as_ref().unwrap()[k].sigma()[0];
+        assert!(sigma(&held, 40) < 0.5 * sigma(&plain, 40), "{} vs {}", sigma(&held, 40), sigma(&plain, 40));
     }
 
     /// Without observations, the curvature term removes a kink from a correction profile.

@@ -5,6 +5,10 @@
 //! Per point: x, y, z at 0.1 mm (the map is meant to be good to millimetres), the synthetic
 //! flag (derived, not measured), GPS time 0, and the extra bytes `NormalX`, `NormalY`,
 //! `NormalZ` (f32), `StdDev` (f32, metres), `Observations` (u32) and `Passes` (u16).
+//!
+//! A field campaign's map is written in grid coordinates of its processing CRS, the CRS as a
+//! WKT VLR, as its strips are; normals keep the processing frame's axes (parallel to the grid
+//! at the frame's origin).
 
 use crate::atomic::PendingFile;
 use crate::FormatError;
@@ -41,8 +45,9 @@ fn extra_bytes_vlr() -> Vlr {
     Vlr { user_id: "LASF_Spec".into(), record_id: 4, description: "Extra Bytes Record".into(), data }
 }
 
-/// The map as the bytes of a LAS file (what the job framework stores as one object per tile).
-pub fn encode_latent_map(points: &[LatentMapPoint]) -> Result<Vec<u8>, las::Error> {
+/// The map as the bytes of a LAS file (what the job framework stores as one object per tile),
+/// declaring the CRS `wkt` when given.
+pub fn encode_latent_map(points: &[LatentMapPoint], wkt: Option<&str>) -> Result<Vec<u8>, las::Error> {
     let mut b = Builder::from(Version::new(1, 4));
     b.point_format = Format::new(6)?;
     b.point_format.extra_bytes = EXTRA_BYTES as u16;
@@ -54,7 +59,10 @@ pub fn encode_latent_map(points: &[LatentMapPoint]) -> Result<Vec<u8>, las::Erro
     b.system_identifier = "precimap latent map".into();
     b.generating_software = "precimap".into();
     b.vlrs.push(extra_bytes_vlr());
-    let header = b.into_header()?;
+    let mut header = b.into_header()?;
+    if let Some(wkt) = wkt {
+        header.set_wkt_crs(wkt.as_bytes().to_vec())?;
+    }
     let mut w = Writer::new(Cursor::new(Vec::new()), header)?;
     for p in points {
         let mut extra = Vec::with_capacity(EXTRA_BYTES);
@@ -79,10 +87,11 @@ pub fn encode_latent_map(points: &[LatentMapPoint]) -> Result<Vec<u8>, las::Erro
     Ok(w.into_inner()?.into_inner())
 }
 
-/// Writes the map to `path` (atomically: the file appears complete or not at all).
-pub fn write_latent_map(path: &Path, points: &[LatentMapPoint]) -> Result<(), FormatError> {
-    let bytes =
-        encode_latent_map(points).map_err(|e| FormatError::file(path, format!("cannot encode the latent map: {e}")))?;
+/// Writes the map to `path` (atomically: the file appears complete or not at all), declaring the
+/// CRS `wkt` when given.
+pub fn write_latent_map(path: &Path, points: &[LatentMapPoint], wkt: Option<&str>) -> Result<(), FormatError> {
+    let bytes = encode_latent_map(points, wkt)
+        .map_err(|e| FormatError::file(path, format!("cannot encode the latent map: {e}")))?;
     let (pending, mut file) = PendingFile::create(path)?;
     file.write_all(&bytes).map_err(|e| FormatError::io(path, "write latent map", e))?;
     pending.commit()
@@ -153,7 +162,7 @@ mod tests {
             },
         ];
         let path = dir.join("0_0.las");
-        write_latent_map(&path, &points).unwrap();
+        write_latent_map(&path, &points, None).unwrap();
         let back = read_latent_map(&path).unwrap();
         assert_eq!(back.len(), 2);
         for (a, b) in points.iter().zip(&back) {
@@ -163,7 +172,7 @@ mod tests {
             assert_eq!((a.normal, a.std_m, a.observations, a.passes), (b.normal, b.std_m, b.observations, b.passes));
         }
         // An empty tile is a valid (empty) map; a strip is not a map.
-        write_latent_map(&path, &[]).unwrap();
+        write_latent_map(&path, &[], None).unwrap();
         assert!(read_latent_map(&path).unwrap().is_empty());
         let strip = dir.join("strip.las");
         let mut w = crate::StripWriter::create(&strip, [0.0; 3], 0.001, "t", "t").unwrap();

@@ -47,6 +47,11 @@ const SMRMSG_FIELDS: [&str; 10] = [
     "heading σ",
 ];
 const SMRMSG_RECORD: usize = 10 * 8;
+/// Plausible position σ of an SMRMSG record (lowest, highest, unit): below a millimetre no
+/// GNSS/IMU solution is that good, above 10 km it is no solution.
+const SIGMA_POSITION_M: (f64, f64, &str) = (1e-3, 1e4, "m");
+/// Plausible attitude σ (0.6 arc seconds to 180°).
+const SIGMA_ATTITUDE_ARCMIN: (f64, f64, &str) = (0.01, 10_800.0, "arc minutes");
 
 /// Splits a headerless binary file into records of `n` f64, checking length, finiteness and
 /// increasing times (field 0). Errors name the record (0-based) and the field.
@@ -167,6 +172,44 @@ pub struct NavAccuracy {
 }
 
 impl NavAccuracy {
+    /// Position σ (north, east, down, m) and attitude σ (roll, pitch, heading, degrees) at time
+    /// `t`, linear between records; `None` when `t` lies more than `tolerance_s` outside them
+    /// (held at the end record within it).
+    pub fn at(&self, t: f64, tolerance_s: f64) -> Option<([f64; 3], [f64; 3])> {
+        let (first, last) = (*self.times.first()?, *self.times.last()?);
+        if t < first - tolerance_s || t > last + tolerance_s {
+            return None;
+        }
+        let i = self.times.partition_point(|&x| x <= t);
+        if i == 0 {
+            return Some((self.position_sigma_m[0], self.attitude_sigma_deg[0]));
+        }
+        if i == self.times.len() {
+            return Some((self.position_sigma_m[i - 1], self.attitude_sigma_deg[i - 1]));
+        }
+        let lambda = (t - self.times[i - 1]) / (self.times[i] - self.times[i - 1]);
+        let lerp = |a: &[f64; 3], b: &[f64; 3]| std::array::from_fn(|k| a[k] + lambda * (b[k] - a[k]));
+        Some((
+            lerp(&self.position_sigma_m[i - 1], &self.position_sigma_m[i]),
+            lerp(&self.attitude_sigma_deg[i - 1], &self.attitude_sigma_deg[i]),
+        ))
+    }
+
+    /// Medians over the records: the position's RMS σ over its three axes (m), the tilt's RMS
+    /// over roll and pitch, and the heading's (degrees).
+    pub fn medians(&self) -> [f64; 3] {
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(0.0)
+        };
+        let rms = |s: &[f64]| (s.iter().map(|v| v * v).sum::<f64>() / s.len() as f64).sqrt();
+        [
+            median(self.position_sigma_m.iter().map(|s| rms(s)).collect()),
+            median(self.attitude_sigma_deg.iter().map(|s| rms(&s[..2])).collect()),
+            median(self.attitude_sigma_deg.iter().map(|s| s[2]).collect()),
+        ]
+    }
+
     /// Median and largest horizontal position σ (root of the north and east variances), metres,
     /// and median and largest heading σ, degrees.
     pub fn summary(&self) -> [f64; 4] {
@@ -193,11 +236,47 @@ pub fn read_smrmsg(path: &Path) -> Result<NavAccuracy, FormatError> {
                 format!("record {i}: {} is negative ({})", SMRMSG_FIELDS[k + 1], r[k + 1]),
             ));
         }
+        // Position and attitude σ become the estimator's prior: a zero or implausible value
+        // would pin or free an anchor outright.
+        for (k, (lowest, highest, unit)) in [(1, SIGMA_POSITION_M), (7, SIGMA_ATTITUDE_ARCMIN)]
+            .into_iter()
+            .flat_map(|(first, range)| (first..first + 3).map(move |k| (k, range)))
+        {
+            if !(lowest..=highest).contains(&r[k]) {
+                return Err(FormatError::file(
+                    path,
+                    format!(
+                        "record {i} (time {}): {} is {} {unit}, outside the plausible {lowest}–{highest} {unit} of a \
+                         GNSS/IMU accuracy; the file is damaged or is not the SMRMSG of this SBET (remove \
+                         \"accuracy_uri\" to use the campaign's sigma_prior_* instead)",
+                        r[0], SMRMSG_FIELDS[k], r[k]
+                    ),
+                ));
+            }
+        }
         out.times.push(r[0]);
         out.position_sigma_m.push([r[1], r[2], r[3]]);
         out.attitude_sigma_deg.push([r[7] / 60.0, r[8] / 60.0, r[9] / 60.0]);
     }
     Ok(out)
+}
+
+/// Writes an SMRMSG file (velocity σ zero); attitude σ are given in degrees and stored in arc
+/// minutes.
+pub fn write_smrmsg(path: &Path, accuracy: &NavAccuracy) -> Result<(), FormatError> {
+    let n = accuracy.times.len();
+    if accuracy.position_sigma_m.len() != n || accuracy.attitude_sigma_deg.len() != n {
+        return Err(FormatError::file(path, "cannot write SMRMSG: needs one position and attitude σ per time"));
+    }
+    let mut bytes = Vec::with_capacity(n * SMRMSG_RECORD);
+    for i in 0..n {
+        let [north, east, down] = accuracy.position_sigma_m[i];
+        let [roll, pitch, heading] = accuracy.attitude_sigma_deg[i].map(|d| d * 60.0);
+        for v in [accuracy.times[i], north, east, down, 0.0, 0.0, 0.0, roll, pitch, heading] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    crate::atomic::write_bytes(path, &bytes)
 }
 
 #[cfg(test)]
@@ -289,5 +368,59 @@ mod tests {
         assert!(read_smrmsg(&p).unwrap_err().to_string().contains("north σ is negative"));
         std::fs::write(&p, &rec(1.0, 0.02)[..40]).unwrap();
         assert!(read_smrmsg(&p).unwrap_err().to_string().contains("truncated SMRMSG"));
+    }
+
+    #[test]
+    fn zero_and_implausible_sigma_are_refused_with_the_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("p01.smrmsg");
+        let rec = |t: f64, pos: f64, att_arcmin: f64| -> Vec<u8> {
+            [t, pos, pos, pos, 0.0, 0.0, 0.0, att_arcmin, att_arcmin, att_arcmin]
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect()
+        };
+        let cases = [
+            (rec(2.0, 0.0, 0.6), "north σ is 0 m"),
+            (rec(2.0, 1e-5, 0.6), "north σ is 0.00001 m"),
+            (rec(2.0, 0.05, 0.0), "roll σ is 0 arc minutes"),
+            (rec(2.0, 2e4, 0.6), "north σ is 20000 m"),
+        ];
+        for (bad, what) in cases {
+            std::fs::write(&p, [rec(1.0, 0.02, 0.6), bad].concat()).unwrap();
+            let m = read_smrmsg(&p).unwrap_err().to_string();
+            assert!(m.contains("p01.smrmsg") && m.contains("record 1 (time 2)") && m.contains("accuracy_uri"), "{m}");
+            assert!(m.contains(what), "{m}");
+        }
+        let mut nan = rec(2.0, 0.02, 0.6);
+        nan[8..16].copy_from_slice(&f64::NAN.to_le_bytes());
+        std::fs::write(&p, [rec(1.0, 0.02, 0.6), nan].concat()).unwrap();
+        assert!(read_smrmsg(&p).unwrap_err().to_string().contains("record 1 (byte 88): north σ is NaN"));
+    }
+
+    #[test]
+    fn smrmsg_round_trip_interpolation_and_medians() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.smrmsg");
+        let a = NavAccuracy {
+            times: vec![10.0, 11.0, 12.0],
+            position_sigma_m: vec![[0.02, 0.02, 0.04], [0.04, 0.04, 0.08], [0.03, 0.03, 0.06]],
+            attitude_sigma_deg: vec![[0.01, 0.01, 0.03], [0.02, 0.02, 0.05], [0.01, 0.01, 0.04]],
+        };
+        write_smrmsg(&p, &a).unwrap();
+        let back = read_smrmsg(&p).unwrap();
+        assert_eq!(back.times, a.times);
+        assert_eq!(back.position_sigma_m, a.position_sigma_m);
+        for (x, y) in back.attitude_sigma_deg.iter().zip(&a.attitude_sigma_deg) {
+            assert!((0..3).all(|k| (x[k] - y[k]).abs() < 1e-15), "{x:?} {y:?}");
+        }
+        let (pos, att) = a.at(10.5, 0.0).unwrap();
+        assert!((pos[0] - 0.03).abs() < 1e-15 && (att[2] - 0.04).abs() < 1e-15, "{pos:?} {att:?}");
+        assert_eq!(a.at(12.5, 1.0).unwrap().0, [0.03, 0.03, 0.06]);
+        assert_eq!(a.at(9.5, 1.0).unwrap().0, [0.02, 0.02, 0.04]);
+        assert!(a.at(13.5, 1.0).is_none() && a.at(8.0, 1.0).is_none());
+        let m = a.medians();
+        let rms = (0.03f64.powi(2) * 2.0 + 0.06f64.powi(2)) / 3.0;
+        assert!((m[0] - rms.sqrt()).abs() < 1e-15 && m[1] == 0.01 && m[2] == 0.04, "{m:?}");
     }
 }

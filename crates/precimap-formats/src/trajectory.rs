@@ -88,8 +88,19 @@ pub fn load_trajectory(
     };
     let trajectory = to_trajectory(path, &samples, source.as_ref(), frame, offset)?;
     let clock = trajectory_clock(spec, gps_week, trajectory.times()[0]);
-    let accuracy = accuracy_path.map(read_smrmsg).transpose()?;
+    let accuracy = accuracy_path.map(|p| load_accuracy(p, spec, gps_week)).transpose()?;
     Ok(LoadedTrajectory { trajectory, time: clock.time, week: clock.week, accuracy })
+}
+
+/// Reads the accuracy (SMRMSG) file of the trajectory `spec` with its times on the scale
+/// [`load_trajectory`] puts the trajectory's on: it counts time as its SBET does.
+pub fn load_accuracy(path: &Path, spec: &TrajectoryRef, gps_week: Option<u32>) -> Result<NavAccuracy, FormatError> {
+    let mut accuracy = read_smrmsg(path)?;
+    if let (TrajectoryFormat::Sbet, Some(w)) = (spec.format, gps_week) {
+        let offset = gps_time::offset(TimeConvention::WeekSeconds, TimeConvention::AdjustedStandard, w);
+        accuracy.times.iter_mut().for_each(|t| *t += offset);
+    }
+    Ok(accuracy)
 }
 
 /// The time scale [`load_trajectory`] puts `spec`'s times on, given the loaded trajectory's first

@@ -121,6 +121,9 @@ impl Framework {
             .iter()
             .enumerate()
             .map(|(i, t)| (format!("$.trajectories[{i}].uri"), &t.uri))
+            .chain(manifest.trajectories.iter().enumerate().filter_map(|(i, t)| {
+                t.accuracy_uri.as_ref().map(|uri| (format!("$.trajectories[{i}].accuracy_uri"), uri))
+            }))
             .chain(manifest.strips.iter().enumerate().map(|(i, s)| (format!("$.strips[{i}].uri"), &s.uri)));
         let mut sizes: HashMap<&str, u64> = HashMap::new();
         for (path, uri) in named {
@@ -222,7 +225,11 @@ pub fn plan_local_upload(manifest_path: &Path) -> Result<(Manifest, Vec<(PathBuf
     let mut manifest = precimap_formats::load_manifest(manifest_path)?;
     let dir = manifest_path.parent().unwrap_or(Path::new(".")).to_path_buf();
     let base = format!("inputs/{}", Uuid::new_v4().simple());
-    let mut uris: Vec<&mut String> = manifest.trajectories.iter_mut().map(|t| &mut t.uri).collect();
+    let mut uris: Vec<&mut String> = Vec::new();
+    for t in &mut manifest.trajectories {
+        uris.push(&mut t.uri);
+        uris.extend(t.accuracy_uri.as_mut());
+    }
     uris.extend(manifest.strips.iter_mut().map(|s| &mut s.uri));
     let mut files = Vec::with_capacity(uris.len());
     for uri in uris {
@@ -301,7 +308,11 @@ pub async fn run_embedded(
 /// (so that no key is replaced inside a longer one).
 fn manifest_names(original: &Manifest, uploaded: &Manifest) -> Vec<(String, String)> {
     let uris = |m: &Manifest| -> Vec<String> {
-        m.trajectories.iter().map(|t| t.uri.clone()).chain(m.strips.iter().map(|s| s.uri.clone())).collect()
+        m.trajectories
+            .iter()
+            .flat_map(|t| std::iter::once(t.uri.clone()).chain(t.accuracy_uri.clone()))
+            .chain(m.strips.iter().map(|s| s.uri.clone()))
+            .collect()
     };
     let mut names: Vec<(String, String)> = uris(uploaded).into_iter().zip(uris(original)).collect();
     names.sort_by_key(|(key, _)| std::cmp::Reverse(key.len()));

@@ -293,17 +293,60 @@ async fn read_trajectory(ctx: &TaskContext, t: &TrajectoryInput) -> Result<Traje
         mean_lever_arm: Vec3::from(t.mean_lever_arm),
         clock,
         georef: georeference(t.field.as_ref())?,
+        accuracy: None,
+        accuracy_uri: String::new(),
     })
 }
 
-/// A trajectory file in its manifest format, in the processing frame of a field campaign. The
-/// accuracy file (reported only) is not read by tasks.
+/// A trajectory's anchor prior over `anchors` from its accuracy file (`None` without one, as
+/// `precimap_pipeline::prior`): the solve and field tasks compute it from their inputs alike.
+async fn read_anchor_prior(
+    ctx: &TaskContext,
+    t: &TrajectoryInput,
+    params: &Parameters,
+    anchors: (u32, u32),
+) -> Result<Option<Vec<[f64; 6]>>, TaskError> {
+    let Some((accuracy, uri, local)) = read_accuracy(ctx, t).await? else { return Ok(None) };
+    let mut entry = read_trajectory(ctx, t).await?;
+    entry.accuracy = Some(Arc::new(accuracy));
+    entry.accuracy_uri = uri.clone();
+    let params = params.clone();
+    blocking(move || precimap_pipeline::prior::anchor_prior(&entry, &params, anchors))
+        .await?
+        .map_err(|e| TaskError::permanent(e.to_string()).naming(&uri, &local.path))
+}
+
+/// A trajectory's accuracy file, read and checked, with its URI and local copy; `None` without
+/// one.
+async fn read_accuracy(
+    ctx: &TaskContext,
+    t: &TrajectoryInput,
+) -> Result<Option<(precimap_formats::sbet::NavAccuracy, String, LocalObject)>, TaskError> {
+    let Some((f, uri)) = t.field.as_ref().and_then(|f| Some((f, f.trajectory.accuracy_uri.clone()?))) else {
+        return Ok(None);
+    };
+    let local = ctx.local(&uri).await?;
+    let (path, spec, week) = (local.path.clone(), f.trajectory.clone(), f.gps_week);
+    let accuracy = blocking(move || precimap_formats::trajectory::load_accuracy(&path, &spec, week))
+        .await?
+        .map_err(|e| TaskError::permanent(format!("trajectory {}: {e}", t.id)).naming(&uri, &local.path))?;
+    Ok(Some((accuracy, uri, local)))
+}
+
+/// A trajectory file in its manifest format, in the processing frame of a field campaign (its
+/// accuracy file is read where the prior is needed, [`read_anchor_prior`]).
 fn read_trajectory_file(path: &Path, field: Option<&FieldInput>) -> Result<Trajectory, PipelineError> {
     let Some(f) = field else { return Ok(precimap_formats::read_trajectory_csv(path)?) };
     let frame =
         f.crs.frame().map_err(|e| PipelineError::Input { what: "manifest $.crs".into(), message: e.to_string() })?;
     let loaded = precimap_formats::trajectory::load_trajectory(path, &f.trajectory, None, Some(&frame), f.gps_week)?;
     Ok(loaded.trajectory)
+}
+
+fn georeference_of(
+    crs: Option<&precimap_formats::CrsSpec>,
+) -> Result<Option<precimap_formats::crs::Georeference>, TaskError> {
+    crs.map(|c| c.georeference().map_err(|e| TaskError::permanent(format!("manifest $.crs: {e}")))).transpose()
 }
 
 fn georeference(field: Option<&FieldInput>) -> Result<Option<Arc<precimap_formats::crs::Georeference>>, TaskError> {
@@ -396,6 +439,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             corrections,
             std_map,
             latent_map,
+            crs,
         } => {
             let task = estimate::TileTask {
                 prefix,
@@ -408,6 +452,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 corrections,
                 std_map,
                 latent_map,
+                crs,
             };
             estimate::estimate_tile(&at, task).await
         }
@@ -454,8 +499,9 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
             export::export_trajectory(&at, prefix, trajectory, anchor_spacing_m, corrections, params).await
         }
-        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map } => {
-            report::write_report(&at, prefix, report, latent_std, tile_size_m, latent_map).await
+        TaskInput::WriteReport { prefix, report, latent_std, tile_size_m, latent_map, crs } => {
+            let georef = georeference_of(crs.as_ref())?;
+            report::write_report(&at, prefix, report, latent_std, tile_size_m, latent_map, georef.as_ref()).await
         }
     }
 }

@@ -167,6 +167,9 @@ pub enum TaskInput {
         /// Also write the tile's latent map (the product: the last iteration).
         #[serde(default)]
         latent_map: bool,
+        /// The CRS a field campaign's latent map is written in (with `latent_map`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        crs: Option<precimap_formats::CrsSpec>,
     },
     SolveField {
         prefix: String,
@@ -255,6 +258,9 @@ pub enum TaskInput {
         /// the report's outputs, so the results list them without a copy.
         #[serde(default)]
         latent_map: Vec<(String, String)>,
+        /// A field campaign's CRS, which the QC plots state.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        crs: Option<precimap_formats::CrsSpec>,
     },
 }
 
@@ -746,6 +752,11 @@ fn correction_ref(state: &PlanState, t: u32, keys: &[Option<String>]) -> Correct
     }
 }
 
+/// A field campaign's CRS (every strip input carries it).
+fn campaign_crs(state: &PlanState) -> Option<precimap_formats::CrsSpec> {
+    state.strips.first().and_then(|s| s.field.as_ref()).map(|f| f.crs.clone())
+}
+
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
@@ -768,6 +779,7 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 corrections: used.into_iter().map(|t| corrections_ref(state, t)).collect(),
                 std_map: gather.std_map,
                 latent_map: gather.map,
+                crs: gather.map.then(|| campaign_crs(state)).flatten(),
             }
             .task(tile.to_string())
         })
@@ -1192,6 +1204,7 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
         latent_std: state.latent_std.clone(),
         tile_size_m: state.params.tile_size_m,
         latent_map: state.latent_map.clone(),
+        crs: campaign_crs(state),
     }
     .task("report".into());
     Next::Stage(StageSpec { stage: STAGE_REPORT.to_string(), iteration: 0, tasks: vec![task] })

@@ -4,6 +4,7 @@
 use crate::error::PipelineError;
 use precimap_core::{Parameters, Trajectory, Vec3};
 use precimap_formats::crs::Georeference;
+use precimap_formats::sbet::NavAccuracy;
 use precimap_formats::trajectory::{load_trajectory, LoadedTrajectoryClock};
 use precimap_formats::{load_manifest, resolve_uri, Manifest};
 use std::path::{Path, PathBuf};
@@ -22,6 +23,11 @@ pub struct TrajectoryEntry {
     pub clock: LoadedTrajectoryClock,
     /// The processing frame of a field campaign (outputs are written in its CRS).
     pub georef: Option<Arc<Georeference>>,
+    /// The per-epoch accuracy (SMRMSG) that shapes the anchors' prior ([`crate::prior`]), its
+    /// times on the trajectory's scale.
+    pub accuracy: Option<Arc<NavAccuracy>>,
+    /// The accuracy file as the manifest names it (for messages); empty without one.
+    pub accuracy_uri: String,
 }
 
 #[derive(Debug)]
@@ -80,15 +86,13 @@ impl Campaign {
             let loaded = load_trajectory(&path, t, accuracy.as_deref(), frame, manifest.gps_week)?;
             if let Some(a) = &loaded.accuracy {
                 let [h_median, h_max, heading_median, heading_max] = a.summary();
-                // The estimator's prior is one σ per campaign (parameters), not per epoch: the
-                // accuracy file is reported so that the parameters can be set from it.
                 tracing::info!(
                     trajectory = %t.id,
                     horizontal_sigma_median_m = h_median,
                     horizontal_sigma_max_m = h_max,
                     heading_sigma_median_deg = heading_median,
                     heading_sigma_max_deg = heading_max,
-                    "trajectory accuracy file read (reported only; the prior σ comes from the parameters)"
+                    "trajectory accuracy file read: it shapes the anchors' prior"
                 );
             }
             trajectories.push(TrajectoryEntry {
@@ -98,6 +102,8 @@ impl Campaign {
                 data: Arc::new(loaded.trajectory),
                 mean_lever_arm: Vec3::zeros(),
                 georef: georef.clone(),
+                accuracy: loaded.accuracy.map(Arc::new),
+                accuracy_uri: t.accuracy_uri.clone().unwrap_or_default(),
             });
         }
         let mut strips = Vec::with_capacity(manifest.strips.len());

@@ -6,6 +6,7 @@
 pub mod campaign;
 pub mod error;
 pub mod field;
+pub mod prior;
 pub mod qc;
 pub mod report;
 pub mod run;

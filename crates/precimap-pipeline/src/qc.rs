@@ -8,6 +8,7 @@ use crate::tasks::VehicleCorrection;
 use base64::Engine as _;
 use precimap_core::TileKey;
 use precimap_estimate::{LatentStdMap, ResidualHistogram};
+use precimap_formats::crs::Georeference;
 use std::fmt::Write;
 
 /// Folder of the QC plots inside a result folder.
@@ -30,20 +31,31 @@ pub fn report_plots(report: &Report) -> [(String, String); 2] {
 }
 
 /// The latent map's standard-deviation maps of the first iteration (before any correction) and
-/// the last, as (path inside a result folder, SVG).
+/// the last, as (path inside a result folder, SVG); a field campaign's state its processing
+/// frame ([`frame_note`]).
 pub fn latent_std_plots(
     tile_size_m: f64,
     first: &[(TileKey, LatentStdMap)],
     last: &[(TileKey, LatentStdMap)],
+    georef: Option<&Georeference>,
 ) -> [(String, String); 2] {
     let title = |which: &str| format!("Standard deviation of the latent map, {which} iteration");
+    let note = georef.map(frame_note);
+    let plot = |which: &str, tiles| latent_std_svg(&title(which), tile_size_m, tiles, note.as_deref());
     [
-        (
-            format!("{QC_DIR}/latent-std-first.svg"),
-            latent_std_svg(&title("first (before any correction)"), tile_size_m, first),
-        ),
-        (format!("{QC_DIR}/latent-std-last.svg"), latent_std_svg(&title("last"), tile_size_m, last)),
+        (format!("{QC_DIR}/latent-std-first.svg"), plot("first (before any correction)", first)),
+        (format!("{QC_DIR}/latent-std-last.svg"), plot("last", last)),
     ]
+}
+
+/// Where a field campaign's tiles lie: the processing CRS and the origin of its local frame.
+pub fn frame_note(georef: &Georeference) -> String {
+    let [e, n, h] = georef.frame.origin_grid_m();
+    format!(
+        "Tiles in the processing frame of {}: local Cartesian, grid axes and grid coordinates at its origin \
+         E {e} N {n} h {h} m",
+        georef.frame.crs()
+    )
 }
 
 const WIDTH: f64 = 960.0;
@@ -186,7 +198,7 @@ pub fn convergence_svg(iterations: &[IterationReport]) -> String {
 /// the paper's temperature scale (Figures 11–12: blue 0 mm … red [`STD_MAP_RED_MM`] mm or more;
 /// grey where no point was observed), as a PNG inside an SVG that carries the title, the colour
 /// scale and a scale bar. `tiles` in any order; `tile_size_m` places them.
-pub fn latent_std_svg(title: &str, tile_size_m: f64, tiles: &[(TileKey, LatentStdMap)]) -> String {
+pub fn latent_std_svg(title: &str, tile_size_m: f64, tiles: &[(TileKey, LatentStdMap)], note: Option<&str>) -> String {
     let side = tiles.iter().map(|(_, m)| m.side).max().unwrap_or(1).max(1);
     let cell_m = tiles.first().map_or(LatentStdMap::CELL_M, |(_, m)| m.cell_m);
     let (tx0, tx1) = tiles.iter().fold((i32::MAX, i32::MIN), |(a, b), (k, _)| (a.min(k.tx), b.max(k.tx)));
@@ -217,8 +229,11 @@ pub fn latent_std_svg(title: &str, tile_size_m: f64, tiles: &[(TileKey, LatentSt
     let zoom = ((WIDTH - LEFT - RIGHT) / columns as f64).floor().clamp(1.0, 8.0);
     let (w, h) = (columns as f64 * zoom, rows as f64 * zoom);
     let legend_top = TOP + h + 24.0;
-    let mut svg = Svg::new(legend_top + 70.0);
+    let mut svg = Svg::new(legend_top + if note.is_some() { 90.0 } else { 70.0 });
     svg.title(title);
+    if let Some(note) = note {
+        let _ = write!(svg.out, r##"<text x="{LEFT}" y="{:.1}">{}</text>"##, legend_top + 62.0, escape(note));
+    }
     let _ = write!(
         svg.out,
         r##"<text x="{LEFT}" y="44">{} cells of {} m observed: median {median} mm, {} % at {} mm or more; north up, tiles {}…{} × {}…{} of {} m</text>"##,
@@ -716,7 +731,7 @@ mod tests {
         north_east.add(-0.1, 3.0, 0.5); // outside the core: not counted
         north_east.add(3.0, 3.0, f64::NAN); // not counted
         let tiles = [(TileKey { tx: 11, ty: 21 }, north_east), (TileKey { tx: 10, ty: 20 }, south_west)];
-        let svg = latent_std_svg("A & B", 15.0, &tiles);
+        let svg = latent_std_svg("A & B", 15.0, &tiles, None);
         assert_well_formed(&svg);
         assert!(svg.contains("A &amp; B"));
         assert!(svg.contains("3 cells of 1 m observed: median 2 mm, 33.33 % at 7 mm or more"), "{svg}");
@@ -732,7 +747,22 @@ mod tests {
         let opaque = rgba.chunks(4).filter(|p| p[3] != 0).count();
         assert_eq!(opaque, 3);
         // No tiles at all still renders.
-        assert_well_formed(&latent_std_svg("empty", 15.0, &[]));
+        assert_well_formed(&latent_std_svg("empty", 15.0, &[], None));
+        // A field campaign's plots state its processing frame.
+        let georef = precimap_formats::CrsSpec {
+            processing: 32632,
+            origin_grid_m: [549_800.0, 5_803_400.0, 55.0],
+            strips: None,
+        }
+        .georeference()
+        .unwrap();
+        for (_, svg) in latent_std_plots(15.0, &tiles, &[], Some(&georef)) {
+            assert_well_formed(&svg);
+            assert!(
+                svg.contains("processing frame of EPSG:32632 (WGS 84 / UTM zone 32N)") && svg.contains("E 549800"),
+                "{svg}"
+            );
+        }
     }
 
     #[test]

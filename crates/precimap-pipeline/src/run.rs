@@ -48,6 +48,9 @@ pub struct Prepared {
     pub tiles: BTreeMap<TileKey, Vec<usize>>,
     pub anchor_ranges: Vec<(u32, u32)>,
     pub anchor_positions: Vec<Vec<[f64; 3]>>,
+    /// Each anchor's own prior weights, for trajectories with an accuracy file
+    /// ([`crate::prior`]).
+    pub anchor_priors: Vec<Option<Vec<[f64; 6]>>>,
     pub strips: Vec<StripReport>,
     pub points_total: u64,
 }
@@ -102,7 +105,8 @@ pub fn prepare_all(
         .zip(&anchor_ranges)
         .map(|(t, &range)| anchor_positions(t, campaign.params.anchor_spacing_m, range))
         .collect();
-    Ok(Prepared { tiles, anchor_ranges, anchor_positions, strips, points_total })
+    let anchor_priors = crate::prior::anchor_priors(&campaign.trajectories, &campaign.params, &anchor_ranges)?;
+    Ok(Prepared { tiles, anchor_ranges, anchor_positions, anchor_priors, strips, points_total })
 }
 
 /// What one iteration produced.
@@ -159,7 +163,8 @@ pub fn iterate(
                 estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, latent })?;
             // Written as each tile finishes, so the map never has to fit in memory whole.
             if let Some(points) = estimate.latent_map.take() {
-                crate::tasks::write_latent_map_tile(work, **tile, &points)?;
+                let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
+                crate::tasks::write_latent_map_tile(work, **tile, &points, georef)?;
             }
             Ok::<_, PipelineError>(estimate)
         })
@@ -180,7 +185,8 @@ pub fn iterate(
         let trajectories: Vec<FieldTrajectory> = corrections
             .iter()
             .zip(&prepared.anchor_positions)
-            .map(|(c, positions)| FieldTrajectory { positions, corrections: c })
+            .zip(&prepared.anchor_priors)
+            .map(|((c, positions), prior)| FieldTrajectory { positions, corrections: c, prior: prior.as_deref() })
             .collect();
         let solved = solve_field(estimates.iter().filter_map(|e| e.field.as_ref()), &trajectories, &campaign.params)
             .map_err(PipelineError::Field)?;
@@ -218,6 +224,7 @@ pub fn iterate(
                 &started_from[t],
                 before,
                 start,
+                prepared.anchor_priors[t].as_deref(),
                 step,
                 place.last,
             )
@@ -403,7 +410,9 @@ fn run_campaign_in(
     let path = out.join("report.json");
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
-    let latent_std = crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std);
+    let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
+    let latent_std =
+        crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, georef);
     crate::tasks::write_plots(out, crate::qc::report_plots(&report).into_iter().chain(latent_std))?;
     Ok(report)
 }

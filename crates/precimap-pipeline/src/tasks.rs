@@ -13,6 +13,7 @@ use precimap_estimate::{
     PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate,
     TrajectorySolution, UsedPoint,
 };
+use precimap_formats::crs::Georeference;
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -193,15 +194,17 @@ pub fn solve_trajectory_task<'a>(
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,
     iteration_start: &TrajectoryCorrections,
+    prior: Option<&[[f64; 6]]>,
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory(
+    precimap_estimate::solve_trajectory_with_prior(
         blocks,
         current,
         previous,
         Some(iteration_start),
         &campaign.params,
+        prior,
         step.rotation,
         with_sigma,
     )
@@ -504,12 +507,40 @@ pub fn latent_map_name(tile: TileKey) -> String {
     format!("{LATENT_DIR}/{tile}.las")
 }
 
-/// Writes one tile's latent map into `out_dir` ([`latent_map_name`]).
-pub fn write_latent_map_tile(out_dir: &Path, tile: TileKey, points: &[LatentMapPoint]) -> Result<(), PipelineError> {
+/// Writes one tile's latent map into `out_dir` ([`latent_map_name`]), in a field campaign in
+/// its processing CRS ([`latent_map_in_crs`]).
+pub fn write_latent_map_tile(
+    out_dir: &Path,
+    tile: TileKey,
+    points: &[LatentMapPoint],
+    georef: Option<&Georeference>,
+) -> Result<(), PipelineError> {
     let path = out_dir.join(latent_map_name(tile));
     let dir = path.parent().unwrap_or(Path::new("."));
     fs::create_dir_all(dir).map_err(|e| PipelineError::io(dir, e))?;
-    Ok(precimap_formats::write_latent_map(&path, points)?)
+    let (points, wkt) = latent_map_in_crs(tile, points, georef)?;
+    Ok(precimap_formats::write_latent_map(&path, &points, wkt)?)
+}
+
+/// A tile's latent map as both drivers export it: in a field campaign its points in grid
+/// coordinates of the processing CRS, with that CRS's WKT; otherwise as estimated.
+pub fn latent_map_in_crs<'a>(
+    tile: TileKey,
+    points: &[LatentMapPoint],
+    georef: Option<&'a Georeference>,
+) -> Result<(Vec<LatentMapPoint>, Option<&'a str>), PipelineError> {
+    let Some(g) = georef else { return Ok((points.to_vec(), None)) };
+    let grid = points
+        .iter()
+        .map(|p| {
+            let position = g.frame.grid_from_local(&Vec3::from(p.position)).map_err(|e| PipelineError::Input {
+                what: format!("latent map tile {tile}"),
+                message: format!("{e}; check $.crs"),
+            })?;
+            Ok(LatentMapPoint { position, ..*p })
+        })
+        .collect::<Result<Vec<_>, PipelineError>>()?;
+    Ok((grid, Some(g.frame.crs().wkt())))
 }
 
 /// The estimated corrections continued over the trajectory's run-up and run-out (the poses
@@ -663,6 +694,8 @@ mod tests {
             mean_lever_arm: Vec3::zeros(),
             clock: Default::default(),
             georef: None,
+            accuracy: None,
+            accuracy_uri: String::new(),
         };
         // Estimated on anchors 40..=160 with a trend of 1 mm per anchor in x.
         let corrections = TrajectoryCorrections {

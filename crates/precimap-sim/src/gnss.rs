@@ -5,13 +5,13 @@
 
 use crate::config::ErrorConfig;
 use crate::rng::Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 
 const STREAM_ERRORS: u64 = 0xE880_0000;
 
 /// A GNSS outage of one pass.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Outage {
     /// GPS seconds.
     pub start: f64,

@@ -17,13 +17,15 @@ pub(super) struct TileTask {
     pub(super) corrections: Vec<CorrectionsRef>,
     pub(super) std_map: bool,
     pub(super) latent_map: bool,
+    pub(super) crs: Option<precimap_formats::CrsSpec>,
 }
 
 pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<TaskOutcome, TaskError> {
-    let TileTask { prefix, iteration, tile, step, params, trajectories, chunks, corrections, std_map, latent_map } =
+    let TileTask { prefix, iteration, tile, step, params, trajectories, chunks, corrections, std_map, latent_map, crs } =
         task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
+    let georef = georeference_of(crs.as_ref())?;
     let chunk_keys: Vec<String> = chunks.iter().map(|c| c.key.clone()).collect();
     let bytes = ctx.get_many(&chunk_keys).await?;
     let decoded: Vec<(String, Bytes)> = chunk_keys.into_iter().zip(bytes).collect();
@@ -47,10 +49,14 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
             precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, gather)
                 .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
         let map = match estimate.latent_map.take() {
-            Some(points) => Some(
-                precimap_formats::encode_latent_map(&points)
-                    .map_err(|e| TaskError::permanent(format!("tile {tile}: latent map does not encode: {e}")))?,
-            ),
+            Some(points) => {
+                let (points, wkt) = precimap_pipeline::tasks::latent_map_in_crs(tile, &points, georef.as_ref())
+                    .map_err(|e| TaskError::permanent(e.to_string()))?;
+                Some(
+                    precimap_formats::encode_latent_map(&points, wkt)
+                        .map_err(|e| TaskError::permanent(format!("tile {tile}: latent map does not encode: {e}")))?,
+                )
+            }
             None => None,
         };
         Ok::<_, TaskError>((estimate, map))

@@ -44,6 +44,10 @@ pub(super) async fn solve_field(at: &Attempt<'_>, task: FieldTask) -> Result<Tas
     if positions.len() != current.len() {
         return Err(corrupt_positions(format!("{} trajectories for {}", positions.len(), current.len())));
     }
+    let mut priors = Vec::with_capacity(trajectories.len());
+    for (t, c) in trajectories.iter().zip(&current) {
+        priors.push(read_anchor_prior(ctx, t, &params, c.anchors).await?);
+    }
     let corrections = read_corrections_many(ctx, &current).await?;
     let before = read_corrections_many(ctx, previous.as_deref().unwrap_or_default()).await?;
     let mut decoded = Vec::with_capacity(equations.len());
@@ -54,7 +58,12 @@ pub(super) async fn solve_field(at: &Attempt<'_>, task: FieldTask) -> Result<Tas
         let field_trajectories: Vec<_> = corrections
             .iter()
             .zip(&positions)
-            .map(|(c, p)| precimap_estimate::FieldTrajectory { positions: p, corrections: c })
+            .zip(&priors)
+            .map(|((c, p), prior)| precimap_estimate::FieldTrajectory {
+                positions: p,
+                corrections: c,
+                prior: prior.as_deref(),
+            })
             .collect();
         let field = precimap_estimate::solve_field(decoded.iter(), &field_trajectories, &params)?;
         // Momentum carries only what the field cannot represent (as in the in-process driver).

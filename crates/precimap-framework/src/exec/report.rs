@@ -4,6 +4,7 @@ use super::*;
 use crate::plan::LatentStdKeys;
 use precimap_pipeline::report::Report;
 
+#[allow(clippy::too_many_arguments)]
 pub(super) async fn write_report(
     at: &Attempt<'_>,
     prefix: String,
@@ -11,6 +12,7 @@ pub(super) async fn write_report(
     latent_std: LatentStdKeys,
     tile_size_m: f64,
     latent_map: Vec<(String, String)>,
+    georef: Option<&precimap_formats::crs::Georeference>,
 ) -> Result<TaskOutcome, TaskError> {
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let key = format!("{prefix}/out/{tag}/report.json");
@@ -29,7 +31,7 @@ pub(super) async fn write_report(
     let [first, last] = &maps;
     let plots = precimap_pipeline::qc::report_plots(&report)
         .into_iter()
-        .chain(precimap_pipeline::qc::latent_std_plots(tile_size_m, first, last));
+        .chain(precimap_pipeline::qc::latent_std_plots(tile_size_m, first, last, georef));
     for (name, svg) in plots {
         let key = format!("{prefix}/out/{tag}/{name}");
         objects.push((name, key, svg.into_bytes()));

@@ -11,6 +11,9 @@ pub(super) async fn segment_strip(
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
     let traj = read_trajectory(ctx, &strip_trajectory(&strip)).await?;
+    // A damaged accuracy file stops the campaign here, before any estimation, as it stops the
+    // in-process driver when the campaign loads.
+    read_accuracy(ctx, &strip_trajectory(&strip)).await?;
     let local = ctx.local(&strip.uri).await?;
     let entry = strip_entry(&strip, &local.path)?;
     let index = strip.index;

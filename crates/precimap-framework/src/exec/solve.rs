@@ -33,6 +33,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
     } = task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
+    let prior = read_anchor_prior(ctx, &trajectory, &params, current.anchors).await?;
     let has_previous = previous.is_some();
     let mut refs = vec![current];
     refs.extend(previous);
@@ -48,12 +49,13 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
     let id = trajectory.id.clone();
     let solution = blocking(move || {
         // The change between iterations, the field's share included.
-        precimap_estimate::solve_trajectory(
+        precimap_estimate::solve_trajectory_with_prior(
             all.iter(),
             &current,
             previous.as_ref(),
             iteration_start.as_ref(),
             &params,
+            prior.as_deref(),
             step.rotation,
             with_sigma,
         )
