@@ -22,8 +22,9 @@ pub const FULL_SIZE: MatrixSize = MatrixSize { block_m: 48.0, revolutions_per_s:
 /// The fast subset's: a sparser scanner (for the test suite's dev profile).
 pub const FAST_SIZE: MatrixSize = MatrixSize { block_m: 40.0, revolutions_per_s: 15.0, points_per_revolution: 120 };
 
-/// The matrix: error models on the grid town at 4 passes, passes 2/4/8 and one head under
-/// Gauss–Markov errors, and every other scene under sinusoid sums and Gauss–Markov errors.
+/// The matrix: error models on the grid town at 4 passes, passes 2/4/8, one head and a
+/// multi-beam head under Gauss–Markov errors, and every other scene under sinusoid sums and
+/// Gauss–Markov errors.
 pub fn matrix() -> Vec<Scenario> {
     use ErrorModel as E;
     use Scene as S;
@@ -38,6 +39,7 @@ pub fn matrix() -> Vec<Scenario> {
         Scenario::new(S::OpenRoad, E::GaussMarkov, 4, 2),
         Scenario::new(S::Downtown, E::GaussMarkov, 4, 2),
         Scenario::new(S::Downtown, E::RandomWalk, 8, 2),
+        Scenario::new(S::Grid, E::GaussMarkov, 4, 2).multibeam(),
     ]);
     out
 }
@@ -346,6 +348,7 @@ mod tests {
             assert!(m.iter().any(|s| s.passes == passes));
         }
         assert!(m.iter().any(|s| s.heads == 1));
+        assert_eq!(select(false, Some("mb32")).0, vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam()]);
         assert_eq!(select(false, Some("downtown")).0.len(), 2);
         assert_eq!(select(false, Some("downtown,oblique/sinusoids")).0.len(), 3);
         assert_eq!(select(true, None).1, FAST_SIZE);

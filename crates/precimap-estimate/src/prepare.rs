@@ -23,6 +23,8 @@ pub struct StripSamples<'a> {
     pub scan_angle_deg: &'a [f32],
     /// Scanner channel (revolutions are found per channel).
     pub channel: &'a [u8],
+    /// A multi-beam head's ring number per point (`parameters.ring`), or empty.
+    pub ring: &'a [u8],
 }
 
 impl StripSamples<'_> {
@@ -49,6 +51,8 @@ pub enum PrepareError {
     Shape(String),
     #[error("parameters.normals is scan_image, but {reason}, which would take far more memory than the points; set parameters.normals to auto or neighbours")]
     ScanImageTooLarge { reason: String },
+    #[error("parameters.normals is ring_image, but the strip was read without ring numbers; set parameters.ring to where the strips carry them")]
+    NoRing,
 }
 
 /// Geometry of one measurement relative to its trajectory.
@@ -411,7 +415,38 @@ pub fn prepare_strip_observed(
     let mut scan = None;
     let mut refused = None;
     let mut scan_angles_reconstructed = false;
-    if ctx.params.normals != NormalSource::Neighbours {
+    if !samples.ring.is_empty() && samples.ring.len() != n {
+        return Err(PrepareError::Shape(format!("{n} points, {} ring numbers", samples.ring.len())));
+    }
+    let normals_from = ctx.params.normals;
+    if normals_from == NormalSource::RingImage && samples.ring.is_empty() {
+        return Err(PrepareError::NoRing);
+    }
+    if !samples.ring.is_empty() && matches!(normals_from, NormalSource::Auto | NormalSource::RingImage) {
+        let image = ScanImage::from_rings(&geo, samples.ring, samples.gps_time, ctx.params.min_revolution_advance_m);
+        phase_done(PreparePhase::ScanImage);
+        if normals_from == NormalSource::Auto && (image.rows < 3 || image.columns < 3) {
+            refused =
+                Some(format!("its ring numbers make no ring image ({} rings × {} firings)", image.rows, image.columns));
+        } else {
+            let grid = image.grid();
+            let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
+            phase_done(PreparePhase::Normals);
+            let with = normals.iter().filter(|n| n.is_some()).count();
+            if normals_from == NormalSource::Auto && (with as f64) < AUTO_MIN_NORMAL_SHARE * n as f64 {
+                refused = Some(format!(
+                    "its ring image ({} rings × {} firings) gave only {:.1} % of the points a normal",
+                    image.rows,
+                    image.columns,
+                    100.0 * with as f64 / n as f64
+                ));
+            } else {
+                let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
+                phase_done(PreparePhase::Segmentation);
+                scan = Some((image, grid, segmentation, NormalSource::RingImage));
+            }
+        }
+    } else if normals_from != NormalSource::Neighbours {
         let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
             reconstructed_scan_angles(head, samples, ctx.trajectory_data)
         } else {
@@ -448,15 +483,13 @@ pub fn prepare_strip_observed(
                     let segmentation =
                         precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
                     phase_done(PreparePhase::Segmentation);
-                    scan = Some((image, grid, segmentation));
+                    scan = Some((image, grid, segmentation, NormalSource::ScanImage));
                 }
             }
         }
     }
     let (image, links, segmentation, normal_source) = match scan {
-        Some((image, grid, segmentation)) => {
-            (Some(image), Links::Image { grid }, segmentation, NormalSource::ScanImage)
-        }
+        Some((image, grid, segmentation, source)) => (Some(image), Links::Image { grid }, segmentation, source),
         None => {
             let out = precimap_segment::segment_unordered(&geo, samples.gps_time, ctx.segment);
             phase_done(PreparePhase::Normals);
@@ -705,9 +738,18 @@ impl LinkView<'_> {
                 let rows = image.rows as usize;
                 let row = image.row[k] as usize;
                 let px = image.column[k] as usize * rows + row;
-                // Rows wrap around: the revolution is a circle.
-                let next = if row + 1 < rows { px + 1 } else { px + 1 - rows };
-                let right = if rows > 2 { grid[next] } else { NO_NEIGHBOUR };
+                // Rows wrap around: the revolution is a circle; a ring image's do not.
+                let right = if !image.wraps {
+                    if row + 1 < rows {
+                        grid[px + 1]
+                    } else {
+                        NO_NEIGHBOUR
+                    }
+                } else if rows > 2 {
+                    grid[if row + 1 < rows { px + 1 } else { px + 1 - rows }]
+                } else {
+                    NO_NEIGHBOUR
+                };
                 let down = grid.get(px + rows).copied().unwrap_or(NO_NEIGHBOUR);
                 (right, down)
             }
