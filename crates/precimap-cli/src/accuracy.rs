@@ -104,7 +104,8 @@ pub struct Row {
 }
 
 /// Simulates, adjusts and evaluates `scenario` in `dir` (removed afterwards unless `keep`), with
-/// the estimator's defaults changed by `parameters` (a manifest's `parameters` object).
+/// the estimator's defaults changed by `parameters` (a manifest's `parameters` object, merged
+/// into the one the simulator wrote).
 pub fn run_scenario(
     scenario: &Scenario,
     size: MatrixSize,
@@ -121,7 +122,12 @@ pub fn run_scenario(
         let path = campaign.join("manifest.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
         let mut manifest: serde_json::Value = serde_json::from_str(&text)?;
-        manifest["parameters"] = parameters.clone();
+        // On top of what the campaign's manifest sets (a multi-beam head's ring source).
+        let mut merged = manifest.get("parameters").filter(|p| p.is_object()).cloned().unwrap_or(serde_json::json!({}));
+        for (key, value) in parameters.as_object().into_iter().flatten() {
+            merged[key] = value.clone();
+        }
+        manifest["parameters"] = merged;
         std::fs::write(&path, serde_json::to_string_pretty(&manifest)?)?;
     }
     let options = precimap_pipeline::RunOptions { out_dir: result.clone(), keep_work: false, assignments: true };
@@ -278,6 +284,19 @@ fn markdown(rows: &[Row], size: MatrixSize, req: &MatrixRequest, elapsed_s: f64)
          revolution per head, seed {}; estimator defaults.\n",
         size.block_m, size.revolutions_per_s, size.points_per_revolution, req.seed
     );
+    if rows.iter().any(|r| r.scenario.contains("/mb")) {
+        let mb = precimap_sim::MultiBeamConfig::default();
+        let _ = writeln!(
+            s,
+            "Rows ending in /mb{rings}: one {rings}-ring multi-beam head on the roof ({}°…{}°), {} revolutions/s × \
+             {} firings per revolution, instead of the two profile heads; normals from its ring image.\n",
+            mb.elevation_deg[0],
+            mb.elevation_deg[1],
+            mb.revolutions_per_s,
+            precimap_sim::scenario::MULTIBEAM_FIRINGS,
+            rings = precimap_sim::scenario::MULTIBEAM_RINGS,
+        );
+    }
     let _ = writeln!(
         s,
         "Millimetres. Same-surface: each strip's distance from the strips' mean on a true surface within a \
@@ -348,7 +367,10 @@ mod tests {
             assert!(m.iter().any(|s| s.passes == passes));
         }
         assert!(m.iter().any(|s| s.heads == 1));
-        assert_eq!(select(false, Some("mb32")).0, vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam()]);
+        assert_eq!(
+            select(false, Some("mb32")).0,
+            vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam()]
+        );
         assert_eq!(select(false, Some("downtown")).0.len(), 2);
         assert_eq!(select(false, Some("downtown,oblique/sinusoids")).0.len(), 3);
         assert_eq!(select(true, None).1, FAST_SIZE);

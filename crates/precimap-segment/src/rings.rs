@@ -199,10 +199,13 @@ mod tests {
     use super::*;
     use crate::{segment_strip, SegmentParams};
 
+    /// x, y, z, head, ring, GPS time.
+    type Strip = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<[f64; 3]>, Vec<u8>, Vec<f64>);
+
     /// A head 2 m above a flat floor and before a wall at x = 8 m, 16 rings over −25..+5°,
     /// numbered out of elevation order, 360 firings per revolution, driving along y at 5 m/s,
     /// standing still for the last 10 revolutions.
-    fn strip() -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<[f64; 3]>, Vec<u8>, Vec<f64>) {
+    fn strip() -> Strip {
         let (mut x, mut y, mut z, mut head, mut ring, mut t) = (vec![], vec![], vec![], vec![], vec![], vec![]);
         let firings = 360;
         let rate = 10.0;
@@ -213,7 +216,7 @@ mod tests {
             let az = (f % firings) as f64 * std::f64::consts::TAU / firings as f64;
             for laser in 0..16u8 {
                 // Even lasers the lower half, odd the upper: not in elevation order.
-                let index = if laser % 2 == 0 { laser / 2 } else { 8 + laser / 2 };
+                let index = if laser.is_multiple_of(2) { laser / 2 } else { 8 + laser / 2 };
                 let el = (-25.0 + 2.0 * index as f64).to_radians();
                 let d = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
                 let floor = if d[2] < 0.0 { 2.0 / -d[2] } else { f64::INFINITY };

@@ -242,7 +242,7 @@ impl MultiBeamConfig {
     /// the bottom up, odd lasers the upper half.
     pub fn elevation_deg(&self, laser: u32) -> f64 {
         let lower = self.rings.div_ceil(2);
-        let ring = if laser % 2 == 0 { laser / 2 } else { lower + laser / 2 };
+        let ring = if laser.is_multiple_of(2) { laser / 2 } else { lower + laser / 2 };
         let [lo, hi] = self.elevation_deg;
         lo + (hi - lo) * ring as f64 / (self.rings - 1).max(1) as f64
     }

@@ -1,7 +1,8 @@
 //! Simulated mobile-mapping campaigns that know their truth.
 //!
 //! [`simulate`] builds a small town ([`town`]) on a gentle slope, drives a two-headed
-//! VMX-250-like scanner through it on figure-8 passes ([`drive`]), georeferences every laser hit
+//! VMX-250-like scanner (or one multi-beam head on the roof, [`MultiBeamConfig`]) through it on
+//! figure-8 passes ([`drive`]), georeferences every laser hit
 //! with an erroneous GNSS/IMU trajectory ([`gnss`]) and writes a campaign in the public formats
 //! plus everything the estimation must never see:
 //!
