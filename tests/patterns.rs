@@ -190,6 +190,14 @@ fn multibeam_strips_get_ring_image_normals_and_are_adjusted() {
     eprintln!("{with_normal} of {surface} surface points have a ring-image normal ({:.1} %)", 100.0 * share);
     assert!(share >= 0.9, "{with_normal} of {surface} surface points have a normal");
 
+    // Without the ring source, the profile scan image is refused and the 3-D neighbours serve.
+    let mut without = loaded;
+    without.params.ring = None;
+    let prepared = precimap_pipeline::tasks::prepare_strip_in_memory(&without, 0, &segment).unwrap();
+    assert_eq!(prepared.stats.normal_source, precimap_core::NormalSource::Neighbours);
+    let refused = prepared.stats.scan_image_refused.unwrap_or_default();
+    assert!(refused.contains("points per pixel") && refused.contains("parameters.ring"), "{refused}");
+
     let out = dir.path().join("out");
     let report = run(&campaign.join("manifest.json"), &out).expect("the campaign runs");
     for s in &report.strips {

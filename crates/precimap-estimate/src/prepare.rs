@@ -260,6 +260,10 @@ const AUTO_MIN_NORMAL_SHARE: f64 = 0.1;
 /// columns, and its grid would cost far more memory than the points).
 const MAX_PIXELS_PER_POINT: u64 = 16;
 
+/// With `normals: auto`, a scan image with more points per pixel is not a single-profile head's
+/// (multiple returns put a few on one pixel; a multi-beam head's rings put all of theirs).
+const MAX_POINTS_PER_PIXEL: u64 = 4;
+
 /// With `normals: scan_image`, an image with more pixels per point than this is refused with an
 /// error rather than built (its grid would take far more memory than the points).
 const MAX_FORCED_PIXELS_PER_POINT: u64 = 64;
@@ -270,6 +274,14 @@ fn image_refusal(image: &ScanImage) -> Option<String> {
     let pixels = image.rows as u64 * image.columns as u64;
     if image.rows < 8 || image.columns < 3 {
         Some(format!("its scan angles make no scan image ({} rows × {} revolutions)", image.rows, image.columns))
+    } else if points > MAX_POINTS_PER_PIXEL * pixels {
+        Some(format!(
+            "its scan image ({} rows × {} revolutions) would hold {:.0} points per pixel: many points share a scan \
+             angle and a revolution, as a multi-beam head's do (set parameters.ring if the strips carry ring numbers)",
+            image.rows,
+            image.columns,
+            points as f64 / pixels.max(1) as f64
+        ))
     } else if pixels > MAX_PIXELS_PER_POINT * points {
         Some(format!(
             "its scan image would have {} rows × {} revolutions, {:.0} pixels per point",
