@@ -227,7 +227,9 @@ pub struct PrepareStats {
     /// `min_usable_share` is measured on).
     #[serde(default)]
     pub points_usable: u64,
+    /// Revolutions in the scan or ring image (0 without one).
     pub revolutions: u64,
+    /// The image's rows: measurements per revolution, or a ring image's rings.
     pub rows_per_revolution: u32,
     pub revolution_period_s: f64,
     pub first_anchor: u32,
@@ -435,28 +437,9 @@ pub fn prepare_strip_observed(
         return Err(PrepareError::NoRing);
     }
     if !samples.ring.is_empty() && matches!(normals_from, NormalSource::Auto | NormalSource::RingImage) {
-        let image = ScanImage::from_rings(&geo, samples.ring, samples.gps_time, ctx.params.min_revolution_advance_m);
-        phase_done(PreparePhase::ScanImage);
-        if normals_from == NormalSource::Auto && (image.rows < 3 || image.columns < 3) {
-            refused =
-                Some(format!("its ring numbers make no ring image ({} rings × {} firings)", image.rows, image.columns));
-        } else {
-            let grid = image.grid();
-            let normals = precimap_segment::estimate_normals(&geo, &image, &grid, ctx.segment);
-            phase_done(PreparePhase::Normals);
-            let with = normals.iter().filter(|n| n.is_some()).count();
-            if normals_from == NormalSource::Auto && (with as f64) < AUTO_MIN_NORMAL_SHARE * n as f64 {
-                refused = Some(format!(
-                    "its ring image ({} rings × {} firings) gave only {:.1} % of the points a normal",
-                    image.rows,
-                    image.columns,
-                    100.0 * with as f64 / n as f64
-                ));
-            } else {
-                let segmentation = precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
-                phase_done(PreparePhase::Segmentation);
-                scan = Some((image, grid, segmentation, NormalSource::RingImage));
-            }
+        match ring_image_segmentation(samples, ctx, &geo, phase_done) {
+            Ok((image, grid, segmentation)) => scan = Some((image, grid, segmentation, NormalSource::RingImage)),
+            Err(reason) => refused = Some(reason),
         }
     } else if normals_from != NormalSource::Neighbours {
         let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
@@ -516,7 +499,11 @@ pub fn prepare_strip_observed(
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.anchor.iter().copied().min().unwrap_or(0);
     let last_anchor = geometry.anchor.iter().copied().max().unwrap_or(0) + 1;
-    let image_stats = image.as_ref().map_or((0, 0, 0.0), |i| (i.columns as u64, i.rows, i.period_s));
+    // A ring image's columns are firings: its revolutions are whole turns of them.
+    let image_stats = image.as_ref().map_or((0, 0, 0.0), |i| match i.revolution_columns {
+        0 => (i.columns as u64, i.rows, i.period_s),
+        per => ((i.columns / per) as u64, i.rows, i.period_s * per as f64),
+    });
     Ok(PreparedStrip {
         chunks,
         stats: PrepareStats {
@@ -541,6 +528,38 @@ pub fn prepare_strip_observed(
         image,
         normals: segmentation.normals,
     })
+}
+
+/// The ring image of a multi-beam strip, its pixel grid and its segmentation; under `auto`,
+/// `Err` with the reason when it is refused (fewer than 3 rings or firings, or too few normals).
+fn ring_image_segmentation(
+    samples: &StripSamples<'_>,
+    ctx: &StripContext<'_>,
+    geo: &StripGeometry<'_>,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<(ScanImage, Vec<u32>, precimap_segment::Segmentation), String> {
+    let auto = ctx.params.normals == NormalSource::Auto;
+    let image = ScanImage::from_rings(geo, samples.ring, samples.gps_time, ctx.params.min_revolution_advance_m);
+    phase_done(PreparePhase::ScanImage);
+    if auto && (image.rows < 3 || image.columns < 3) {
+        return Err(format!("its ring numbers make no ring image ({} rings × {} firings)", image.rows, image.columns));
+    }
+    let grid = image.grid();
+    let normals = precimap_segment::estimate_normals(geo, &image, &grid, ctx.segment);
+    phase_done(PreparePhase::Normals);
+    let n = samples.len();
+    let with = normals.iter().filter(|n| n.is_some()).count();
+    if auto && (with as f64) < AUTO_MIN_NORMAL_SHARE * n as f64 {
+        return Err(format!(
+            "its ring image ({} rings × {} firings) gave only {:.1} % of the points a normal",
+            image.rows,
+            image.columns,
+            100.0 * with as f64 / n as f64
+        ));
+    }
+    let segmentation = precimap_segment::segment_with_normals(geo, &image, &grid, normals, ctx.segment);
+    phase_done(PreparePhase::Segmentation);
+    Ok((image, grid, segmentation))
 }
 
 /// What preparation keeps of each point's [`MeasurementGeometry`], struct of arrays: the
