@@ -1,5 +1,6 @@
 //! Strips whose acquisition pattern makes no scan image still get normals (from 3-D neighbours)
-//! and are adjusted; strips that cannot be adjusted stop the run with a message that names them.
+//! and are adjusted; a multi-beam head's strips get theirs from the ring image; strips that
+//! cannot be adjusted stop the run with a message that names them.
 
 use precimap_pipeline::{run_campaign, PipelineError, RunOptions};
 use std::path::{Path, PathBuf};
@@ -143,4 +144,76 @@ fn a_campaign_with_nothing_usable_stops_or_is_not_converged() {
     let report = run(&warned, &out).expect("warnings only");
     assert_eq!(report.tiles, 0);
     assert!(!report.converged, "a campaign that observed nothing is not converged");
+}
+
+/// A tiny multi-beam campaign: 12 rings over −25°…−3° at 5 Hz and 3.6° per firing, in a town
+/// of 24 m blocks, so that it runs in seconds in a debug build.
+fn simulate_tiny_multibeam(dir: &Path, seed: u64) -> PathBuf {
+    let campaign = dir.join("campaign");
+    let mut config = precimap_sim::SimConfig::for_scale(precimap_sim::Scale::Tiny, seed);
+    config.town.block_m = 24.0;
+    config.scanner.multibeam = Some(precimap_sim::MultiBeamConfig {
+        rings: 12,
+        elevation_deg: [-25.0, -3.0],
+        revolutions_per_s: 5.0,
+        firings_per_revolution: 100,
+        ..precimap_sim::MultiBeamConfig::default()
+    });
+    precimap_sim::simulate(&config, &campaign, false).expect("simulate tiny multi-beam");
+    campaign
+}
+
+/// A multi-beam head's strips, whose manifest names the ring's field: `normals: auto` takes
+/// the ring image, which gives >= 90 % of the surface points a normal, and the campaign is
+/// adjusted.
+#[test]
+fn multibeam_strips_get_ring_image_normals_and_are_adjusted() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny_multibeam(dir.path(), 4);
+    let loaded = precimap_pipeline::Campaign::load(&campaign.join("manifest.json")).unwrap();
+    assert_eq!(loaded.params.ring, Some(precimap_core::RingSource::UserData));
+    let segment = precimap_estimate::SegmentParams::default();
+    let prepared = precimap_pipeline::tasks::prepare_strip_in_memory(&loaded, 0, &segment).unwrap();
+    assert_eq!(prepared.stats.normal_source, precimap_core::NormalSource::RingImage);
+    let truth_path = campaign.join("truth").join(format!("{}.truth", loaded.strips[0].id));
+    let truth = precimap_sim::TruthReader::open(&truth_path).unwrap().read_all().unwrap();
+    assert_eq!(truth.len(), prepared.normals.len());
+    // Surface points (not foliage) of the revolutions in the image (not dropped at standstill).
+    let (mut surface, mut with_normal) = (0u64, 0u64);
+    for ((t, n), &s) in truth.iter().zip(&prepared.normals).zip(&prepared.segment) {
+        if t.class.is_surface() && s != precimap_estimate::DROPPED_SEGMENT {
+            surface += 1;
+            with_normal += u64::from(n.is_some());
+        }
+    }
+    let share = with_normal as f64 / surface as f64;
+    eprintln!("{with_normal} of {surface} surface points have a ring-image normal ({:.1} %)", 100.0 * share);
+    assert!(share >= 0.9, "{with_normal} of {surface} surface points have a normal");
+
+    // Without the ring source, the profile scan image is refused and the 3-D neighbours serve.
+    let mut without = loaded;
+    without.params.ring = None;
+    let prepared = precimap_pipeline::tasks::prepare_strip_in_memory(&without, 0, &segment).unwrap();
+    assert_eq!(prepared.stats.normal_source, precimap_core::NormalSource::Neighbours);
+    let refused = prepared.stats.scan_image_refused.unwrap_or_default();
+    assert!(refused.contains("points per pixel") && refused.contains("parameters.ring"), "{refused}");
+
+    let out = dir.path().join("out");
+    let report = run(&campaign.join("manifest.json"), &out).expect("the campaign runs");
+    for s in &report.strips {
+        assert_eq!(s.normal_source, precimap_core::NormalSource::RingImage, "strip {}", s.id);
+    }
+    assert!(report.iterations.last().unwrap().points_used > 0);
+    let e = precimap_eval::evaluate(&campaign.join("truth"), &out).unwrap();
+    eprintln!("{}", e.summary());
+    assert!(
+        e.strip_offset_spread_m.after < 0.25 * e.strip_offset_spread_m.before,
+        "spread {:?}",
+        e.strip_offset_spread_m
+    );
+    assert!(
+        e.same_surface_spread_m.after < 0.1 * e.same_surface_spread_m.before,
+        "same-surface spread {:?}",
+        e.same_surface_spread_m
+    );
 }

@@ -22,8 +22,9 @@ pub const FULL_SIZE: MatrixSize = MatrixSize { block_m: 48.0, revolutions_per_s:
 /// The fast subset's: a sparser scanner (for the test suite's dev profile).
 pub const FAST_SIZE: MatrixSize = MatrixSize { block_m: 40.0, revolutions_per_s: 15.0, points_per_revolution: 120 };
 
-/// The matrix: error models on the grid town at 4 passes, passes 2/4/8 and one head under
-/// Gauss–Markov errors, and every other scene under sinusoid sums and Gauss–Markov errors.
+/// The matrix: error models on the grid town at 4 passes, passes 2/4/8, one head and a
+/// multi-beam head under Gauss–Markov errors, and every other scene under sinusoid sums and
+/// Gauss–Markov errors.
 pub fn matrix() -> Vec<Scenario> {
     use ErrorModel as E;
     use Scene as S;
@@ -38,6 +39,7 @@ pub fn matrix() -> Vec<Scenario> {
         Scenario::new(S::OpenRoad, E::GaussMarkov, 4, 2),
         Scenario::new(S::Downtown, E::GaussMarkov, 4, 2),
         Scenario::new(S::Downtown, E::RandomWalk, 8, 2),
+        Scenario::new(S::Grid, E::GaussMarkov, 4, 2).multibeam(),
     ]);
     out
 }
@@ -108,7 +110,8 @@ pub struct Row {
 }
 
 /// Simulates, adjusts and evaluates `scenario` in `dir` (removed afterwards unless `keep`), with
-/// the estimator's defaults changed by `parameters` (a manifest's `parameters` object).
+/// the estimator's defaults changed by `parameters` (a manifest's `parameters` object, merged
+/// into the one the simulator wrote).
 pub fn run_scenario(
     scenario: &Scenario,
     size: MatrixSize,
@@ -125,7 +128,12 @@ pub fn run_scenario(
         let path = campaign.join("manifest.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
         let mut manifest: serde_json::Value = serde_json::from_str(&text)?;
-        manifest["parameters"] = parameters.clone();
+        // On top of what the campaign's manifest sets (a multi-beam head's ring source).
+        let mut merged = manifest.get("parameters").filter(|p| p.is_object()).cloned().unwrap_or(serde_json::json!({}));
+        for (key, value) in parameters.as_object().into_iter().flatten() {
+            merged[key] = value.clone();
+        }
+        manifest["parameters"] = merged;
         std::fs::write(&path, serde_json::to_string_pretty(&manifest)?)?;
     }
     let options = precimap_pipeline::RunOptions { out_dir: result.clone(), keep_work: false, assignments: true };
@@ -284,6 +292,19 @@ fn markdown(rows: &[Row], size: MatrixSize, req: &MatrixRequest, elapsed_s: f64)
          revolution per head, seed {}; estimator defaults.\n",
         size.block_m, size.revolutions_per_s, size.points_per_revolution, req.seed
     );
+    if rows.iter().any(|r| r.scenario.contains("/mb")) {
+        let mb = precimap_sim::MultiBeamConfig::default();
+        let _ = writeln!(
+            s,
+            "Rows ending in /mb{rings}: one {rings}-ring multi-beam head on the roof ({}°…{}°), {} revolutions/s × \
+             {} firings per revolution, instead of the two profile heads; normals from its ring image.\n",
+            mb.elevation_deg[0],
+            mb.elevation_deg[1],
+            mb.revolutions_per_s,
+            precimap_sim::scenario::MULTIBEAM_FIRINGS,
+            rings = precimap_sim::scenario::MULTIBEAM_RINGS,
+        );
+    }
     let _ = writeln!(
         s,
         "Millimetres. Same-surface: each strip's distance from the strips' mean on a true surface within a \
@@ -359,6 +380,10 @@ mod tests {
             assert!(m.iter().any(|s| s.passes == passes));
         }
         assert!(m.iter().any(|s| s.heads == 1));
+        assert_eq!(
+            select(false, Some("mb32")).0,
+            vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam()]
+        );
         assert_eq!(select(false, Some("downtown")).0.len(), 2);
         assert_eq!(select(false, Some("downtown,oblique/sinusoids")).0.len(), 3);
         assert_eq!(select(true, None).1, FAST_SIZE);

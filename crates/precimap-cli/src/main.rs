@@ -75,6 +75,17 @@ enum Command {
         /// Scan heads per vehicle (1 or 2).
         #[arg(long)]
         heads: Option<u32>,
+        /// One multi-beam spinning head on the roof (32 rings over −25°…+15°, 10 Hz, 1000 firings
+        /// per revolution) instead of the profile heads; its strips carry the ring in the LAS
+        /// user-data byte. `--revolutions-per-s` then sets its spin rate.
+        #[arg(long)]
+        multibeam: bool,
+        /// Rings of the multi-beam head (2–255).
+        #[arg(long, requires = "multibeam")]
+        rings: Option<u32>,
+        /// Firings per revolution of the multi-beam head; must divide 60000.
+        #[arg(long, requires = "multibeam")]
+        firings_per_revolution: Option<u32>,
     },
     /// Adjust a campaign: corrected strips, trajectories and report.json in OUT. Runs through the
     /// job framework on the embedded default (SQLite + local store + in-process executors).
@@ -324,6 +335,9 @@ fn real_main(cli: Cli) -> Result<()> {
             errors,
             passes,
             heads,
+            multibeam,
+            rings,
+            firings_per_revolution,
         } => {
             let mut config = match config {
                 Some(path) => {
@@ -352,6 +366,13 @@ fn real_main(cli: Cli) -> Result<()> {
             }
             if let Some(r) = revolutions_per_s {
                 config.scanner.revolutions_per_s = r;
+            }
+            if multibeam {
+                let mut mb = config.scanner.multibeam.take().unwrap_or_default();
+                mb.rings = rings.unwrap_or(mb.rings);
+                mb.firings_per_revolution = firings_per_revolution.unwrap_or(mb.firings_per_revolution);
+                mb.revolutions_per_s = revolutions_per_s.unwrap_or(mb.revolutions_per_s);
+                config.scanner.multibeam = Some(mb);
             }
             simulate(&config, &out, laz)?;
             if field {

@@ -17,6 +17,6 @@ pub mod trajectory;
 pub use corrections::{AnchorCovariance, ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
 pub use latent::LatentMapPoint;
-pub use params::{IterationStep, NormalSource, Parameters};
+pub use params::{IterationStep, NormalSource, Parameters, RingSource};
 pub use tile::TileKey;
 pub use trajectory::{Pose, Trajectory, TrajectoryError};

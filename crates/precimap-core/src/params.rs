@@ -127,6 +127,11 @@ pub struct Parameters {
     /// head when its pattern is recognised, else neighbours in 3-D), `scan_image` or
     /// `neighbours` (docs/design/preprocessing.md).
     pub normals: NormalSource,
+    /// Where the strips carry a multi-beam head's ring (laser) number: `user_data`,
+    /// `scanner_channel` or `{"extra_bytes": NAME}`. With it, `auto` takes normals and segments
+    /// from the ring image (rows = rings by elevation, columns = firings).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ring: Option<RingSource>,
     /// A strip of which a smaller share of points becomes usable (a normal, a segment, within
     /// `max_range_m`) stops the run with an error naming the strip and the likely reason, as does
     /// a campaign whose last iteration observes no point (no overlap between passes).
@@ -316,6 +321,7 @@ impl Default for Parameters {
             max_range_m: 100.0,
             min_revolution_advance_m: 0.03,
             normals: NormalSource::Auto,
+            ring: None,
             min_usable_share: 0.5,
             allow_low_usable_share: false,
             cell_size_m: 1.0,
@@ -361,6 +367,20 @@ pub enum NormalSource {
     ScanImage,
     /// Always 3-D neighbours (any pattern).
     Neighbours,
+    /// Always the ring image of a multi-beam head (needs [`Parameters::ring`]).
+    RingImage,
+}
+
+/// Where a multi-beam head's ring number is in a strip's point records ([`Parameters::ring`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RingSource {
+    /// The LAS user-data byte.
+    UserData,
+    /// The LAS 1.4 scanner channel (two bits: at most four rings).
+    ScannerChannel,
+    /// An extra-bytes field of this name (an unsigned or signed integer of 1 or 2 bytes).
+    ExtraBytes(String),
 }
 
 /// The paper's schedule (§7.1) — grid 10 cm → 2 cm (most) → 1 cm, threshold 0.3 m → 7 mm,
@@ -442,6 +462,22 @@ impl Parameters {
             };
         }
         positive!("anchor_spacing_m", self.anchor_spacing_m);
+        if self.normals == NormalSource::RingImage && self.ring.is_none() {
+            out.push(ParameterProblem {
+                field: "normals".into(),
+                problem: "ring_image needs parameters.ring, where the strips carry the ring number (user_data, \
+                          scanner_channel or {\"extra_bytes\": NAME})"
+                    .into(),
+            });
+        }
+        if let Some(RingSource::ExtraBytes(name)) = &self.ring {
+            if name.is_empty() || name.len() > 32 {
+                out.push(ParameterProblem {
+                    field: "ring.extra_bytes".into(),
+                    problem: format!("must name an extra-bytes field (1–32 characters), got {name:?}"),
+                });
+            }
+        }
         positive!("tile_size_m", self.tile_size_m);
         positive!("cell_size_m", self.cell_size_m);
         positive!("max_range_m", self.max_range_m);

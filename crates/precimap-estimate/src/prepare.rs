@@ -23,6 +23,8 @@ pub struct StripSamples<'a> {
     pub scan_angle_deg: &'a [f32],
     /// Scanner channel (revolutions are found per channel).
     pub channel: &'a [u8],
+    /// A multi-beam head's ring number per point (`parameters.ring`), or empty.
+    pub ring: &'a [u8],
 }
 
 impl StripSamples<'_> {
@@ -49,6 +51,8 @@ pub enum PrepareError {
     Shape(String),
     #[error("parameters.normals is scan_image, but {reason}, which would take far more memory than the points; set parameters.normals to auto or neighbours")]
     ScanImageTooLarge { reason: String },
+    #[error("parameters.normals is ring_image, but the strip was read without ring numbers; set parameters.ring to where the strips carry them")]
+    NoRing,
 }
 
 /// Geometry of one measurement relative to its trajectory.
@@ -223,7 +227,9 @@ pub struct PrepareStats {
     /// `min_usable_share` is measured on).
     #[serde(default)]
     pub points_usable: u64,
+    /// Revolutions in the scan or ring image (0 without one).
     pub revolutions: u64,
+    /// The image's rows: measurements per revolution, or a ring image's rings.
     pub rows_per_revolution: u32,
     pub revolution_period_s: f64,
     pub first_anchor: u32,
@@ -256,6 +262,10 @@ const AUTO_MIN_NORMAL_SHARE: f64 = 0.1;
 /// columns, and its grid would cost far more memory than the points).
 const MAX_PIXELS_PER_POINT: u64 = 16;
 
+/// With `normals: auto`, a scan image with more points per pixel is not a single-profile head's
+/// (multiple returns put a few on one pixel; a multi-beam head's rings put all of theirs).
+const MAX_POINTS_PER_PIXEL: u64 = 4;
+
 /// With `normals: scan_image`, an image with more pixels per point than this is refused with an
 /// error rather than built (its grid would take far more memory than the points).
 const MAX_FORCED_PIXELS_PER_POINT: u64 = 64;
@@ -266,6 +276,14 @@ fn image_refusal(image: &ScanImage) -> Option<String> {
     let pixels = image.rows as u64 * image.columns as u64;
     if image.rows < 8 || image.columns < 3 {
         Some(format!("its scan angles make no scan image ({} rows × {} revolutions)", image.rows, image.columns))
+    } else if points > MAX_POINTS_PER_PIXEL * pixels {
+        Some(format!(
+            "its scan image ({} rows × {} revolutions) would hold {:.0} points per pixel: many points share a scan \
+             angle and a revolution, as a multi-beam head's do (set parameters.ring if the strips carry ring numbers)",
+            image.rows,
+            image.columns,
+            points as f64 / pixels.max(1) as f64
+        ))
     } else if pixels > MAX_PIXELS_PER_POINT * points {
         Some(format!(
             "its scan image would have {} rows × {} revolutions, {:.0} pixels per point",
@@ -411,7 +429,19 @@ pub fn prepare_strip_observed(
     let mut scan = None;
     let mut refused = None;
     let mut scan_angles_reconstructed = false;
-    if ctx.params.normals != NormalSource::Neighbours {
+    if !samples.ring.is_empty() && samples.ring.len() != n {
+        return Err(PrepareError::Shape(format!("{n} points, {} ring numbers", samples.ring.len())));
+    }
+    let normals_from = ctx.params.normals;
+    if normals_from == NormalSource::RingImage && samples.ring.is_empty() {
+        return Err(PrepareError::NoRing);
+    }
+    if !samples.ring.is_empty() && matches!(normals_from, NormalSource::Auto | NormalSource::RingImage) {
+        match ring_image_segmentation(samples, ctx, &geo, phase_done) {
+            Ok((image, grid, segmentation)) => scan = Some((image, grid, segmentation, NormalSource::RingImage)),
+            Err(reason) => refused = Some(reason),
+        }
+    } else if normals_from != NormalSource::Neighbours {
         let reconstructed = if scan_angles_missing(samples.scan_angle_deg) {
             reconstructed_scan_angles(head, samples, ctx.trajectory_data)
         } else {
@@ -448,15 +478,13 @@ pub fn prepare_strip_observed(
                     let segmentation =
                         precimap_segment::segment_with_normals(&geo, &image, &grid, normals, ctx.segment);
                     phase_done(PreparePhase::Segmentation);
-                    scan = Some((image, grid, segmentation));
+                    scan = Some((image, grid, segmentation, NormalSource::ScanImage));
                 }
             }
         }
     }
     let (image, links, segmentation, normal_source) = match scan {
-        Some((image, grid, segmentation)) => {
-            (Some(image), Links::Image { grid }, segmentation, NormalSource::ScanImage)
-        }
+        Some((image, grid, segmentation, source)) => (Some(image), Links::Image { grid }, segmentation, source),
         None => {
             let out = precimap_segment::segment_unordered(&geo, samples.gps_time, ctx.segment);
             phase_done(PreparePhase::Normals);
@@ -471,7 +499,11 @@ pub fn prepare_strip_observed(
     let emitted = chunks.iter().map(|c| c.len() as u64).sum();
     let first_anchor = geometry.anchor.iter().copied().min().unwrap_or(0);
     let last_anchor = geometry.anchor.iter().copied().max().unwrap_or(0) + 1;
-    let image_stats = image.as_ref().map_or((0, 0, 0.0), |i| (i.columns as u64, i.rows, i.period_s));
+    // A ring image's columns are firings: its revolutions are whole turns of them.
+    let image_stats = image.as_ref().map_or((0, 0, 0.0), |i| match i.revolution_columns {
+        0 => (i.columns as u64, i.rows, i.period_s),
+        per => ((i.columns / per) as u64, i.rows, i.period_s * per as f64),
+    });
     Ok(PreparedStrip {
         chunks,
         stats: PrepareStats {
@@ -496,6 +528,38 @@ pub fn prepare_strip_observed(
         image,
         normals: segmentation.normals,
     })
+}
+
+/// The ring image of a multi-beam strip, its pixel grid and its segmentation; under `auto`,
+/// `Err` with the reason when it is refused (fewer than 3 rings or firings, or too few normals).
+fn ring_image_segmentation(
+    samples: &StripSamples<'_>,
+    ctx: &StripContext<'_>,
+    geo: &StripGeometry<'_>,
+    phase_done: &mut dyn FnMut(PreparePhase),
+) -> Result<(ScanImage, Vec<u32>, precimap_segment::Segmentation), String> {
+    let auto = ctx.params.normals == NormalSource::Auto;
+    let image = ScanImage::from_rings(geo, samples.ring, samples.gps_time, ctx.params.min_revolution_advance_m);
+    phase_done(PreparePhase::ScanImage);
+    if auto && (image.rows < 3 || image.columns < 3) {
+        return Err(format!("its ring numbers make no ring image ({} rings × {} firings)", image.rows, image.columns));
+    }
+    let grid = image.grid();
+    let normals = precimap_segment::estimate_normals(geo, &image, &grid, ctx.segment);
+    phase_done(PreparePhase::Normals);
+    let n = samples.len();
+    let with = normals.iter().filter(|n| n.is_some()).count();
+    if auto && (with as f64) < AUTO_MIN_NORMAL_SHARE * n as f64 {
+        return Err(format!(
+            "its ring image ({} rings × {} firings) gave only {:.1} % of the points a normal",
+            image.rows,
+            image.columns,
+            100.0 * with as f64 / n as f64
+        ));
+    }
+    let segmentation = precimap_segment::segment_with_normals(geo, &image, &grid, normals, ctx.segment);
+    phase_done(PreparePhase::Segmentation);
+    Ok((image, grid, segmentation))
 }
 
 /// What preparation keeps of each point's [`MeasurementGeometry`], struct of arrays: the
@@ -705,9 +769,18 @@ impl LinkView<'_> {
                 let rows = image.rows as usize;
                 let row = image.row[k] as usize;
                 let px = image.column[k] as usize * rows + row;
-                // Rows wrap around: the revolution is a circle.
-                let next = if row + 1 < rows { px + 1 } else { px + 1 - rows };
-                let right = if rows > 2 { grid[next] } else { NO_NEIGHBOUR };
+                // Rows wrap around: the revolution is a circle; a ring image's do not.
+                let right = if !image.wraps {
+                    if row + 1 < rows {
+                        grid[px + 1]
+                    } else {
+                        NO_NEIGHBOUR
+                    }
+                } else if rows > 2 {
+                    grid[if row + 1 < rows { px + 1 } else { px + 1 - rows }]
+                } else {
+                    NO_NEIGHBOUR
+                };
                 let down = grid.get(px + rows).copied().unwrap_or(NO_NEIGHBOUR);
                 (right, down)
             }

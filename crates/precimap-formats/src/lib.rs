@@ -29,8 +29,8 @@ pub use manifest::{
 };
 pub use segments::{decode_segments, encode_assignments, encode_segments, read_assignments, read_segments};
 pub use strip::{
-    read_strip, rewrite_strip, rewrite_strip_declaring, rewrite_strip_timed, strip_info, NewPoint, StripInfo,
-    StripPoints, StripWriter,
+    read_strip, read_strip_with_ring, rewrite_strip, rewrite_strip_declaring, rewrite_strip_timed, strip_info,
+    NewPoint, StripInfo, StripPoints, StripWriter,
 };
 pub use strip_crs::{DeclaredCrs, StripDeclarations};
 pub use trajectory_csv::{read_trajectory_csv, write_trajectory_csv};

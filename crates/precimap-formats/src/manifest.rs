@@ -529,10 +529,14 @@ impl Checker {
     fn parameters(&mut self, v: &Value) {
         let before = self.problems.len();
         // The defaults' JSON shape is the schema: new fields in core are picked up automatically.
-        let template = match serde_json::to_value(Parameters::default()) {
+        let mut template = match serde_json::to_value(Parameters::default()) {
             Ok(t) => t,
             Err(e) => return self.push("$.parameters", format!("internal error describing parameters: {e}")),
         };
+        // Optional fields absent from the defaults' JSON; their values are checked by parsing.
+        if let Some(t) = template.as_object_mut() {
+            t.entry("ring").or_insert(Value::Null);
+        }
         self.like("$.parameters", v, &template, false);
         if self.problems.len() > before {
             return;
@@ -874,6 +878,28 @@ mod tests {
         assert!(has(&p, "$.parameters.anchor_spacing_m", "positive"), "{p:#?}");
         assert!(has(&p, "$.parameters.schedule[0].grid_m", "positive"), "{p:#?}");
         assert_eq!(p.len(), 3, "{p:#?}");
+    }
+
+    #[test]
+    fn ring_sources_parse_and_ring_image_needs_one() {
+        use precimap_core::{NormalSource, RingSource};
+        for (value, want) in [
+            (serde_json::json!("user_data"), RingSource::UserData),
+            (serde_json::json!("scanner_channel"), RingSource::ScannerChannel),
+            (serde_json::json!({ "extra_bytes": "ring" }), RingSource::ExtraBytes("ring".into())),
+        ] {
+            let text = with(|v| v["parameters"]["ring"] = value.clone());
+            assert_eq!(parse_manifest(&text).unwrap().parameters.ring, Some(want));
+        }
+        let text = with(|v| v["parameters"]["ring"] = Value::from("laser"));
+        assert!(has(&problems(&text), "$.parameters", "unknown variant"), "{:#?}", problems(&text));
+        let text = with(|v| v["parameters"]["normals"] = Value::from("ring_image"));
+        assert!(has(&problems(&text), "$.parameters.normals", "parameters.ring"), "{:#?}", problems(&text));
+        let text = with(|v| {
+            v["parameters"]["normals"] = Value::from("ring_image");
+            v["parameters"]["ring"] = Value::from("user_data");
+        });
+        assert_eq!(parse_manifest(&text).unwrap().parameters.normals, NormalSource::RingImage);
     }
 
     #[test]

@@ -17,6 +17,7 @@ use crate::strip_crs::{header_crs, StripCrs};
 use crate::FormatError;
 use check::{laz_vlr, open_header};
 use las::{Header, PointData, PointDataBuilder, Reader, Transform, Vector};
+use precimap_core::RingSource;
 use std::fs::File;
 use std::io::{BufReader, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
@@ -35,6 +36,8 @@ mod layout {
     pub const LEGACY_GPS: usize = 20;
     pub const EXT_CLASSIFICATION: usize = 16;
     pub const EXT_USER_DATA: usize = 17;
+    /// The same byte in every point format.
+    pub const USER_DATA: usize = 17;
     pub const EXT_SCAN_ANGLE: usize = 18;
     pub const EXT_POINT_SOURCE: usize = 20;
     pub const EXT_GPS: usize = 22;
@@ -60,6 +63,9 @@ pub struct StripPoints {
     pub scan_angle_deg: Vec<f32>,
     /// Scanner channel (0–3), 0 for formats without it.
     pub channel: Vec<u8>,
+    /// A multi-beam head's ring number per point, when read with a ring source
+    /// ([`read_strip_with_ring`]); empty otherwise.
+    pub ring: Vec<u8>,
 }
 
 impl StripPoints {
@@ -86,6 +92,7 @@ impl StripPoints {
             gps_time: Vec::with_capacity(n),
             scan_angle_deg: Vec::with_capacity(n),
             channel: Vec::with_capacity(n),
+            ring: Vec::new(),
         }
     }
 }
@@ -286,10 +293,31 @@ fn time_convention(header: &Header) -> TimeConvention {
 /// no real place has, GPS time that never advances, and a strip that could not be written back
 /// with corrected coordinates.
 pub fn read_strip(path: &Path) -> Result<StripPoints, FormatError> {
-    let fields = laz::DecompressionSelection::base().decompress_z().decompress_scan_angle().decompress_gps_time();
+    read_strip_with_ring(path, None)
+}
+
+/// [`read_strip`], and with `ring` each point's ring number from that source into
+/// [`StripPoints::ring`]. A named extra-bytes field the file does not have, or one that is not
+/// an integer of 1 or 2 bytes, is an error naming the fields it has.
+pub fn read_strip_with_ring(path: &Path, ring: Option<&RingSource>) -> Result<StripPoints, FormatError> {
+    let mut fields = laz::DecompressionSelection::base().decompress_z().decompress_scan_angle().decompress_gps_time();
+    match ring {
+        Some(RingSource::UserData) => fields = fields.decompress_user_data(),
+        Some(RingSource::ExtraBytes(_)) => fields = fields.decompress_extra_bytes(),
+        Some(RingSource::ScannerChannel) | None => {}
+    }
     let mut src = Source::open_with(path, fields)?;
     rewrite::plan_output(path, &src.header, is_laz_path(path))?;
     let mut out = StripReader::new(path, &src.header, src.n)?;
+    out.ring = match ring {
+        None => RingField::None,
+        Some(RingSource::UserData) => RingField::Byte(layout::USER_DATA),
+        Some(RingSource::ScannerChannel) => RingField::Channel,
+        Some(RingSource::ExtraBytes(name)) => extra_bytes_field(path, &src.header, name)?,
+    };
+    if !matches!(out.ring, RingField::None) {
+        out.points.ring.reserve(out.points.x.capacity());
+    }
     let mut pd = src.batch_buffer();
     while let Some(first) = src.next_batch(&mut pd)? {
         out.push_records(first, pd.raw_bytes(), pd.record_len())?;
@@ -329,6 +357,78 @@ struct StripReader<'a> {
     transforms: Vector<Transform>,
     gps_at: usize,
     extended: bool,
+    ring: RingField,
+}
+
+/// Where the ring number of a record is.
+#[derive(Clone, Copy, Debug)]
+enum RingField {
+    None,
+    Channel,
+    Byte(usize),
+    /// A signed or unsigned little-endian integer of 2 bytes at this offset.
+    Word {
+        at: usize,
+        signed: bool,
+    },
+    SignedByte(usize),
+}
+
+/// The extra-bytes field `name` of the file's Extra Bytes VLR as a [`RingField`].
+fn extra_bytes_field(path: &Path, header: &Header, name: &str) -> Result<RingField, FormatError> {
+    const DESCRIPTOR_LEN: usize = 192;
+    let format = header.point_format();
+    let base = usize::from(format.len()) - usize::from(format.extra_bytes);
+    let vlr = header
+        .vlrs()
+        .iter()
+        .chain(header.evlrs())
+        .find(|v| v.user_id.trim_end_matches('\0') == "LASF_Spec" && v.record_id == 4);
+    let mut names = Vec::new();
+    let mut at = base;
+    for d in vlr.map(|v| v.data.chunks_exact(DESCRIPTOR_LEN)).into_iter().flatten() {
+        let field = String::from_utf8_lossy(&d[4..36]).trim_end_matches('\0').to_string();
+        let data_type = d[2];
+        // LAS 1.4 R15 table 25: 1–10 are u8, i8, u16, i16, u32, i32, u64, i64, f32, f64; 0 is
+        // `options` bytes of undocumented data.
+        let size = match data_type {
+            0 => usize::from(d[3]),
+            1 | 2 => 1,
+            3 | 4 => 2,
+            5 | 6 | 9 => 4,
+            7 | 8 | 10 => 8,
+            _ => {
+                return Err(FormatError::file(
+                    path,
+                    format!("extra-bytes field {field:?} has data type {data_type}, which LAS 1.4 does not define; re-export the strip"),
+                ))
+            }
+        };
+        if field == name {
+            return match data_type {
+                1 => Ok(RingField::Byte(at)),
+                2 => Ok(RingField::SignedByte(at)),
+                3 | 4 => Ok(RingField::Word { at, signed: data_type == 4 }),
+                _ => Err(FormatError::file(
+                    path,
+                    format!(
+                        "extra-bytes field {name:?} (data type {data_type}) is not an integer of 1 or 2 bytes, so it \
+                         cannot hold a ring number; name another field in parameters.ring"
+                    ),
+                )),
+            };
+        }
+        names.push(field);
+        at += size;
+    }
+    Err(FormatError::file(
+        path,
+        format!(
+            "parameters.ring names the extra-bytes field {name:?}, but the file has {}; name one of its fields, or \
+             use user_data or scanner_channel",
+            if names.is_empty() { "no extra-bytes fields".to_string() } else { format!("only {}", names.join(", ")) }
+        ),
+    ))
 }
 
 impl<'a> StripReader<'a> {
@@ -359,6 +459,7 @@ impl<'a> StripReader<'a> {
             transforms: *header.transforms(),
             gps_at,
             extended: format.is_extended,
+            ring: RingField::None,
         })
     }
 
@@ -397,6 +498,28 @@ impl<'a> StripReader<'a> {
             out.gps_time.push(gps);
             out.scan_angle_deg.push(angle);
             out.channel.push(channel);
+            let ring = match self.ring {
+                RingField::None => continue,
+                RingField::Channel => i64::from(channel),
+                RingField::Byte(at) => i64::from(rec[at]),
+                RingField::SignedByte(at) => i64::from(rec[at] as i8),
+                RingField::Word { at, signed } => {
+                    let b = [rec[at], rec[at + 1]];
+                    if signed {
+                        i64::from(i16::from_le_bytes(b))
+                    } else {
+                        i64::from(u16::from_le_bytes(b))
+                    }
+                }
+            };
+            let ring = u8::try_from(ring).map_err(|_| {
+                point_error(
+                    self.path,
+                    first + j as u64,
+                    format!("ring number {ring} is outside 0–255; check parameters.ring names the ring's field"),
+                )
+            })?;
+            out.ring.push(ring);
         }
         Ok(())
     }

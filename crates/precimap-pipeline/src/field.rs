@@ -3,9 +3,10 @@
 
 use crate::campaign::{StripEntry, TrajectoryEntry};
 use crate::error::PipelineError;
+use precimap_core::RingSource;
 use precimap_formats::gps_time::{describe_range, TimeConvention};
 use precimap_formats::trajectory::strip_clock;
-use precimap_formats::{read_strip, strip_info, StripInfo, StripPoints};
+use precimap_formats::{read_strip_with_ring, strip_info, StripInfo, StripPoints};
 
 fn input_error(entry: &StripEntry, message: String) -> PipelineError {
     PipelineError::Input { what: format!("strip {} ({})", entry.id, entry.path.display()), message }
@@ -35,11 +36,15 @@ pub fn check_strip_crs(entry: &StripEntry, info: &StripInfo) -> Result<(), Pipel
 }
 
 /// Reads a strip for estimation: CRS checked, GPS times on its trajectory's scale and inside its
-/// span, coordinates in the processing frame.
-pub fn read_strip_in_frame(entry: &StripEntry, traj: &TrajectoryEntry) -> Result<StripPoints, PipelineError> {
+/// span, coordinates in the processing frame; with `ring`, each point's ring number from there.
+pub fn read_strip_in_frame(
+    entry: &StripEntry,
+    traj: &TrajectoryEntry,
+    ring: Option<&RingSource>,
+) -> Result<StripPoints, PipelineError> {
     let info = strip_info(&entry.path)?;
     check_strip_crs(entry, &info)?;
-    let mut points = read_strip(&entry.path)?;
+    let mut points = read_strip_with_ring(&entry.path, ring)?;
     let Some((first, last)) = points.gps_time_span() else { return Ok(points) };
     let (offset, week) = strip_clock(info.time_convention, points.gps_time[0], &traj.clock);
     let (start, end) = traj.data.time_span();

@@ -34,7 +34,8 @@ pub struct StripReport {
     /// measured on).
     #[serde(default)]
     pub points_usable: u64,
-    /// Where the normals came from: `scan_image` or `neighbours` (3-D neighbours).
+    /// Where the normals came from: `scan_image`, `ring_image` (a multi-beam head) or
+    /// `neighbours` (3-D neighbours).
     #[serde(default)]
     pub normal_source: precimap_core::NormalSource,
     /// Why the scan image was not used, under `normals: auto`.

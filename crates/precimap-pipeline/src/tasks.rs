@@ -103,7 +103,7 @@ fn prepare_strip_chunks_observed(
     segment_params: &SegmentParams,
     phase_done: &mut dyn FnMut(PreparePhase),
 ) -> Result<PreparedStrip, PipelineError> {
-    let points = crate::field::read_strip_in_frame(entry, traj)?;
+    let points = crate::field::read_strip_in_frame(entry, traj, params.ring.as_ref())?;
     phase_done(PreparePhase::Decode);
     let samples = StripSamples {
         x: &points.x,
@@ -112,6 +112,7 @@ fn prepare_strip_chunks_observed(
         gps_time: &points.gps_time,
         scan_angle_deg: &points.scan_angle_deg,
         channel: &points.channel,
+        ring: &points.ring,
     };
     let ctx = StripContext {
         strip: strip_index,

@@ -1,5 +1,7 @@
 //! The scan image: rows = measurement index within one scanner revolution (from the scan angle),
-//! columns = revolutions, one column range per scanner channel. Missing returns stay holes.
+//! columns = revolutions, one column range per scanner channel. Missing returns stay holes. A
+//! multi-beam head's ring image has the same shape with rows = rings and columns = firings
+//! ([`ScanImage::from_rings`], in `rings`).
 
 use std::collections::BTreeMap;
 
@@ -23,6 +25,15 @@ pub struct ScanImage {
     pub period_s: f64,
     /// Angular step between consecutive measurements, radians.
     pub angle_step_rad: f64,
+    /// Angular step between consecutive columns, radians: 0 for a single-profile head (its
+    /// columns are apart by the head's advance alone), the azimuth step per firing for a ring
+    /// image.
+    pub column_step_rad: f64,
+    /// Rows wrap around (a revolution is a circle); a ring image's top and bottom rings do not meet.
+    pub wraps: bool,
+    /// Columns per revolution of a ring image, whose segments also join the same ring one
+    /// revolution later; 0 for a profile image (whose next column is the next revolution).
+    pub revolution_columns: u32,
     pub row: Vec<u32>,
     /// Column of each point; [`DROPPED`] for revolutions removed at standstill.
     pub column: Vec<u32>,
@@ -125,7 +136,17 @@ impl ScanImage {
         for k in 0..n {
             column[k] += offset[channel[k] as usize];
         }
-        Self { rows, columns: next.max(1), period_s, angle_step_rad: step_deg.to_radians(), row, column }
+        Self {
+            rows,
+            columns: next.max(1),
+            period_s,
+            angle_step_rad: step_deg.to_radians(),
+            column_step_rad: 0.0,
+            wraps: true,
+            revolution_columns: 0,
+            row,
+            column,
+        }
     }
 
     /// Drops revolutions taken before the scan head moved `min_advance` metres since the last kept

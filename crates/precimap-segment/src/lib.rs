@@ -13,6 +13,7 @@ mod fh;
 mod image;
 mod neighbours;
 mod normals;
+mod rings;
 
 pub use fh::{felzenszwalb_huttenlocher, felzenszwalb_huttenlocher_from, UnionFind};
 pub use image::{ScanImage, DROPPED, NO_POINT};
@@ -279,12 +280,37 @@ fn segment(
                 }
             }
         };
-        // Rows wrap around (the revolution is a circle).
-        if rows > 2 {
+        // Rows wrap around (the revolution is a circle); a ring image's do not.
+        if !image.wraps {
+            if r + 1 < rows {
+                link(grid[pixel + 1]);
+            }
+        } else if rows > 2 {
             link(grid[if r + 1 < rows { pixel + 1 } else { pixel + 1 - rows }]);
         }
         if c + 1 < image.columns as usize {
             link(grid[pixel + rows]);
+        }
+        // A ring image: the same ring one revolution later, which lies the head's advance per
+        // revolution away, so its gap is allowed that much.
+        let later = c + image.revolution_columns as usize;
+        if image.revolution_columns > 0 && later < image.columns as usize {
+            let j = grid[later * rows + r];
+            if let Some(nj) = normals.get(j as usize).copied().flatten() {
+                let advance = image::dist(geo.head[k as usize], geo.head[j as usize]);
+                let limit = (params.gap_factor * advance + params.gap_base_m) as f32;
+                let widen = |n: &PixelNormal| PixelNormal { edge_limit: n.edge_limit.max(limit), ..*n };
+                let (p, q) = (geo.point(k as usize), geo.point(j as usize));
+                // Only within the noise: a long edge across a discontinuity would merge whole
+                // surfaces of many revolutions at once.
+                if edge_weight(p, q, &widen(nk), &widen(&nj), &constants) == Some(0.0) {
+                    if weightless {
+                        uf.join_weightless(k, j);
+                    } else {
+                        edges.push((0.0, k, j));
+                    }
+                }
+            }
         }
     }
     let uf = felzenszwalb_huttenlocher_from(uf, edges, params.fh_k, params.min_region_points, params.merge_max as f32);

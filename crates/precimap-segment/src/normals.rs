@@ -265,7 +265,8 @@ pub fn estimate_normals(
         let head = geo.head[k];
         let range = dist(p, head);
         let along = range * image.angle_step_rad;
-        let across = advance[c as usize];
+        // A ring image's columns are also apart by the azimuth step (0 for a profile head).
+        let across = advance[c as usize] + range * image.column_step_rad;
         // Candidates for the fit: gaps up to those of a surface seen at grazing incidence
         // (cos ≥ MIN_INCIDENCE_COS); the RANSAC fit sorts out which lie on the pixel's plane.
         let gate = params.gap_factor * (along / MIN_INCIDENCE_COS).max(across).max(0.005) + params.gap_base_m;
@@ -287,12 +288,17 @@ pub fn estimate_normals(
             for (px, o) in pixel[..count].iter_mut().zip(&offsets) {
                 let cc = c + o.dc;
                 let mut rr = r + o.dr * stride;
+                let beyond = rr < 0 || rr >= rows_i;
                 if rr < 0 {
                     rr += rows_i;
                 } else if rr >= rows_i {
                     rr -= rows_i;
                 }
-                *px = if cc < 0 || cc >= columns_i { outside } else { cc as usize * rows + rr as usize };
+                *px = if cc < 0 || cc >= columns_i || (beyond && !image.wraps) {
+                    outside
+                } else {
+                    cc as usize * rows + rr as usize
+                };
             }
         }
         // Offsets kept, as bits.

@@ -199,6 +199,82 @@ pub struct ScannerConfig {
     /// Scan heads per vehicle: 2 (left and right) or 1 (the left head alone).
     #[serde(default = "two", skip_serializing_if = "is_two")]
     pub heads: u32,
+    /// A multi-beam spinning head on the roof instead of the profile heads (`heads`,
+    /// `revolutions_per_s`, `points_per_revolution`, `azimuth_deg` and their lever arms then
+    /// do not apply).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub multibeam: Option<MultiBeamConfig>,
+}
+
+/// A Velodyne/Ouster/Hesai-style head: `rings` lasers at fixed elevations spin about the body's
+/// z axis; each firing measures all rings at the same azimuth and GPS time. The LAS files carry
+/// the laser number in the user-data byte; the lasers are numbered alternately from the lower
+/// and the upper half of the field of view, as many real heads number them, not by elevation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MultiBeamConfig {
+    /// Lasers, spread evenly over `elevation_deg`; 2–255.
+    pub rings: u32,
+    /// Elevation of the lowest and the highest ring above the body's x–y plane, degrees.
+    pub elevation_deg: [f64; 2],
+    pub revolutions_per_s: f64,
+    /// Firings per revolution; dividing 60000 makes every firing's azimuth, written as the scan
+    /// angle, exact in LAS's 0.006° units.
+    pub firings_per_revolution: u32,
+    pub lever_arm_m: [f64; 3],
+}
+
+impl Default for MultiBeamConfig {
+    /// 32 rings over −25°…+15° at 10 Hz and 0.36° per firing, on the roof.
+    fn default() -> Self {
+        Self {
+            rings: 32,
+            elevation_deg: [-25.0, 15.0],
+            revolutions_per_s: 10.0,
+            firings_per_revolution: 1000,
+            lever_arm_m: [-0.3, 0.0, 0.55],
+        }
+    }
+}
+
+impl MultiBeamConfig {
+    /// Elevation of laser `laser` (degrees): even lasers take the lower half of the rings from
+    /// the bottom up, odd lasers the upper half.
+    pub fn elevation_deg(&self, laser: u32) -> f64 {
+        let lower = self.rings.div_ceil(2);
+        let ring = if laser.is_multiple_of(2) { laser / 2 } else { lower + laser / 2 };
+        let [lo, hi] = self.elevation_deg;
+        lo + (hi - lo) * ring as f64 / (self.rings - 1).max(1) as f64
+    }
+
+    fn problems(&self, out: &mut Vec<String>) {
+        if !(2..=255).contains(&self.rings) {
+            out.push(format!("scanner.multibeam.rings must be 2–255 (the LAS user-data byte), got {}", self.rings));
+        }
+        let [lo, hi] = self.elevation_deg;
+        if !(lo.is_finite() && hi.is_finite() && -90.0 < lo && lo < hi && hi < 90.0) {
+            out.push(format!(
+                "scanner.multibeam.elevation_deg must be [lo, hi] with −90 < lo < hi < 90, got {:?}",
+                self.elevation_deg
+            ));
+        }
+        if !(self.revolutions_per_s.is_finite() && self.revolutions_per_s > 0.0) {
+            out.push(format!(
+                "scanner.multibeam.revolutions_per_s must be a positive number, got {}",
+                self.revolutions_per_s
+            ));
+        }
+        if self.firings_per_revolution < 8 || 60_000 % self.firings_per_revolution != 0 {
+            out.push(format!(
+                "scanner.multibeam.firings_per_revolution ({}) must be at least 8 and divide 60000 (e.g. 400, 1000, \
+                 1200, 2000)",
+                self.firings_per_revolution
+            ));
+        }
+        if self.lever_arm_m.iter().any(|v| !v.is_finite()) {
+            out.push("scanner.multibeam.lever_arm_m must hold finite numbers".into());
+        }
+    }
 }
 
 /// GNSS/IMU error processes (per pass). σ ranges `[lo, hi]` are drawn per pass and axis; the
@@ -460,6 +536,9 @@ impl SimConfig {
         if calibration.iter().flatten().chain([&c.range_scale_ppm, &c.range_offset_m]).any(|v| !v.is_finite()) {
             out.push("errors.calibration must hold finite numbers only".into());
         }
+        if let Some(m) = &s.multibeam {
+            m.problems(&mut out);
+        }
         if !(s.heads == 1 || s.heads == 2) {
             out.push(format!("scanner.heads must be 1 or 2, got {}", s.heads));
         }
@@ -560,6 +639,7 @@ impl Default for ScannerConfig {
             min_range_m: 1.0,
             range_noise_m: 0.005,
             heads: 2,
+            multibeam: None,
         }
     }
 }

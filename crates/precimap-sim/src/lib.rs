@@ -1,7 +1,8 @@
 //! Simulated mobile-mapping campaigns that know their truth.
 //!
 //! [`simulate`] builds a small town ([`town`]) on a gentle slope, drives a two-headed
-//! VMX-250-like scanner through it on figure-8 passes ([`drive`]), georeferences every laser hit
+//! VMX-250-like scanner (or one multi-beam head on the roof, [`MultiBeamConfig`]) through it on
+//! figure-8 passes ([`drive`]), georeferences every laser hit
 //! with an erroneous GNSS/IMU trajectory ([`gnss`]) and writes a campaign in the public formats
 //! plus everything the estimation must never see:
 //!
@@ -30,8 +31,8 @@ pub mod town;
 pub mod truth;
 
 pub use config::{
-    CalibrationErrors, DriveConfig, ErrorConfig, ErrorProcess, ParseScaleError, Scale, ScannerConfig, SimConfig,
-    TownConfig,
+    CalibrationErrors, DriveConfig, ErrorConfig, ErrorProcess, MultiBeamConfig, ParseScaleError, Scale, ScannerConfig,
+    SimConfig, TownConfig,
 };
 pub use gnss::{ErrorStats, Outage};
 pub use scan::Head;
@@ -184,7 +185,7 @@ fn simulate_pass(cfg: &SimConfig, town: &Town, index: u32, out: &Path, laz: bool
     let truth_traj = Trajectory::new(tp.times.clone(), tp.positions.clone(), tp.rpy_deg.clone()).map_err(traj_err)?;
     let measured_traj = Trajectory::new(tp.times.clone(), measured_pos, measured_rpy).map_err(traj_err)?;
     let ext = if laz { "laz" } else { "las" };
-    let jobs: Vec<scan::StripJob<'_>> = Head::mounted(cfg.scanner.heads)
+    let jobs: Vec<scan::StripJob<'_>> = Head::mounted_on(cfg)
         .iter()
         .map(|&head| {
             let sid = format!("{id}-{}", head.name());
@@ -288,7 +289,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
         name: config.name.clone(),
         crs: None,
         gps_week: None,
-        scanners: Head::mounted(config.scanner.heads)
+        scanners: Head::mounted_on(config)
             .iter()
             .map(|&h| (h.name().to_string(), ScannerSpec { lever_arm_m: h.lever_arm(config), boresight_deg: [0.0; 3] }))
             .collect(),
@@ -304,12 +305,16 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
             .collect(),
         parameters: Parameters::default(),
     };
-    // Default parameters are left out, so the campaign follows whatever the estimator's defaults are.
+    // Default parameters are left out, so the campaign follows whatever the estimator's defaults are;
+    // a multi-beam head's strips say where their ring numbers are.
     let manifest_path = out.join("manifest.json");
     let mut value =
         serde_json::to_value(&manifest).map_err(|source| SimError::Json { path: manifest_path.clone(), source })?;
     if let Some(obj) = value.as_object_mut() {
         obj.remove("parameters");
+        if config.scanner.multibeam.is_some() {
+            obj.insert("parameters".into(), serde_json::json!({ "ring": "user_data" }));
+        }
     }
     write_json(&manifest_path, &value)?;
 

@@ -184,23 +184,44 @@ macro_rules! named {
 named!(Scene, "scene");
 named!(ErrorModel, "error model");
 
-/// One campaign of the accuracy matrix: scene, errors, passes per street and heads per vehicle.
+/// Rings of the accuracy matrix's multi-beam head.
+pub const MULTIBEAM_RINGS: u32 = 32;
+/// Its firings per revolution (3.6°): a sparse azimuth, as the matrix's profile heads are sparse
+/// (about 30 k shots per second against their 10 k).
+pub const MULTIBEAM_FIRINGS: u32 = 100;
+
+/// One campaign of the accuracy matrix: scene, errors, passes per street and heads per vehicle
+/// (profile heads, or one multi-beam head on the roof).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
 pub struct Scenario {
     pub scene: Scene,
     pub errors: ErrorModel,
     pub passes: u32,
     pub heads: u32,
+    /// One multi-beam head ([`MULTIBEAM_RINGS`] rings at 10 Hz) instead of the profile heads.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub multibeam: bool,
 }
 
 impl Scenario {
     pub fn new(scene: Scene, errors: ErrorModel, passes: u32, heads: u32) -> Self {
-        Self { scene, errors, passes, heads }
+        Self { scene, errors, passes, heads, multibeam: false }
     }
 
-    /// `scene/errors/Np` with `/1h` for a single head.
+    /// The same campaign scanned by one multi-beam head on the roof.
+    pub fn multibeam(self) -> Self {
+        Self { heads: 1, multibeam: true, ..self }
+    }
+
+    /// `scene/errors/Np` with `/1h` for a single head, `/mb32` for a 32-ring multi-beam head.
     pub fn name(&self) -> String {
-        let heads = if self.heads == 1 { "/1h" } else { "" };
+        let heads = if self.multibeam {
+            format!("/mb{MULTIBEAM_RINGS}")
+        } else if self.heads == 1 {
+            "/1h".to_string()
+        } else {
+            String::new()
+        };
         format!("{}/{}/{}p{heads}", self.scene.name(), self.errors.name(), self.passes)
     }
 
@@ -215,6 +236,13 @@ impl Scenario {
         cfg.scanner.heads = self.heads;
         cfg.scanner.revolutions_per_s = revolutions_per_s;
         cfg.scanner.points_per_revolution = points_per_revolution;
+        if self.multibeam {
+            cfg.scanner.multibeam = Some(crate::MultiBeamConfig {
+                rings: MULTIBEAM_RINGS,
+                firings_per_revolution: MULTIBEAM_FIRINGS,
+                ..crate::MultiBeamConfig::default()
+            });
+        }
         self.scene.apply(&mut cfg);
         self.errors.apply(&mut cfg);
         cfg
@@ -230,10 +258,14 @@ mod tests {
         assert_eq!("open-road".parse::<Scene>(), Ok(Scene::OpenRoad));
         assert_eq!("Gauss_Markov_slow".parse::<ErrorModel>(), Ok(ErrorModel::GaussMarkovSlow));
         assert!("town".parse::<Scene>().unwrap_err().contains("grid, oblique"));
+        let mb = Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam();
+        assert_eq!(mb.name(), "grid/gauss_markov/4p/mb32");
+        assert_eq!(mb.config(1, 48.0, 30.0, 200).scanner.multibeam.map(|m| m.rings), Some(32));
         for scene in Scene::ALL {
             for errors in ErrorModel::ALL {
-                for (passes, heads) in [(2, 1), (4, 2), (8, 2)] {
+                for (passes, heads, multibeam) in [(2, 1, false), (4, 2, false), (8, 2, false), (4, 1, true)] {
                     let s = Scenario::new(scene, errors, passes, heads);
+                    let s = if multibeam { s.multibeam() } else { s };
                     let cfg = s.config(1, 48.0, 30.0, 200);
                     assert!(cfg.problems().is_empty(), "{}: {:?}", s.name(), cfg.problems());
                     let json = serde_json::to_string(&cfg).unwrap();

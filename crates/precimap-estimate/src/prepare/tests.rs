@@ -30,7 +30,7 @@ fn scan_image_links_and_normals_on_flat_ground() {
         }
     }
     let channel = vec![0u8; x.len()];
-    let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
+    let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel, ring: &[] };
     let params = Parameters::default();
     let segment = SegmentParams::default();
     let ctx = StripContext {
@@ -117,7 +117,7 @@ fn strip_without_scan_angles_gets_its_rows_from_the_beam_directions() {
         params: &params,
         segment: &segment,
     };
-    let with = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
+    let with = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel, ring: &[] };
     let without = StripSamples { scan_angle_deg: &zeros, ..with };
     let known = prepare_strip(&with, &ctx).unwrap();
     let rebuilt = prepare_strip(&without, &ctx).unwrap();
@@ -166,7 +166,8 @@ fn scattered_beams_give_no_reconstructed_angles() {
     }
     let zeros = vec![0f32; x.len()];
     let channel = vec![0u8; x.len()];
-    let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &zeros, channel: &channel };
+    let samples =
+        StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &zeros, channel: &channel, ring: &[] };
     assert!(scan_angles_missing(&zeros));
     assert!(reconstructed_scan_angles(&head, &samples, &traj).is_none());
 }
@@ -223,14 +224,28 @@ fn uncovered_and_unordered_points_are_reported() {
     };
     let xs = [0.0, 0.0];
     let ch = [0u8, 0];
-    let samples =
-        StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 2.0], scan_angle_deg: &[0.0, 1.0], channel: &ch };
+    let samples = StripSamples {
+        x: &xs,
+        y: &xs,
+        z: &xs,
+        gps_time: &[0.5, 2.0],
+        scan_angle_deg: &[0.0, 1.0],
+        channel: &ch,
+        ring: &[],
+    };
     assert_eq!(
         prepare_strip(&samples, &ctx).unwrap_err(),
         PrepareError::NotCovered { index: 1, time: 2.0, start: 0.0, end: 1.0 }
     );
-    let samples =
-        StripSamples { x: &xs, y: &xs, z: &xs, gps_time: &[0.5, 0.4], scan_angle_deg: &[0.0, 1.0], channel: &ch };
+    let samples = StripSamples {
+        x: &xs,
+        y: &xs,
+        z: &xs,
+        gps_time: &[0.5, 0.4],
+        scan_angle_deg: &[0.0, 1.0],
+        channel: &ch,
+        ring: &[],
+    };
     assert!(matches!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotInOrder { index: 1, .. }));
     let samples = StripSamples {
         x: &[0.0, f64::NAN],
@@ -239,8 +254,17 @@ fn uncovered_and_unordered_points_are_reported() {
         gps_time: &[0.5, 0.6],
         scan_angle_deg: &[0.0, 1.0],
         channel: &ch,
+        ring: &[],
     };
     assert_eq!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NotFinite { index: 1, field: "x" });
+    // A ring image needs ring numbers, one per point.
+    let ring_image = Parameters { normals: NormalSource::RingImage, ..Parameters::default() };
+    let ctx = StripContext { params: &ring_image, ..ctx };
+    let samples = StripSamples { gps_time: &[0.5, 0.6], ..samples };
+    let samples = StripSamples { x: &xs, ..samples };
+    assert_eq!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::NoRing);
+    let samples = StripSamples { ring: &[3], ..samples };
+    assert!(matches!(prepare_strip(&samples, &ctx).unwrap_err(), PrepareError::Shape(_)));
 }
 
 /// A drive over flat ground whose points carry scan angles of no rotating head (pseudo-random):
@@ -268,7 +292,7 @@ fn a_strip_without_a_scan_pattern_gets_normals_from_neighbours() {
         a.push((180.0 * (rand() - 0.5)) as f32);
     }
     let channel = vec![0u8; x.len()];
-    let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel };
+    let samples = StripSamples { x: &x, y: &y, z: &z, gps_time: &t, scan_angle_deg: &a, channel: &channel, ring: &[] };
     let params = Parameters::default();
     let segment = SegmentParams::default();
     let ctx = StripContext {

@@ -240,6 +240,11 @@ impl StripWriter {
     /// Appends a point. An invalid point is rejected with an error naming its index and is not
     /// written; the writer stays usable.
     pub fn push(&mut self, p: &NewPoint) -> Result<(), FormatError> {
+        self.push_with_user_data(p, 0)
+    }
+
+    /// [`StripWriter::push`] with the LAS user-data byte set (a multi-beam head's ring number).
+    pub fn push_with_user_data(&mut self, p: &NewPoint, user_data: u8) -> Result<(), FormatError> {
         let index = self.written + self.batch_len as u64;
         let bad = |m: String| point_error(&self.out.path, index, m);
         let xyz = quantize(p.position, &self.transforms).map_err(bad)?;
@@ -267,7 +272,7 @@ impl StripWriter {
         rec[14] = (p.number_of_returns << 4) | p.return_number;
         rec[layout::FLAGS2] = p.channel << 4;
         rec[layout::EXT_CLASSIFICATION] = p.classification;
-        rec[layout::EXT_USER_DATA] = 0;
+        rec[layout::EXT_USER_DATA] = user_data;
         rec[layout::EXT_SCAN_ANGLE..layout::EXT_SCAN_ANGLE + 2].copy_from_slice(&scan.to_le_bytes());
         rec[layout::EXT_POINT_SOURCE..layout::EXT_POINT_SOURCE + 2].copy_from_slice(&p.point_source_id.to_le_bytes());
         rec[layout::EXT_GPS..layout::EXT_GPS + 8].copy_from_slice(&p.gps_time.to_le_bytes());

@@ -527,3 +527,58 @@ fn selective_laz_decoding_matches_full_decoding() {
         }
     }
 }
+
+/// A multi-beam head's ring number from the user-data byte (LAS and LAZ), the scanner channel,
+/// or a named extra-bytes field; a field the file lacks is an error naming the fields it has.
+#[test]
+fn ring_numbers_from_user_data_channel_and_extra_bytes() {
+    use precimap_core::RingSource;
+    use precimap_formats::read_strip_with_ring;
+    let dir = tempfile::tempdir().unwrap();
+    let points = sample_points(70_000);
+    for name in ["r.las", "r.laz"] {
+        let path = dir.path().join(name);
+        let mut w = StripWriter::create(&path, OFFSET, SCALE, "precimap test", "precimap-formats").unwrap();
+        for (i, p) in points.iter().enumerate() {
+            w.push_with_user_data(p, (i % 32) as u8).unwrap();
+        }
+        w.finish().unwrap();
+        let s = read_strip_with_ring(&path, Some(&RingSource::UserData)).unwrap();
+        assert!(s.ring.iter().enumerate().all(|(i, &r)| r == (i % 32) as u8), "{name}");
+        assert_eq!(read_strip_with_ring(&path, Some(&RingSource::ScannerChannel)).unwrap().ring, s.channel);
+        assert!(read_strip(&path).unwrap().ring.is_empty());
+        let e = read_strip_with_ring(&path, Some(&RingSource::ExtraBytes("ring".into()))).unwrap_err().to_string();
+        assert!(e.contains("\"ring\"") && e.contains("no extra-bytes fields"), "{e}");
+    }
+    // Extra bytes: a 1-byte field before a 2-byte "laser" field.
+    let path = dir.path().join("extra.las");
+    let mut b = Builder::from(Version::new(1, 4));
+    b.point_format = Format::new(6).unwrap();
+    b.point_format.extra_bytes = 3;
+    let mut data = Vec::new();
+    for (field, data_type) in [("pad", 1u8), ("laser", 3u8)] {
+        let mut d = [0u8; 192];
+        d[2] = data_type;
+        d[4..4 + field.len()].copy_from_slice(field.as_bytes());
+        data.extend_from_slice(&d);
+    }
+    b.vlrs.push(Vlr { user_id: "LASF_Spec".into(), record_id: 4, description: "Extra Bytes Record".into(), data });
+    let mut w = las::Writer::from_path(&path, b.into_header().unwrap()).unwrap();
+    for i in 0..100u16 {
+        let laser = 200 + i % 50;
+        w.write_point(Point {
+            x: 1.0 + f64::from(i),
+            y: 2.0,
+            z: 3.0,
+            gps_time: Some(f64::from(i)),
+            extra_bytes: vec![7, laser.to_le_bytes()[0], laser.to_le_bytes()[1]],
+            ..Default::default()
+        })
+        .unwrap();
+    }
+    w.close().unwrap();
+    let s = read_strip_with_ring(&path, Some(&RingSource::ExtraBytes("laser".into()))).unwrap();
+    assert!(s.ring.iter().enumerate().all(|(i, &r)| u16::from(r) == 200 + i as u16 % 50));
+    let e = read_strip_with_ring(&path, Some(&RingSource::ExtraBytes("ring".into()))).unwrap_err().to_string();
+    assert!(e.contains("only pad, laser"), "{e}");
+}
