@@ -448,20 +448,16 @@ impl Parameters {
     /// Every out-of-range value, each with its field name.
     pub fn problems(&self) -> Vec<ParameterProblem> {
         let mut out = Vec::new();
-        fn check_positive(out: &mut Vec<ParameterProblem>, field: &str, v: f64) {
-            if !(v.is_finite() && v > 0.0) {
-                out.push(ParameterProblem {
-                    field: field.into(),
-                    problem: format!("must be a positive number, got {v}"),
-                });
-            }
-        }
-        macro_rules! positive {
-            ($field:expr, $v:expr) => {
-                check_positive(&mut out, &$field, $v)
-            };
-        }
-        positive!("anchor_spacing_m", self.anchor_spacing_m);
+        self.input_problems(&mut out);
+        self.geometry_and_weight_problems(&mut out);
+        self.schedule_problems(&mut out);
+        self.field_and_map_problems(&mut out);
+        out
+    }
+
+    /// The anchors and where strips carry a multi-beam ring.
+    fn input_problems(&self, out: &mut Vec<ParameterProblem>) {
+        check_positive(out, "anchor_spacing_m", self.anchor_spacing_m);
         if self.normals == NormalSource::RingImage && self.ring.is_none() {
             out.push(ParameterProblem {
                 field: "normals".into(),
@@ -478,19 +474,23 @@ impl Parameters {
                 });
             }
         }
-        positive!("tile_size_m", self.tile_size_m);
-        positive!("cell_size_m", self.cell_size_m);
-        positive!("max_range_m", self.max_range_m);
-        positive!("normal_group_angle_deg", self.normal_group_angle_deg);
-        positive!("sigma_distance_m", self.sigma_distance_m);
-        positive!("sigma_prior_position_m", self.sigma_prior_position_m);
-        positive!("sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
+    }
+
+    /// Tiles, cells, ranges and the σ of every term.
+    fn geometry_and_weight_problems(&self, out: &mut Vec<ParameterProblem>) {
+        check_positive(out, "tile_size_m", self.tile_size_m);
+        check_positive(out, "cell_size_m", self.cell_size_m);
+        check_positive(out, "max_range_m", self.max_range_m);
+        check_positive(out, "normal_group_angle_deg", self.normal_group_angle_deg);
+        check_positive(out, "sigma_distance_m", self.sigma_distance_m);
+        check_positive(out, "sigma_prior_position_m", self.sigma_prior_position_m);
+        check_positive(out, "sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
         if self.sigma_prior_heading_deg != 0.0 {
-            positive!("sigma_prior_heading_deg", self.sigma_prior_heading_deg);
+            check_positive(out, "sigma_prior_heading_deg", self.sigma_prior_heading_deg);
         }
-        positive!("sigma_smooth_position_m", self.sigma_smooth_position_m);
-        positive!("sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
-        positive!("convergence_tolerance_m", self.convergence_tolerance_m);
+        check_positive(out, "sigma_smooth_position_m", self.sigma_smooth_position_m);
+        check_positive(out, "sigma_smooth_rotation_deg", self.sigma_smooth_rotation_deg);
+        check_positive(out, "convergence_tolerance_m", self.convergence_tolerance_m);
         for (field, v) in [
             ("sigma_curvature_position_m", self.sigma_curvature_position_m),
             ("sigma_curvature_rotation_deg", self.sigma_curvature_rotation_deg),
@@ -514,11 +514,15 @@ impl Parameters {
         if !(0.0..1.0).contains(&self.weak_information_ratio) {
             out.push(ParameterProblem { field: "weak_information_ratio".into(), problem: "must be in [0, 1)".into() });
         }
+    }
+
+    /// The iteration schedule, the outlier floor and the accelerations.
+    fn schedule_problems(&self, out: &mut Vec<ParameterProblem>) {
         for (i, step) in self.schedule.iter().enumerate() {
-            positive!(&format!("schedule[{i}].grid_m"), step.grid_m);
-            positive!(&format!("schedule[{i}].threshold_m"), step.threshold_m);
+            check_positive(out, &format!("schedule[{i}].grid_m"), step.grid_m);
+            check_positive(out, &format!("schedule[{i}].threshold_m"), step.threshold_m);
             if let Some(c) = step.cell_m {
-                positive!(&format!("schedule[{i}].cell_m"), c);
+                check_positive(out, &format!("schedule[{i}].cell_m"), c);
                 if !divides(self.tile_size_m, c) {
                     out.push(ParameterProblem {
                         field: format!("schedule[{i}].cell_m"),
@@ -548,6 +552,10 @@ impl Parameters {
         if !(0.0..1.0).contains(&self.momentum) {
             out.push(ParameterProblem { field: "momentum".into(), problem: "must be in [0, 1)".into() });
         }
+    }
+
+    /// The common-mode field, the latent map and the strips' usable share.
+    fn field_and_map_problems(&self, out: &mut Vec<ParameterProblem>) {
         // Nodes closer than a few metres would see no more than the per-trajectory solves do, and
         // their count grows with the square of 1/spacing (the field's solve is dense).
         if !(self.common_mode_field_m.is_finite()
@@ -622,7 +630,6 @@ impl Parameters {
         if self.normal_group_angle_deg >= 90.0 {
             out.push(ParameterProblem { field: "normal_group_angle_deg".into(), problem: "must be below 90".into() });
         }
-        out
     }
 }
 
@@ -639,6 +646,13 @@ fn divides(tile: f64, cell: f64) -> bool {
     }
     let cells = tile / cell;
     (cells - cells.round()).abs() < 1e-9
+}
+
+/// Records `field` as a problem unless `v` is a positive finite number.
+fn check_positive(out: &mut Vec<ParameterProblem>, field: &str, v: f64) {
+    if !(v.is_finite() && v > 0.0) {
+        out.push(ParameterProblem { field: field.into(), problem: format!("must be a positive number, got {v}") });
+    }
 }
 
 #[cfg(test)]
