@@ -64,6 +64,24 @@ fn scramble_scan_angles(path: &Path) {
     std::fs::rename(&tmp, path).unwrap();
 }
 
+/// Evaluates the result `out` of `campaign` against its truth: the strips agree far better
+/// than before (spread below a quarter, same-surface spread below a tenth).
+fn assert_strips_agree_far_better(campaign: &Path, out: &Path) -> precimap_eval::Evaluation {
+    let e = precimap_eval::evaluate(&campaign.join("truth"), out).unwrap();
+    eprintln!("{}", e.summary());
+    assert!(
+        e.strip_offset_spread_m.after < 0.25 * e.strip_offset_spread_m.before,
+        "spread {:?}",
+        e.strip_offset_spread_m
+    );
+    assert!(
+        e.same_surface_spread_m.after < 0.1 * e.same_surface_spread_m.before,
+        "same-surface spread {:?}",
+        e.same_surface_spread_m
+    );
+    e
+}
+
 /// Strips whose scan angles follow no pattern: `normals: auto` takes their normals from 3-D
 /// neighbours, and the campaign is adjusted (the strips agree far better than before).
 #[test]
@@ -87,19 +105,8 @@ fn strips_of_an_unknown_pattern_are_adjusted_with_neighbour_normals() {
     }
     let last = report.iterations.last().unwrap();
     assert!(last.points_used > 0);
-    let e = precimap_eval::evaluate(&campaign.join("truth"), &out).unwrap();
-    eprintln!("{}", e.summary());
+    let e = assert_strips_agree_far_better(&campaign, &out);
     assert_eq!(e.points, report.points_total);
-    assert!(
-        e.strip_offset_spread_m.after < 0.25 * e.strip_offset_spread_m.before,
-        "spread {:?}",
-        e.strip_offset_spread_m
-    );
-    assert!(
-        e.same_surface_spread_m.after < 0.1 * e.same_surface_spread_m.before,
-        "same-surface spread {:?}",
-        e.same_surface_spread_m
-    );
 }
 
 /// A strip that cannot be adjusted stops the run with its name and the reason; with
@@ -204,16 +211,5 @@ fn multibeam_strips_get_ring_image_normals_and_are_adjusted() {
         assert_eq!(s.normal_source, precimap_core::NormalSource::RingImage, "strip {}", s.id);
     }
     assert!(report.iterations.last().unwrap().points_used > 0);
-    let e = precimap_eval::evaluate(&campaign.join("truth"), &out).unwrap();
-    eprintln!("{}", e.summary());
-    assert!(
-        e.strip_offset_spread_m.after < 0.25 * e.strip_offset_spread_m.before,
-        "spread {:?}",
-        e.strip_offset_spread_m
-    );
-    assert!(
-        e.same_surface_spread_m.after < 0.1 * e.same_surface_spread_m.before,
-        "same-surface spread {:?}",
-        e.same_surface_spread_m
-    );
+    assert_strips_agree_far_better(&campaign, &out);
 }
