@@ -358,40 +358,13 @@ fn run_campaign_in(
     let estimate_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let done = std::sync::atomic::AtomicUsize::new(0);
-    let total = campaign.strips.len();
-    (0..total).into_par_iter().try_for_each(|s| -> Result<(), PipelineError> {
-        export_strip_task(&campaign, s, &corrections[campaign.strips[s].trajectory as usize], out)?;
-        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-        progress(Progress::Exported { done: d, total });
-        Ok(())
-    })?;
-    for (t, c) in corrections.iter().enumerate() {
-        // The last iteration solved with its covariances (its corrections are the ones exported).
-        export_trajectory_task(&campaign, t, c, solutions[t].covariance.as_deref(), out)?;
-    }
+    export_all(&campaign, &corrections, &solutions, out, progress)?;
     let export_s = t.elapsed().as_secs_f64();
     if options.assignments {
         let step = effective_step(&campaign.params, schedule.len() - 1, robust_sigma);
         write_assignments(&campaign, &work, &prepared, &corrections, &step, out)?;
     }
-    // The last iteration's latent map, one file per tile, replaces any an earlier run left.
-    let latent = out.join(LATENT_DIR);
-    if latent.exists() {
-        std::fs::remove_dir_all(&latent).map_err(|e| PipelineError::io(&latent, e))?;
-    }
-    if work.join(LATENT_DIR).exists() {
-        std::fs::rename(work.join(LATENT_DIR), &latent).map_err(|e| PipelineError::io(&latent, e))?;
-    }
-    // The segmentation is a result too (evaluate measures its purity against the truth).
-    let segments = out.join("segments");
-    if segments.exists() {
-        std::fs::remove_dir_all(&segments).map_err(|e| PipelineError::io(&segments, e))?;
-    }
-    std::fs::rename(work.join("segments"), &segments).map_err(|e| PipelineError::io(&segments, e))?;
-    if !options.keep_work {
-        std::fs::remove_dir_all(&work).map_err(|e| PipelineError::io(&work, e))?;
-    }
+    move_results_out_of_work(&work, out, options.keep_work)?;
 
     let trajectories =
         campaign.trajectories.iter().zip(&solutions).map(|(entry, sol)| trajectory_report(&entry.id, sol)).collect();
@@ -415,6 +388,51 @@ fn run_campaign_in(
         crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, georef);
     crate::tasks::write_plots(out, crate::qc::report_plots(&report).into_iter().chain(latent_std))?;
     Ok(report)
+}
+
+/// Exports every strip (in parallel) and every trajectory with its final corrections; the last
+/// iteration solved with covariances, so `solutions` carry the posterior σ of what is exported.
+fn export_all(
+    campaign: &Campaign,
+    corrections: &[TrajectoryCorrections],
+    solutions: &[precimap_estimate::TrajectorySolution],
+    out: &Path,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<(), PipelineError> {
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = campaign.strips.len();
+    (0..total).into_par_iter().try_for_each(|s| -> Result<(), PipelineError> {
+        export_strip_task(campaign, s, &corrections[campaign.strips[s].trajectory as usize], out)?;
+        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        progress(Progress::Exported { done: d, total });
+        Ok(())
+    })?;
+    for (t, c) in corrections.iter().enumerate() {
+        export_trajectory_task(campaign, t, c, solutions[t].covariance.as_deref(), out)?;
+    }
+    Ok(())
+}
+
+/// Moves the results written under `work` into `out`, replacing what an earlier run left: the
+/// last iteration's latent map (one file per tile) and the segmentation (a result too: evaluate
+/// measures its purity against the truth). Then removes `work` unless it is kept.
+fn move_results_out_of_work(work: &Path, out: &Path, keep_work: bool) -> Result<(), PipelineError> {
+    let latent = out.join(LATENT_DIR);
+    if latent.exists() {
+        std::fs::remove_dir_all(&latent).map_err(|e| PipelineError::io(&latent, e))?;
+    }
+    if work.join(LATENT_DIR).exists() {
+        std::fs::rename(work.join(LATENT_DIR), &latent).map_err(|e| PipelineError::io(&latent, e))?;
+    }
+    let segments = out.join("segments");
+    if segments.exists() {
+        std::fs::remove_dir_all(&segments).map_err(|e| PipelineError::io(&segments, e))?;
+    }
+    std::fs::rename(work.join("segments"), &segments).map_err(|e| PipelineError::io(&segments, e))?;
+    if !keep_work {
+        std::fs::remove_dir_all(work).map_err(|e| PipelineError::io(work, e))?;
+    }
+    Ok(())
 }
 
 /// One map pass over `corrections` on `step` that records, for every point that becomes an
