@@ -649,7 +649,7 @@ fn swap_tilt(y: [f64; 20]) -> [f64; 20] {
 /// One trajectory as the field sees it: the position of each anchor of `corrections` (same
 /// order; the field acts at the horizontal one, the campaign's rotation about the centre of all
 /// of them), the current corrections, and each anchor's prior weights when it has its own (as
-/// `crate::solve_trajectory_with_prior` takes them; `None`: the campaign's).
+/// `crate::solve_trajectory` takes them; `None`: the campaign's).
 #[derive(Debug)]
 pub struct FieldTrajectory<'a> {
     pub positions: &'a [[f64; 3]],

@@ -354,6 +354,12 @@ fn continue_profile(x_before_end: Option<f64>, x_end: f64, m: usize, w: &Profile
     rhs
 }
 
+/// The campaign's prior weights on an anchor's total correction (1/σ²: x, y, z in m⁻², rotations
+/// about x, y, z in rad⁻²), what every anchor gets without a per-anchor prior.
+pub fn campaign_prior_weights(params: &Parameters) -> [f64; 6] {
+    weights(params).0.into()
+}
+
 /// One Gauss–Newton step for one trajectory. `blocks` are the summed tile blocks (any order,
 /// duplicates of an anchor are added); `current` fixes the anchor range. With `previous` (the
 /// corrections before `current`) the step adds `params.momentum × (current − previous)`.
@@ -365,29 +371,11 @@ fn continue_profile(x_before_end: Option<f64>, x_end: f64, m: usize, w: &Profile
 /// start, the change never falls below that amount (small seed 1: 0.42 mm in every one of 30
 /// extra iterations while the trajectories moved 2 mm in all). The convergence test and the
 /// report want the change between iterations.
-pub fn solve_trajectory<'a>(
-    blocks: impl IntoIterator<Item = &'a AnchorBlock>,
-    current: &TrajectoryCorrections,
-    previous: Option<&TrajectoryCorrections>,
-    change_from: Option<&TrajectoryCorrections>,
-    params: &Parameters,
-    estimate_rotation: bool,
-    with_sigma: bool,
-) -> Result<TrajectorySolution, precimap_solve::SolveError> {
-    solve_trajectory_with_prior(blocks, current, previous, change_from, params, None, estimate_rotation, with_sigma)
-}
-
-/// The campaign's prior weights on an anchor's total correction (1/σ²: x, y, z in m⁻², rotations
-/// about x, y, z in rad⁻²), what every anchor gets without a per-anchor prior.
-pub fn campaign_prior_weights(params: &Parameters) -> [f64; 6] {
-    weights(params).0.into()
-}
-
-/// [`solve_trajectory`] with a prior per anchor: `prior[k]` (weights as
-/// [`campaign_prior_weights`]) holds anchor `current.first_anchor + k`; `None`, or an anchor
-/// beyond the slice, takes the campaign's.
+///
+/// `prior[k]` (weights as [`campaign_prior_weights`]) is anchor `current.first_anchor + k`'s
+/// prior; `None`, or an anchor beyond the slice, takes the campaign's.
 #[allow(clippy::too_many_arguments)]
-pub fn solve_trajectory_with_prior<'a>(
+pub fn solve_trajectory<'a>(
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,
@@ -560,7 +548,8 @@ mod tests {
     fn the_heading_prior_has_its_own_sigma() {
         let current = TrajectoryCorrections { first_anchor: 7, values: vec![[0.0; 6]] };
         let sigma = |params: &Parameters| {
-            let solution = solve_trajectory(std::iter::empty(), &current, None, None, params, true, true).unwrap();
+            let solution =
+                solve_trajectory(std::iter::empty(), &current, None, None, params, None, true, true).unwrap();
             solution.covariance.unwrap()[0].sigma()
         };
         let tilt = 0.02f64.to_radians();
@@ -583,9 +572,9 @@ mod tests {
         let current =
             TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
         let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
-        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, true, false).unwrap();
+        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false).unwrap();
         let carried =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, true, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false).unwrap();
         for k in 0..n {
             for a in 0..6 {
                 let expected = plain.corrections.values[k][a] + 0.5 * (current.values[k][a] - previous.values[k][a]);
@@ -593,7 +582,7 @@ mod tests {
             }
         }
         let frozen =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, false, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false).unwrap();
         for k in 0..n {
             assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
             assert!((frozen.corrections.values[k][0] - plain.corrections.values[k][0] - 0.005).abs() < 1e-9);
@@ -643,7 +632,8 @@ mod tests {
                 })
                 .collect();
             let current = TrajectoryCorrections::zeros(range.0, range.1);
-            let solved = solve_trajectory(&blocks, &current, None, None, params, true, false).unwrap().corrections;
+            let solved =
+                solve_trajectory(&blocks, &current, None, None, params, None, true, false).unwrap().corrections;
             for (k, (e, s)) in extended.values.iter().zip(&solved.values).enumerate() {
                 for a in 0..6 {
                     let scale = if a < 3 { 1e-6 } else { 1e-9 };
@@ -694,7 +684,7 @@ mod tests {
             })
             .collect();
         let solve = |prior: Option<&[[f64; 6]]>| {
-            solve_trajectory_with_prior(blocks.iter(), &current, None, None, &params, prior, true, true).unwrap()
+            solve_trajectory(blocks.iter(), &current, None, None, &params, prior, true, true).unwrap()
         };
         let plain = solve(None);
         let campaign = vec![campaign_prior_weights(&params); 41];
@@ -730,7 +720,7 @@ mod tests {
         kinked[4][0] += 0.05;
         let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
         let sol_kinked =
-            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, true, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false).unwrap();
         let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
         assert!(second(&current_kinked.values, 4).abs() > 0.09);
         assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");

@@ -19,7 +19,7 @@ pub const ACCURACY_TOLERANCE_S: f64 = 1.0;
 /// taken as east-north-up).
 const ENU_FROM_NED: Mat3 = Mat3::new(0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -1.0);
 
-/// The prior weights (as `precimap_estimate::solve_trajectory_with_prior` takes them) of
+/// The prior weights (as `precimap_estimate::solve_trajectory` takes them) of
 /// `trajectory`'s anchors `first..=last` from its accuracy file; `None` without one.
 pub fn anchor_prior(
     trajectory: &TrajectoryEntry,

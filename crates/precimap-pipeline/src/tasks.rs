@@ -199,7 +199,7 @@ pub fn solve_trajectory_task<'a>(
     step: &IterationStep,
     with_sigma: bool,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory_with_prior(
+    precimap_estimate::solve_trajectory(
         blocks,
         current,
         previous,

@@ -49,7 +49,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
     let id = trajectory.id.clone();
     let solution = blocking(move || {
         // The change between iterations, the field's share included.
-        precimap_estimate::solve_trajectory_with_prior(
+        precimap_estimate::solve_trajectory(
             all.iter(),
             &current,
             previous.as_ref(),
