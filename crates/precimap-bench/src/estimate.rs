@@ -156,7 +156,7 @@ impl PreparedTiles {
         let kernel = ThreadKernelUse::now();
         let t = Instant::now();
         let cpu = thread_cpu_s();
-        let est = precimap_estimate::estimate_tile(tile, &chunks, &self.corrections, params, &self.step)?;
+        let est = precimap_estimate::estimate_tile(tile, &chunks, &self.corrections, params, &self.step, &[])?;
         let cpu_s = match (cpu, thread_cpu_s()) {
             (Some(a), Some(b)) => b - a,
             _ => f64::NAN,

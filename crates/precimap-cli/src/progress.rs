@@ -89,5 +89,20 @@ impl Display {
             report.timings.export_s,
             report.timings.task_s.map(|s| format!("; {s:.1} task-seconds")).unwrap_or_default()
         ));
+        self.permanent(&format!("datum: {}", report.control.datum));
+        let mm = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{:.1}", v * 1e3));
+        for (role, figures) in [("control", &report.control.control), ("check", &report.control.check)] {
+            if let Some(f) = figures {
+                self.permanent(&format!(
+                    "{role} targets: {} of {} observed; RMSE x {} y {} horizontal {} z {} mm (qc/control.csv)",
+                    f.targets_observed,
+                    f.targets_listed,
+                    mm(f.rmse_x_m),
+                    mm(f.rmse_y_m),
+                    mm(f.rmse_horizontal_m),
+                    mm(f.rmse_z_m)
+                ));
+            }
+        }
     }
 }

@@ -150,6 +150,12 @@ pub struct Parameters {
     /// latent height only if its corners lie in one segment of their pass
     /// (docs/design/estimation.md, "The latent map").
     pub segment_surfaces: bool,
+    /// How far from a control or check point (`$.control`) the adjusted surfaces are observed:
+    /// a point's surfaces are those within this distance whose plane passes through it. Half a
+    /// metre holds a few hundred points of every pass at street density, and stays on the
+    /// surfaces a surveyor measures (a marking on the road, a façade corner) rather than reaching
+    /// a kerb or a window recess.
+    pub control_radius_m: f64,
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
@@ -327,6 +333,7 @@ impl Default for Parameters {
             cell_size_m: 1.0,
             normal_group_angle_deg: 30.0,
             segment_surfaces: true,
+            control_radius_m: 0.5,
             sigma_distance_m: 0.03,
             sigma_prior_position_m: 1.0,
             sigma_prior_rotation_deg: 0.02,
@@ -483,6 +490,7 @@ impl Parameters {
         check_positive(out, "max_range_m", self.max_range_m);
         check_positive(out, "normal_group_angle_deg", self.normal_group_angle_deg);
         check_positive(out, "sigma_distance_m", self.sigma_distance_m);
+        check_positive(out, "control_radius_m", self.control_radius_m);
         check_positive(out, "sigma_prior_position_m", self.sigma_prior_position_m);
         check_positive(out, "sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
         if self.sigma_prior_heading_deg != 0.0 {

@@ -148,7 +148,9 @@ type TiltSums = (Vec<[f64; 20]>, Vec<[f64; 2]>);
 /// One observation row of the field: residual `e` and weight `weight`; the point's own scan head
 /// at `vehicle`, the mean of the other passes' at `others`, whose share in the latent height is
 /// `k` (`n/(n+1)` for `n` other passes); surface normal `w`; `lever` the point's own Jacobian for
-/// a rotation, `(p − v) × w`, which only the heading (its z component) and the tilt use.
+/// a rotation, `(p − v) × w`, which only the heading (its z component) and the tilt use. An
+/// `anchored` row compares the point with a fixed target (ground control) instead of the other
+/// passes: its row is `φ(v)·w` alone (`k` 1, `others` unused).
 #[derive(Clone, Copy, Debug)]
 pub struct FieldRow {
     pub vehicle: [f64; 2],
@@ -158,6 +160,7 @@ pub struct FieldRow {
     pub e: f64,
     pub weight: f64,
     pub lever: [f64; 3],
+    pub anchored: bool,
 }
 
 /// Most lever components a run sums per slot (the whole rotation's two).
@@ -216,7 +219,7 @@ impl Run {
         &mut self,
         own: [f64; 4],
         other: [f64; 4],
-        k: f64,
+        [k, k_others]: [f64; 2],
         r: &[f64; SLOTS],
         dv: [f64; 2],
         lever: [f64; 3],
@@ -246,7 +249,7 @@ impl Run {
         for c in 0..4 {
             let slot = self.slot[c];
             for i in 0..M {
-                h[slot * M + i] -= k * other[c] * other_arm[i];
+                h[slot * M + i] -= k_others * other[c] * other_arm[i];
             }
         }
         let entries = SLOTS * M;
@@ -392,7 +395,9 @@ impl FieldAccumulator {
 
     #[inline(always)]
     fn add_with<const M: usize>(&mut self, row: FieldRow) {
-        let FieldRow { vehicle, others, k, w, e, weight, lever } = row;
+        let FieldRow { vehicle, others, k, w, e, weight, lever, anchored } = row;
+        // A fixed target does not move with the field: the other passes' part vanishes.
+        let (others, k_others) = if anchored { (vehicle, 0.0) } else { (others, k) };
         let (own_cell, own) = cell_weights(vehicle[0], vehicle[1], self.spacing);
         let (other_cell, other) = cell_weights(others[0], others[1], self.spacing);
         let key = (own_cell, other_cell, w.map(f64::to_bits));
@@ -418,8 +423,8 @@ impl FieldAccumulator {
         }
         for c in 0..4 {
             let slot = run.slot[c];
-            r[slot] += -k * other[c];
-            run.reached[slot] |= other[c] != 0.0;
+            r[slot] += -k_others * other[c];
+            run.reached[slot] |= k_others != 0.0 && other[c] != 0.0;
         }
         let mut pair = 0;
         for s in 0..SLOTS {
@@ -434,7 +439,7 @@ impl FieldAccumulator {
             run.add_rotation::<M>(
                 own,
                 other,
-                k,
+                [k, k_others],
                 &r,
                 [vehicle[0] - others[0], vehicle[1] - others[1]],
                 lever,

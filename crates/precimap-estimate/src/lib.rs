@@ -11,6 +11,7 @@
 pub mod anderson;
 pub mod blocks;
 pub mod chunk;
+pub mod control;
 pub mod field;
 pub mod latent;
 pub mod prepare;

@@ -1,7 +1,7 @@
 //! Tile statistics and residual histograms (QC), mergeable across tiles.
 
 use precimap_core::geom::floor;
-use precimap_core::TileKey;
+use precimap_core::{ControlSums, TileKey};
 use serde::{Deserialize, Serialize};
 
 /// Signed point-to-latent-map distances in 0.5 mm bins over ±50 mm, plus under/overflow.
@@ -92,6 +92,9 @@ pub struct TileStats {
     pub pixel_std_sum_m: f64,
     /// Distances of all modelled points (before the threshold).
     pub histogram: ResidualHistogram,
+    /// What the points measured at each control and check target near the tile, sorted by id.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub control: Vec<ControlSums>,
 }
 
 impl TileStats {
@@ -108,6 +111,7 @@ impl TileStats {
             pixels_shared: 0,
             pixel_std_sum_m: 0.0,
             histogram: ResidualHistogram::default(),
+            control: Vec::new(),
         }
     }
 
@@ -122,6 +126,12 @@ impl TileStats {
         self.pixels_shared += o.pixels_shared;
         self.pixel_std_sum_m += o.pixel_std_sum_m;
         self.histogram.merge(&o.histogram);
+        for sums in &o.control {
+            match self.control.binary_search_by(|c| c.id.cmp(&sums.id)) {
+                Ok(i) => self.control[i].merge(sums),
+                Err(i) => self.control.insert(i, sums.clone()),
+            }
+        }
     }
 
     pub fn residual_mean_m(&self) -> f64 {

@@ -25,13 +25,14 @@
 
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
 use crate::chunk::{TileChunk, NO_NEIGHBOUR};
+use crate::control::{observe_targets, TargetObservation, TilePoints};
 use crate::field::{FieldAccumulator, FieldEquations, FieldRow};
 use crate::latent::{LatentMapGrid, LatentRecord, LatentSample, LatentSink};
 use crate::stats::{LatentStdMap, ResidualHistogram, TileStats};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::{floor, SmallRotation};
 use precimap_core::hash::FxHashMap;
-use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey};
+use precimap_core::{ControlSums, ControlTarget, IterationStep, LatentMapPoint, Parameters, TileKey};
 use std::collections::BTreeMap;
 
 mod pixels;
@@ -255,8 +256,9 @@ pub fn estimate_tile(
     corrections: &[TrajectoryCorrections],
     params: &Parameters,
     step: &IterationStep,
+    control: &[ControlTarget],
 ) -> Result<TileEstimate, EstimateError> {
-    estimate_tile_recording(tile, chunks, corrections, params, step, None, LatentGather::default())
+    estimate_tile_recording(tile, chunks, corrections, params, step, control, None, LatentGather::default())
 }
 
 /// A point of a tile's core that became an observation: its strip, its index in the strip file
@@ -280,35 +282,40 @@ pub struct LatentGather {
 
 /// [`estimate_tile`], also appending to `used` every point that became an observation (what the
 /// assignment audit compares with the simulator's true surfaces) and gathering what `gather`
-/// asks of the latent map.
+/// asks of the latent map. `control` holds the control and check targets that can reach the
+/// tile ([`crate::control::reaches_tile`]).
+#[allow(clippy::too_many_arguments)]
 pub fn estimate_tile_recording(
     tile: TileKey,
     chunks: &[TileChunk],
     corrections: &[TrajectoryCorrections],
     params: &Parameters,
     step: &IterationStep,
+    control: &[ControlTarget],
     used: Option<&mut Vec<UsedPoint>>,
     gather: LatentGather,
 ) -> Result<TileEstimate, EstimateError> {
     let map = gather.map && params.latent_map_grid_m > 0.0;
     if !(gather.std_map || map) {
-        return estimate_tile_into(tile, chunks, corrections, params, step, used, &mut ());
+        return estimate_tile_into(tile, chunks, corrections, params, step, control, used, &mut ());
     }
     let mut record = LatentRecord {
         std: gather.std_map.then(|| LatentStdMap::new(params.tile_size_m)),
         map: map.then(|| LatentMapGrid::new(params.latent_map_grid_m, step.threshold_m)),
     };
-    let estimate = estimate_tile_into(tile, chunks, corrections, params, step, used, &mut record)?;
+    let estimate = estimate_tile_into(tile, chunks, corrections, params, step, control, used, &mut record)?;
     let (ox, oy) = tile.origin(params.tile_size_m);
     Ok(TileEstimate { latent_std: record.std, latent_map: record.map.map(|g| g.finish([ox, oy])), ..estimate })
 }
 
+#[allow(clippy::too_many_arguments)]
 fn estimate_tile_into<S: LatentSink>(
     tile: TileKey,
     chunks: &[TileChunk],
     corrections: &[TrajectoryCorrections],
     params: &Parameters,
     step: &IterationStep,
+    control: &[ControlTarget],
     mut used: Option<&mut Vec<UsedPoint>>,
     sink: &mut S,
 ) -> Result<TileEstimate, EstimateError> {
@@ -521,6 +528,12 @@ fn estimate_tile_into<S: LatentSink>(
         (false, _) => FieldAccumulator::new(params.common_mode_field_m),
     });
 
+    // 2c. Control targets: the core points that observe them.
+    let (control_observations, control_sums) =
+        observe_control(control, chunks, &position, &models, &model_of, [ox, oy], &in_core, params, threshold);
+    stats.control = control_sums;
+    let mut control_observations = control_observations.into_iter().peekable();
+
     // 3–4. Observations of the points in the tile's core, summed into normal-equation blocks.
     let mut histogram = ResidualHistogram::default();
     let mut per_trajectory: BTreeMap<u32, BTreeMap<u32, AnchorBlock>> = BTreeMap::new();
@@ -582,12 +595,29 @@ fn estimate_tile_into<S: LatentSink>(
                             e,
                             weight,
                             lever: [g[3], g[4], g[5]],
+                            anchored: false,
                         });
                     }
                 }
             }
             if let Some([w_sum, we_sum]) = own_pull {
                 moments.add(&jacobian(models[id as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
+            }
+            while let Some(o) = control_observations.next_if(|o| o.point == a) {
+                let g = jacobian(o.w, measurement[a]);
+                moments.add_weighted(&g, o.weight * o.e, o.weight, lambda, 1);
+                if let Some(field) = field.as_mut() {
+                    field.add(FieldRow {
+                        vehicle: vehicle[a],
+                        others: vehicle[a],
+                        k: 1.0,
+                        w: o.w,
+                        e: o.e,
+                        weight: o.weight,
+                        lever: [g[3], g[4], g[5]],
+                        anchored: true,
+                    });
+                }
             }
         }
         let blocks = per_trajectory.entry(chunk.trajectory).or_default();
@@ -616,6 +646,42 @@ fn estimate_tile_into<S: LatentSink>(
         latent_std: None,
         latent_map: None,
     })
+}
+
+/// The control targets' observations among the tile's core points and what the points measured
+/// at every target ([`crate::control::observe_targets`]).
+#[allow(clippy::too_many_arguments)]
+fn observe_control(
+    control: &[ControlTarget],
+    chunks: &[TileChunk],
+    position: &[[f64; 3]],
+    models: &[SurfaceModel],
+    model_of: &[u32],
+    origin: [f64; 2],
+    in_core: &impl Fn(&[f64; 3]) -> bool,
+    params: &Parameters,
+    threshold: f64,
+) -> (Vec<TargetObservation>, Vec<ControlSums>) {
+    if control.is_empty() {
+        return (Vec::new(), Vec::new());
+    }
+    // Each point's strip pass: chunks are consecutive runs of the points.
+    let mut starts = Vec::with_capacity(chunks.len());
+    let mut base = 0;
+    for c in chunks {
+        starts.push(base);
+        base += c.len();
+    }
+    let pass = |i: usize| {
+        let c = starts.partition_point(|&s| s <= i) - 1;
+        pass_tag(chunks[c].strip, chunks[c].anchor[i - starts[c]])
+    };
+    let model = |i: usize| {
+        let id = model_of[i];
+        (id != NONE && in_core(&position[i])).then(|| (models[id as usize].w, models[id as usize].o))
+    };
+    let points = TilePoints { origin, position, model, pass };
+    observe_targets(control, &points, params, threshold)
 }
 
 /// The points of one strip segment in one cell whose normals agree.

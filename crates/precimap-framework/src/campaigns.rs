@@ -154,11 +154,15 @@ impl Framework {
                 ),
             });
         }
+        let control = precimap_pipeline::control_targets(manifest).unwrap_or_else(|e| {
+            problems.push(ManifestProblem { path: "$.control".into(), message: e.to_string() });
+            Vec::new()
+        });
         if !problems.is_empty() {
             return Err(SubmitError::Invalid { problems });
         }
         let prefix = format!("{CAMPAIGNS_PREFIX}/{}", Uuid::new_v4().simple());
-        let (campaign, first) = new_campaign(manifest, &prefix, self.queue);
+        let (campaign, first) = new_campaign(manifest, control, &prefix, self.queue);
         Ok(self.jobs.create_campaign(campaign, first).await.map_err(FrameworkError::from)?)
     }
 

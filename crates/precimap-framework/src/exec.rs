@@ -440,6 +440,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             std_map,
             latent_map,
             crs,
+            control,
         } => {
             let task = estimate::TileTask {
                 prefix,
@@ -453,6 +454,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 std_map,
                 latent_map,
                 crs,
+                control,
             };
             estimate::estimate_tile(&at, task).await
         }

@@ -11,7 +11,7 @@
 //! Everything a task needs travels in its input (store keys of its inputs, parameters, the
 //! schedule step), so an executor never reads more than its own task row and its own objects.
 
-use precimap_core::{IterationStep, Parameters, TileKey};
+use precimap_core::{ControlTarget, IterationStep, Parameters, TileKey};
 use precimap_estimate::anderson::{self, AndersonEntry, AndersonHistory, AndersonMoments};
 use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
@@ -170,6 +170,9 @@ pub enum TaskInput {
         /// The CRS a field campaign's latent map is written in (with `latent_map`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         crs: Option<precimap_formats::CrsSpec>,
+        /// The control and check targets near the tile (processing frame).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        control: Vec<ControlTarget>,
     },
     SolveField {
         prefix: String,
@@ -393,6 +396,9 @@ pub struct PlanState {
     pub params: Parameters,
     pub strips: Vec<StripInput>,
     pub trajectories: Vec<TrajectoryInput>,
+    /// Surveyed control and check targets in the processing frame.
+    #[serde(default)]
+    pub control: Vec<ControlTarget>,
     /// Tile → its chunks in strip order (filled when `prepare` completes).
     pub tiles: Vec<(TileKey, Vec<ChunkRef>)>,
     pub anchor_ranges: Vec<(u32, u32)>,
@@ -456,13 +462,23 @@ pub struct PlanState {
     pub converged: bool,
     pub trajectory_reports: Vec<TrajectoryReport>,
     pub histogram: ResidualHistogram,
+    /// What the last map stage measured at the control and check targets.
+    #[serde(default)]
+    pub control_sums: Vec<precimap_core::ControlSums>,
     pub prepare_s: f64,
     pub estimate_s: f64,
     pub export_s: f64,
 }
 
 /// Builds a new campaign's rows and first stage from a validated manifest whose URIs are store keys.
-pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (NewCampaign, StageSpec) {
+/// `control` holds the manifest's targets in the processing frame
+/// ([`precimap_pipeline::control_targets`]).
+pub fn new_campaign(
+    manifest: &Manifest,
+    control: Vec<ControlTarget>,
+    prefix: &str,
+    queue: QueueConfig,
+) -> (NewCampaign, StageSpec) {
     let traj_index: BTreeMap<&str, u32> =
         manifest.trajectories.iter().enumerate().map(|(i, t)| (t.id.as_str(), i as u32)).collect();
     let mut lever_sums = vec![([0.0f64; 3], 0usize); manifest.trajectories.len()];
@@ -512,6 +528,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         params: manifest.parameters.clone(),
         strips: strips.clone(),
         trajectories: trajectories.clone(),
+        control,
         tiles: Vec::new(),
         anchor_ranges: Vec::new(),
         strip_reports: Vec::new(),
@@ -541,6 +558,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         converged: false,
         trajectory_reports: Vec::new(),
         histogram: ResidualHistogram::default(),
+        control_sums: Vec::new(),
         prepare_s: 0.0,
         estimate_s: 0.0,
         export_s: 0.0,
@@ -566,6 +584,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         trajectories: Vec::new(),
         strips: Vec::new(),
         parameters: manifest.parameters.clone(),
+        control: manifest.control.clone(),
     };
     let campaign = NewCampaign {
         name: manifest.name.clone(),
@@ -757,6 +776,11 @@ fn campaign_crs(state: &PlanState) -> Option<precimap_formats::CrsSpec> {
     state.strips.first().and_then(|s| s.field.as_ref()).map(|f| f.crs.clone())
 }
 
+/// The targets whose observing surfaces can reach into `tile`'s core.
+fn targets_near(targets: &[ControlTarget], tile: TileKey, params: &Parameters) -> Vec<ControlTarget> {
+    targets.iter().filter(|t| precimap_estimate::control::reaches_tile(t, tile, params)).cloned().collect()
+}
+
 fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
@@ -780,6 +804,7 @@ fn estimate_stage(state: &mut PlanState) -> Next {
                 std_map: gather.std_map,
                 latent_map: gather.map,
                 crs: gather.map.then(|| campaign_crs(state)).flatten(),
+                control: targets_near(&state.control, *tile, &state.params),
             }
             .task(tile.to_string())
         })
@@ -1002,6 +1027,7 @@ fn after_solve(
     report.common_mode_tilt_max_deg = std::mem::take(&mut state.pending_field_tilt_max_deg);
     report.anderson_coefficients = std::mem::take(&mut state.pending_anderson_coefficients);
     state.histogram = stats.histogram.clone();
+    state.control_sums = stats.control.clone();
     state.robust_sigma = stats.histogram.robust_sigma_m();
     state.estimate_s += wall;
     state.iterations.push(report.clone());
@@ -1188,6 +1214,7 @@ fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Ne
         converged: state.converged,
         trajectories: state.trajectory_reports.clone(),
         residual_histogram: state.histogram.clone(),
+        control: precimap_pipeline::control_report::ControlReport::new(&state.control, &state.control_sums),
         // Wall-clock seconds on the database's clock, as the in-process driver reports them;
         // `task_s` adds the executors' summed task seconds (the work, however many shared it).
         timings: Timings {

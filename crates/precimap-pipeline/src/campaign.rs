@@ -2,7 +2,7 @@
 //! processing frame, and every strip resolved to a file inside the manifest's folder.
 
 use crate::error::PipelineError;
-use precimap_core::{Parameters, Trajectory, Vec3};
+use precimap_core::{ControlTarget, Parameters, Trajectory, Vec3};
 use precimap_formats::crs::Georeference;
 use precimap_formats::sbet::NavAccuracy;
 use precimap_formats::trajectory::{load_trajectory, LoadedTrajectoryClock};
@@ -47,6 +47,8 @@ pub struct Campaign {
     pub params: Parameters,
     pub trajectories: Vec<TrajectoryEntry>,
     pub strips: Vec<StripEntry>,
+    /// Surveyed control and check targets in the processing frame.
+    pub control: Vec<ControlTarget>,
 }
 
 /// The georeference of a manifest with `$.crs`.
@@ -60,6 +62,26 @@ pub fn manifest_georeference(manifest: &Manifest) -> Result<Option<Arc<Georefere
                 .map_err(|e| PipelineError::Input { what: "manifest $.crs".to_string(), message: e.to_string() })
         })
         .transpose()
+}
+
+/// The manifest's control targets in the processing frame: a field campaign's are converted from
+/// the processing CRS's grid into its local frame.
+pub fn control_targets(manifest: &Manifest) -> Result<Vec<ControlTarget>, PipelineError> {
+    let Some(spec) = &manifest.control else { return Ok(Vec::new()) };
+    let georef = manifest_georeference(manifest)?;
+    spec.targets
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            t.target(|p| match &georef {
+                Some(g) => g.frame.local_from_grid(p).map(|v| [v.x, v.y, v.z]).map_err(|e| PipelineError::Input {
+                    what: format!("manifest $.control.targets[{i}]"),
+                    message: format!("target {}: {e}; give its position in the processing CRS", t.id),
+                }),
+                None => Ok(p),
+            })
+        })
+        .collect()
 }
 
 impl Campaign {
@@ -143,6 +165,7 @@ impl Campaign {
             params: manifest.parameters.clone(),
             trajectories,
             strips,
+            control: control_targets(&manifest)?,
         })
     }
 }

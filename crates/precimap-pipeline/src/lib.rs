@@ -4,6 +4,7 @@
 //! The task functions in [`tasks`] are the units a job framework invokes one at a time.
 
 pub mod campaign;
+pub mod control_report;
 pub mod error;
 pub mod field;
 pub mod prior;
@@ -12,7 +13,7 @@ pub mod report;
 pub mod run;
 pub mod tasks;
 
-pub use campaign::Campaign;
+pub use campaign::{control_targets, Campaign};
 pub use error::PipelineError;
 pub use report::Report;
 pub use run::{

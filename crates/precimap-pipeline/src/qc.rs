@@ -1,12 +1,14 @@
 //! Quality-control plots (SVG): each trajectory's corrections along its arc length, the last
-//! iteration's residual histogram, and the convergence of the iterations. Pure functions of data
+//! iteration's residual histogram, the convergence of the iterations, and the offsets at ground
+//! control targets. Pure functions of data
 //! both drivers hold (the corrections, `report.json`), so the in-process driver and the job
 //! framework write the same bytes; a browser shows them.
 
+use crate::control_report::{AccuracyFigures, ControlReport};
 use crate::report::{IterationReport, Report};
 use crate::tasks::VehicleCorrection;
 use base64::Engine as _;
-use precimap_core::TileKey;
+use precimap_core::{ControlRole, TileKey};
 use precimap_estimate::{LatentStdMap, ResidualHistogram};
 use precimap_formats::crs::Georeference;
 use std::fmt::Write;
@@ -21,13 +23,19 @@ pub fn trajectory_plot(trajectory: &str, anchor_spacing_m: f64, rows: &[VehicleC
     (format!("{QC_DIR}/corrections-{trajectory}.svg"), corrections_svg(trajectory, anchor_spacing_m, rows))
 }
 
-/// The report's plots as (path inside a result folder, SVG): what both drivers write beside
+/// The report's QC files as (path inside a result folder, text): the residual and convergence
+/// plots and, with control or check targets, their table; what both drivers write beside
 /// `report.json`.
-pub fn report_plots(report: &Report) -> [(String, String); 2] {
-    [
+pub fn report_qc(report: &Report) -> Vec<(String, String)> {
+    let mut files = vec![
         (format!("{QC_DIR}/residuals.svg"), residuals_svg(&report.residual_histogram)),
         (format!("{QC_DIR}/convergence.svg"), convergence_svg(&report.iterations)),
-    ]
+    ];
+    if !report.control.targets.is_empty() {
+        files.push((format!("{QC_DIR}/control.csv"), crate::control_report::control_csv(&report.control)));
+        files.push((format!("{QC_DIR}/control.svg"), control_svg(&report.control)));
+    }
+    files
 }
 
 /// The latent map's standard-deviation maps of the first iteration (before any correction) and
@@ -189,6 +197,54 @@ pub fn convergence_svg(iterations: &[IterationReport]) -> String {
         for (colour, points) in lines {
             // Zeros (no change) sit on the axis floor rather than at minus infinity.
             svg.polyline(&plot, points.iter().map(|&(i, v)| (i, v.max(y.0))), colour, false);
+        }
+    }
+    svg.finish()
+}
+
+/// The map's offset from every control and check target (mm, map minus target): east and
+/// north in one panel, up in the other, one column per target in the report's order; control
+/// targets as dots, check targets as rings, with the RMSE figures in the title.
+pub fn control_svg(control: &ControlReport) -> String {
+    let mut svg = Svg::new(TOP + 2.0 * (PANEL + GAP));
+    let mm = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{} mm", number(v * 1e3)));
+    let figures = |f: &Option<AccuracyFigures>| {
+        f.as_ref().map_or("none".to_string(), |f| {
+            format!("horizontal {}, vertical {}", mm(f.rmse_horizontal_m), mm(f.rmse_z_m))
+        })
+    };
+    svg.title(&format!(
+        "Ground control: RMSE at control targets {}; at check targets {}",
+        figures(&control.control),
+        figures(&control.check)
+    ));
+    let n = control.targets.len();
+    let x = (0.5, n.max(1) as f64 + 0.5);
+    let at = |axis: usize| -> Vec<(f64, f64, bool)> {
+        control
+            .targets
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| {
+                let o = [t.offset_m.x, t.offset_m.y, t.offset_m.z][axis]?;
+                Some(((i + 1) as f64, o * 1e3, t.role == ControlRole::Check))
+            })
+            .collect()
+    };
+    let panels = [
+        (
+            "east (blue) and north (orange) offset (mm); dots control, rings check",
+            vec![("#1f5fbf", at(0)), ("#d9822b", at(1))],
+        ),
+        ("vertical offset (mm); dots control, rings check", vec![("#1f5fbf", at(2))]),
+    ];
+    for (k, (label, series)) in panels.iter().enumerate() {
+        let (lo, hi) = padded_range(series.iter().flat_map(|s| s.1.iter().map(|p| p.1)).chain([-1.0, 1.0]));
+        let plot = Plot { top: TOP + k as f64 * (PANEL + GAP), x, y: (lo, hi), log_y: false };
+        svg.panel(&plot, label, "target (in the manifest's order; qc/control.csv names them)");
+        svg.zero_line(&plot);
+        for (colour, points) in series {
+            svg.dots(&plot, points, colour);
         }
     }
     svg.finish()
@@ -414,6 +470,21 @@ impl Svg {
             r##"<polyline points="{}" fill="{fill}" fill-opacity="0.6" stroke="{colour}" stroke-width="1.2"/>"##,
             coordinates.trim_end()
         );
+    }
+
+    /// A dot per point, a ring where its flag is set.
+    fn dots(&mut self, plot: &Plot, points: &[(f64, f64, bool)], colour: &str) {
+        for &(x, y, ring) in points {
+            if x.is_finite() && y.is_finite() {
+                let fill = if ring { "none" } else { colour };
+                let _ = write!(
+                    self.out,
+                    r##"<circle cx="{:.1}" cy="{:.1}" r="3.5" fill="{fill}" stroke="{colour}" stroke-width="1.2"/>"##,
+                    plot.px(x),
+                    plot.py(y)
+                );
+            }
+        }
     }
 
     fn finish(mut self) -> String {

@@ -16,6 +16,9 @@ pub struct Report {
     pub trajectories: Vec<TrajectoryReport>,
     /// Signed distances of all modelled points to the latent map in the last iteration.
     pub residual_histogram: ResidualHistogram,
+    /// How ground control fixes the map, and the offsets at control and check targets.
+    #[serde(default)]
+    pub control: crate::control_report::ControlReport,
     pub timings: Timings,
 }
 

@@ -3,6 +3,7 @@
 //! order, independent of the thread count).
 
 use crate::campaign::Campaign;
+use crate::control_report::ControlReport;
 use crate::error::PipelineError;
 use crate::report::{IterationReport, Report, StripReport, Timings, TrajectoryReport};
 use crate::tasks::{
@@ -271,6 +272,7 @@ fn run_campaign_in(
     let schedule = &campaign.params.schedule;
     let mut iterations = Vec::new();
     let mut histogram;
+    let mut control_sums;
     let converged;
     let mut solutions;
     let mut step_index = 0;
@@ -314,6 +316,7 @@ fn run_campaign_in(
         previous = Some((started_from, *step));
         solutions = sol;
         histogram = stats.histogram.clone();
+        control_sums = stats.control.clone();
         robust_sigma = histogram.robust_sigma_m();
         let seconds = iteration_started.elapsed().as_secs_f64();
         iteration_started = Instant::now();
@@ -378,6 +381,7 @@ fn run_campaign_in(
         converged,
         trajectories,
         residual_histogram: histogram,
+        control: ControlReport::new(&campaign.control, &control_sums),
         timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64(), task_s: None },
     };
     let path = out.join("report.json");
@@ -386,7 +390,7 @@ fn run_campaign_in(
     let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
     let latent_std =
         crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, georef);
-    crate::tasks::write_plots(out, crate::qc::report_plots(&report).into_iter().chain(latent_std))?;
+    crate::tasks::write_plots(out, crate::qc::report_qc(&report).into_iter().chain(latent_std))?;
     Ok(report)
 }
 

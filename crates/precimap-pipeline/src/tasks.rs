@@ -170,7 +170,13 @@ pub fn estimate_tile_task(
     gather: Gather,
 ) -> Result<TileEstimate, PipelineError> {
     let chunks = load_tile(work, tile, strip_ids)?;
-    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, gather.used, gather.latent)
+    let control: Vec<_> = campaign
+        .control
+        .iter()
+        .filter(|t| precimap_estimate::control::reaches_tile(t, tile, &campaign.params))
+        .cloned()
+        .collect();
+    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, &control, gather.used, gather.latent)
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
 }
 

@@ -26,12 +26,13 @@ fn accumulator_equals_the_dense_outer_product_and_ignores_a_constant_field() {
         e: 0.01,
         weight: 5.0,
         lever: [0.0; 3],
+        anchored: false,
     });
     let eq = FieldAccumulator::finish(std::mem::replace(&mut acc, FieldAccumulator::new(10.0)));
     assert!(eq.pairs.is_empty() && eq.rhs.iter().all(|r| r == &[0.0; 3]));
     // One row across two cells against a dense computation.
     let (v, o, n, e, weight) = ([3.0, 4.0], [14.0, 4.0], 3.0, 0.02, 2.0);
-    acc.add(FieldRow { vehicle: v, others: o, k: n / (n + 1.0), w, e, weight, lever: [0.0; 3] });
+    acc.add(FieldRow { vehicle: v, others: o, k: n / (n + 1.0), w, e, weight, lever: [0.0; 3], anchored: false });
     let eq = acc.finish();
     let k = n / (n + 1.0);
     let mut row: BTreeMap<FieldNode, f64> = BTreeMap::new();
@@ -112,15 +113,17 @@ fn summed_runs_match_direct_rows(axes: usize) {
     }
     impl Direct {
         fn add(&mut self, row: FieldRow) {
-            let FieldRow { vehicle: v, others: o, k, w, e, weight, lever } = row;
+            let FieldRow { vehicle: v, others: o, k, w, e, weight, lever, anchored } = row;
+            // A row against a fixed target has no other passes' part.
+            let k_o = if anchored { 0.0 } else { k };
             // The other passes turn about their own mean scan head.
             let d = [v[0] - o[0], v[1] - o[1], 0.0];
             let turn = cross(d, w);
             let lever_o = [lever[0] + turn[0], lever[1] + turn[1], lever[2] + turn[2]];
             let mut row: BTreeMap<FieldNode, [f64; 6]> = BTreeMap::new();
-            for (sign, at, arm) in [(k, v, lever), (-k, o, lever_o)] {
+            for (sign, at, arm) in [(k, v, lever), (-k_o, o, lever_o)] {
                 for (node, phi) in bilinear(at[0], at[1], self.spacing) {
-                    if phi != 0.0 {
+                    if phi != 0.0 && sign != 0.0 {
                         let entry = row.entry(node).or_default();
                         for c in 0..3 {
                             entry[c] += sign * phi * w[c];
@@ -186,13 +189,15 @@ fn summed_runs_match_direct_rows(axes: usize) {
         let lever = cross(arm, w);
         last_lever = lever;
         let (k, e) = (0.5 + 0.4 * rand(), 0.01 * (rand() - 0.5));
-        let row = FieldRow { vehicle: [x, y], others: o, k, w, e, weight: 5.0, lever };
+        // Every 11th row against a control target.
+        let row = FieldRow { vehicle: [x, y], others: o, k, w, e, weight: 5.0, lever, anchored: i % 11 == 0 };
         acc.add(row);
         direct.add(row);
     }
     // The same position for both: no node pair gets a non-zero translation block.
     let same = [500_003.0, 5_400_004.0];
-    let row = FieldRow { vehicle: same, others: same, k: 0.5, w, e: 0.01, weight: 5.0, lever: last_lever };
+    let row =
+        FieldRow { vehicle: same, others: same, k: 0.5, w, e: 0.01, weight: 5.0, lever: last_lever, anchored: false };
     acc.add(row);
     direct.add(row);
     let eq = acc.finish();
@@ -518,7 +523,16 @@ fn rigid_turns_are_invisible(tilt: bool) {
         let w = [a / norm, b / norm, c / norm];
         // The point's own Jacobian for a rotation: (p − v) × w.
         let lever = cross([p[0] - v[0], p[1] - v[1], p[2]], w);
-        acc.add(FieldRow { vehicle: v, others: o, k: 0.5 + 0.4 * rand(), w, e: 0.0, weight: 1.0, lever });
+        acc.add(FieldRow {
+            vehicle: v,
+            others: o,
+            k: 0.5 + 0.4 * rand(),
+            w,
+            e: 0.0,
+            weight: 1.0,
+            lever,
+            anchored: false,
+        });
     }
     let eq = acc.finish();
     // `uᵀ H u` over the unknowns `[t_x, t_y, t_z, ψ, τ_x, τ_y]` per node.

@@ -98,7 +98,7 @@ fn passes_either_side_of_a_cell_face_meet_in_one_model() {
     let step = IterationStep::new(0.01, 0.05);
     let run = |segment_surfaces: bool| {
         let params = Parameters { segment_surfaces, point_latent_below_grid_m: 0.02, ..Default::default() };
-        estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
+        estimate_tile(tile, &chunks, &corrections, &params, &step, &[]).unwrap()
     };
     let columns = run(true);
     assert!(columns.stats.points_used > 500, "{}", columns.stats.points_used);
@@ -130,7 +130,7 @@ fn capture_passes_either_side_of_a_cell_face_meet_in_one_model() {
         IterationStep { cell_m: Some(3.0), column_cells: true, rotation: false, ..IterationStep::new(0.25, 1.0) };
     for segment_surfaces in [true, false] {
         let params = Parameters { segment_surfaces, ..Default::default() };
-        let estimate = estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap();
+        let estimate = estimate_tile(tile, &chunks, &corrections, &params, &step, &[]).unwrap();
         assert!(estimate.stats.points_used > 500, "{segment_surfaces}: {}", estimate.stats.points_used);
         // They meet in the middle: every residual is ±5 cm, and the pulls across the façade
         // are opposite.
@@ -195,7 +195,7 @@ fn fine_pass_stats_on(tile: TileKey, chunks: &[TileChunk], threshold: f64, gate:
         latent_pixel_share: share,
         ..Default::default()
     };
-    estimate_tile(tile, chunks, &corrections, &params, &step).unwrap().stats
+    estimate_tile(tile, chunks, &corrections, &params, &step, &[]).unwrap().stats
 }
 
 /// The QC map of the latent map's standard deviation holds what the tile statistics sum
@@ -216,11 +216,11 @@ fn the_latent_std_map_holds_the_spread_of_the_passes_where_they_are() {
         let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
         let step = IterationStep::new(grid, 0.05);
         let gather = LatentGather { std_map: true, map: true };
-        let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, None, gather).unwrap();
+        let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, &[], None, gather).unwrap();
         let map = e.latent_std.take().expect("asked for the σ map");
         let latent = e.latent_map.take().expect("asked for the latent map");
         // Recording the maps changes nothing else.
-        assert_eq!(e, estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap());
+        assert_eq!(e, estimate_tile(tile, &chunks, &corrections, &params, &step, &[]).unwrap());
         // The exported map: every observation in one voxel point, on the passes' mean
         // surface (z = 0 where all three overlap, ±1 mm where two do), facing up.
         let observations: u64 = latent.iter().map(|p| p.observations as u64).sum();
@@ -320,7 +320,7 @@ fn point_sampled_latent_matches_fine_raster() {
             consistent_gradient: false,
             ..Default::default()
         };
-        estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
+        estimate_tile(tile, &chunks, &corrections, &params, &step, &[]).unwrap()
     };
     let (raster, exact, by_pixel) = (run(0.0, 0.0), run(0.02, 0.0), run(0.02, 0.7));
     for e in [&raster, &exact, &by_pixel] {
@@ -420,7 +420,7 @@ fn consistent_gradient_is_the_gradient_of_the_reduced_cost() {
             };
             let mut corrections = vec![TrajectoryCorrections::zeros(0, 8); 3];
             corrections[trajectory].values.iter_mut().for_each(|c| c[2] = dz);
-            estimate_tile(tile, &chunks, &corrections, &params, &step).unwrap()
+            estimate_tile(tile, &chunks, &corrections, &params, &step, &[]).unwrap()
         };
         let weight = 1.0 / Parameters::default().sigma_distance_m.powi(2);
         let cost = |e: &TileEstimate| 0.5 * weight * e.stats.residual_sum2_m2;

@@ -18,11 +18,24 @@ pub(super) struct TileTask {
     pub(super) std_map: bool,
     pub(super) latent_map: bool,
     pub(super) crs: Option<precimap_formats::CrsSpec>,
+    pub(super) control: Vec<precimap_core::ControlTarget>,
 }
 
 pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<TaskOutcome, TaskError> {
-    let TileTask { prefix, iteration, tile, step, params, trajectories, chunks, corrections, std_map, latent_map, crs } =
-        task;
+    let TileTask {
+        prefix,
+        iteration,
+        tile,
+        step,
+        params,
+        trajectories,
+        chunks,
+        corrections,
+        std_map,
+        latent_map,
+        crs,
+        control,
+    } = task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
     let georef = georeference_of(crs.as_ref())?;
@@ -46,7 +59,7 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
             .collect::<Result<Vec<_>, _>>()?;
         let gather = precimap_estimate::LatentGather { std_map, map: latent_map };
         let mut estimate =
-            precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, None, gather)
+            precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, &control, None, gather)
                 .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
         let map = match estimate.latent_map.take() {
             Some(points) => {

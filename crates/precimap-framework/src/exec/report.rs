@@ -29,9 +29,12 @@ pub(super) async fn write_report(
         }
     }
     let [first, last] = &maps;
-    let plots = precimap_pipeline::qc::report_plots(&report)
-        .into_iter()
-        .chain(precimap_pipeline::qc::latent_std_plots(tile_size_m, first, last, georef));
+    let plots = precimap_pipeline::qc::report_qc(&report).into_iter().chain(precimap_pipeline::qc::latent_std_plots(
+        tile_size_m,
+        first,
+        last,
+        georef,
+    ));
     for (name, svg) in plots {
         let key = format!("{prefix}/out/{tag}/{name}");
         objects.push((name, key, svg.into_bytes()));
