@@ -5,6 +5,7 @@
 //! ([`tile`]), the per-anchor pose corrections ([`corrections`]), the exported latent map's
 //! points ([`latent`]) and a fast hasher for integer keys ([`hash`]).
 
+pub mod control;
 pub mod corrections;
 pub mod geom;
 pub mod hash;
@@ -14,6 +15,7 @@ pub mod params;
 pub mod tile;
 pub mod trajectory;
 
+pub use control::{ControlOffset, ControlPlane, ControlRole, ControlSums, ControlTarget};
 pub use corrections::{AnchorCovariance, ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
 pub use latent::LatentMapPoint;

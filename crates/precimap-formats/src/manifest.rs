@@ -12,7 +12,9 @@ use std::collections::{BTreeMap, HashMap};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+mod control;
 mod field;
+pub use control::{ControlSpec, ControlTargetSpec, Sigma, MAX_CONTROL_TARGETS};
 pub use field::{CrsSpec, TrajectoryFormat, MAX_GPS_WEEK};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -31,6 +33,9 @@ pub struct Manifest {
     pub strips: Vec<StripRef>,
     #[serde(default)]
     pub parameters: Parameters,
+    /// Surveyed control and check targets.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<ControlSpec>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -278,7 +283,8 @@ pub const MAX_LEVER_ARM_M: f64 = 100.0;
 /// The most iteration steps a schedule may list.
 pub const MAX_SCHEDULE_STEPS: usize = 1000;
 
-const TOP_FIELDS: [&str; 7] = ["name", "crs", "gps_week", "scanners", "trajectories", "strips", "parameters"];
+const TOP_FIELDS: [&str; 8] =
+    ["name", "crs", "gps_week", "scanners", "trajectories", "strips", "parameters", "control"];
 const SCANNER_FIELDS: [&str; 2] = ["lever_arm_m", "boresight_deg"];
 const TRAJECTORY_FIELDS: [&str; 6] = ["id", "uri", "format", "crs", "accuracy_uri", "ascii"];
 const STRIP_FIELDS: [&str; 4] = ["id", "trajectory", "scanner", "uri"];
@@ -313,6 +319,8 @@ impl Checker {
         if let Some(v) = top.get("parameters") {
             c.parameters(v);
         }
+        let processing = top.get("crs").and_then(|crs| crs.get("processing")).and_then(Value::as_u64);
+        c.control(top, processing.filter(|_| has_crs).and_then(|p| u32::try_from(p).ok()));
         c.problems
     }
 

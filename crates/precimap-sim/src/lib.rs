@@ -304,6 +304,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
             })
             .collect(),
         parameters: Parameters::default(),
+        control: None,
     };
     // Default parameters are left out, so the campaign follows whatever the estimator's defaults are;
     // a multi-beam head's strips say where their ring numbers are.
