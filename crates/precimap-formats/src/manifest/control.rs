@@ -144,7 +144,10 @@ impl Checker {
             }
             if let Some(r) = t.get("role") {
                 if serde_json::from_value::<ControlRole>(r.clone()).is_err() {
-                    self.push(&child(&path, "role"), format!("expected \"control\" or \"check\", found {}", describe(r)));
+                    self.push(
+                        &child(&path, "role"),
+                        format!("expected \"control\" or \"check\", found {}", describe(r)),
+                    );
                 }
             }
             if let Some(p) = t.get("plane") {
@@ -182,7 +185,7 @@ impl Checker {
         if let Some(n) = self.required(path, p, "normal", "the patch's normal [x, y, z], e.g. [0, 0, 1]") {
             self.vec3(&child(path, "normal"), n, "a direction", 1e6);
             let len = n.as_array().map(|a| a.iter().filter_map(Value::as_f64).map(|x| x * x).sum::<f64>().sqrt());
-            if len.is_some_and(|l| !(l > 1e-6)) {
+            if len.is_some_and(|l| l.is_nan() || l <= 1e-6) {
                 self.push(&child(path, "normal"), "is zero; give the patch's normal direction, e.g. [0, 0, 1]");
             }
         }
