@@ -566,6 +566,7 @@ pub fn new_campaign(manifest: &Manifest, prefix: &str, queue: QueueConfig) -> (N
         trajectories: Vec::new(),
         strips: Vec::new(),
         parameters: manifest.parameters.clone(),
+        control: manifest.control.clone(),
     };
     let campaign = NewCampaign {
         name: manifest.name.clone(),
