@@ -535,3 +535,44 @@ fn the_printed_parameters_go_back_into_a_manifest() {
     // A manifest without parameters gives the defaults.
     assert_eq!(print(Some(&campaign.join("manifest.json"))), defaults);
 }
+
+/// `simulate --control-spacing` states control and check targets the manifest reader accepts,
+/// in the processing CRS's grid for the field campaign; `--control-sigma` sets their σ.
+#[test]
+fn simulate_writes_ground_control() {
+    use precimap_core::ControlRole;
+    let dir = tempfile::tempdir().unwrap();
+    let exe = env!("CARGO_BIN_EXE_precimap");
+    let campaign = dir.path().join("c");
+    let out = std::process::Command::new(exe)
+        .args(["simulate", "--scale", "tiny", "--seed", "2", "--control-spacing", "150", "--field"])
+        .args(["--control-sigma", "0.004,0.004,0.003", "--out"])
+        .arg(&campaign)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && stderr.contains("targets (road marking + façade corner): control"), "{stderr}");
+    let local = precimap_formats::load_manifest(&campaign.join("manifest.json")).unwrap().control.unwrap();
+    let count = |role| local.targets.iter().filter(|t| t.role == role).count();
+    assert!(count(ControlRole::Control) >= 2 && count(ControlRole::Check) >= 1, "{local:?}");
+    assert_eq!(local.crs, None);
+    assert!(local.targets.iter().all(|t| t.sigma_m.per_axis() == [0.004, 0.004, 0.003]));
+    let field = precimap_formats::load_manifest(&campaign.join("field/manifest.json")).unwrap();
+    let grid = field.control.clone().unwrap();
+    assert_eq!(grid.crs, Some(precimap_sim::field::FIELD_CRS));
+    let frame = field.crs.unwrap().georeference().unwrap().frame;
+    assert_eq!(grid.targets.len(), local.targets.len());
+    for (g, l) in grid.targets.iter().zip(&local.targets) {
+        assert_eq!(g.id, l.id);
+        let back = frame.local_from_grid(g.position_m).unwrap();
+        let moved = (0..3).map(|k| (g.position_m[k] - l.position_m[k]).abs()).fold(0.0, f64::max);
+        assert!((0..3).all(|k| (back[k] - l.position_m[k]).abs() < 1e-6) && moved > 1e-4, "{g:?} vs {l:?}");
+    }
+    // A bad σ is refused with the option's name.
+    let out = std::process::Command::new(exe)
+        .args(["simulate", "--scale", "tiny", "--control-sigma", "0.01,0.02", "--out"])
+        .arg(dir.path().join("x"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--control-sigma"));
+}

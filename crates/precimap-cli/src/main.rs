@@ -86,6 +86,8 @@ enum Command {
         /// Firings per revolution of the multi-beam head; must divide 60000.
         #[arg(long, requires = "multibeam")]
         firings_per_revolution: Option<u32>,
+        #[command(flatten)]
+        control: ControlArgs,
     },
     /// Adjust a campaign: corrected strips, trajectories and report.json in OUT. Runs through the
     /// job framework on the embedded default (SQLite + local store + in-process executors).
@@ -338,6 +340,7 @@ fn real_main(cli: Cli) -> Result<()> {
             multibeam,
             rings,
             firings_per_revolution,
+            control,
         } => {
             let mut config = match config {
                 Some(path) => {
@@ -374,6 +377,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 mb.revolutions_per_s = revolutions_per_s.unwrap_or(mb.revolutions_per_s);
                 config.scanner.multibeam = Some(mb);
             }
+            control.apply(&mut config)?;
             simulate(&config, &out, laz)?;
             if field {
                 let dir = out.join("field");
@@ -439,6 +443,45 @@ fn real_main(cli: Cli) -> Result<()> {
     }
 }
 
+/// `simulate`'s ground control.
+#[derive(clap::Args, Debug)]
+struct ControlArgs {
+    /// Survey ground control: a road marking's corner and a façade corner every M metres along
+    /// the driven streets as control targets, the same midway between them as check targets; the
+    /// manifest states them (`control`, in the grid with `--field`), the truth knows them.
+    #[arg(long, value_name = "M")]
+    control_spacing: Option<f64>,
+    /// The survey's σ in metres, one for every axis or x,y,z (with control; default 0.005).
+    #[arg(long, value_name = "S", value_delimiter = ',')]
+    control_sigma: Vec<f64>,
+    /// Check targets every M metres along the streets instead of midway between control targets.
+    #[arg(long, value_name = "M")]
+    check_spacing: Option<f64>,
+}
+
+impl ControlArgs {
+    /// Sets the control of `config`; any of the options turns it on.
+    fn apply(&self, config: &mut precimap_sim::SimConfig) -> Result<()> {
+        if self.control_spacing.is_none() && self.control_sigma.is_empty() && self.check_spacing.is_none() {
+            return Ok(());
+        }
+        let control = config.control.get_or_insert_with(Default::default);
+        if let Some(m) = self.control_spacing {
+            control.spacing_m = m;
+        }
+        control.sigma_m = match self.control_sigma[..] {
+            [] => control.sigma_m,
+            [s] => precimap_formats::manifest::Sigma::All(s),
+            [x, y, z] => precimap_formats::manifest::Sigma::PerAxis([x, y, z]),
+            _ => anyhow::bail!("--control-sigma takes one number or three (x,y,z), got {:?}", self.control_sigma),
+        };
+        if self.check_spacing.is_some() {
+            control.check_spacing_m = self.check_spacing;
+        }
+        Ok(())
+    }
+}
+
 fn simulate(config: &precimap_sim::SimConfig, out: &std::path::Path, laz: bool) -> Result<()> {
     let started = std::time::Instant::now();
     eprintln!("simulating a {:?} campaign (seed {}) into {}", config.scale, config.seed, out.display());
@@ -451,6 +494,13 @@ fn simulate(config: &precimap_sim::SimConfig, out: &std::path::Path, laz: bool) 
         summary.trajectories,
         started.elapsed().as_secs_f64()
     );
+    if config.control.is_some() {
+        let c = &summary.control_targets;
+        eprintln!(
+            "  targets (road marking + façade corner): control {} + {}, check {} + {}",
+            c.control_road, c.control_facade, c.check_road, c.check_facade
+        );
+    }
     Ok(())
 }
 

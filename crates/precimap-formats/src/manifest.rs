@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 mod control;
 mod field;
-pub use control::{ControlSpec, ControlTargetSpec, Sigma, MAX_CONTROL_TARGETS};
+pub use control::{ControlSpec, ControlTargetSpec, Sigma, MAX_CONTROL_SIGMA_M, MAX_CONTROL_TARGETS};
 pub use field::{CrsSpec, TrajectoryFormat, MAX_GPS_WEEK};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

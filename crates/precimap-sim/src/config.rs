@@ -1,6 +1,7 @@
 //! Every knob of a simulated campaign, with presets per [`Scale`]. All randomness derives from
 //! `seed`, so a config fully determines the output bytes.
 
+pub use crate::control::ControlConfig;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
@@ -67,6 +68,9 @@ pub struct SimConfig {
     pub drive: DriveConfig,
     pub scanner: ScannerConfig,
     pub errors: ErrorConfig,
+    /// Surveyed ground control and check targets along the driven streets (none by default).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<ControlConfig>,
 }
 
 /// The street grid and what stands along the streets. Ranges `[lo, hi]` are drawn uniformly.
@@ -454,6 +458,7 @@ impl SimConfig {
             drive,
             scanner,
             errors,
+            control: None,
         }
     }
 
@@ -538,6 +543,9 @@ impl SimConfig {
         }
         if let Some(m) = &s.multibeam {
             m.problems(&mut out);
+        }
+        if let Some(c) = &self.control {
+            c.problems(&mut out);
         }
         if !(s.heads == 1 || s.heads == 2) {
             out.push(format!("scanner.heads must be 1 or 2, got {}", s.heads));

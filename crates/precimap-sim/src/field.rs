@@ -4,7 +4,8 @@
 //! wrote. The local frame is the processing frame of the field manifest (its origin is the
 //! simulation's origin), so both campaigns describe the same points and poses. Each SBET comes
 //! with an SMRMSG accuracy file whose σ follow the pass's simulated error process: its drawn σ,
-//! growing with the drift of a GNSS outage and shrinking as it decays.
+//! growing with the drift of a GNSS outage and shrinking as it decays. Control targets are
+//! stated in the processing CRS's grid.
 
 use crate::gnss::Outage;
 use crate::scan::LAS_SCALE;
@@ -78,6 +79,16 @@ pub fn write_field_campaign(local: &Path, out: &Path, origin_grid_m: [f64; 3], l
         let uri = format!("strips/{}.{ext}", s.id);
         convert_strip(&local.join(&s.uri), &out.join(&uri), &georef, Direction::ToGrid)?;
         s.uri = uri;
+    }
+    // Control targets in the processing CRS's grid, as a surveyor delivers them.
+    if let Some(control) = &mut manifest.control {
+        for t in &mut control.targets {
+            t.position_m = georef
+                .frame
+                .grid_from_local(&precimap_core::Vec3::from(t.position_m))
+                .map_err(|e| format_error(&manifest_path, format!("control target {}: {e}", t.id)))?;
+        }
+        control.crs = Some(FIELD_CRS);
     }
     manifest.name = format!("{}-field", manifest.name);
     manifest.crs = Some(spec);

@@ -7,19 +7,22 @@
 //! plus everything the estimation must never see:
 //!
 //! ```text
-//! DIR/manifest.json                    scanners left/right, one trajectory per pass, two strips each
+//! DIR/manifest.json                    scanners left/right, one trajectory per pass, two strips
+//!                                      each; the surveyed control targets with `SimConfig::control`
 //! DIR/trajectories/v01.csv             MEASURED trajectory (200 Hz)
 //! DIR/strips/v01-left.las|laz          LAS 1.4 point format 6, acquisition order
 //! DIR/truth/v01-left.truth             per point: true position, normal, surface id, class
 //! DIR/truth/trajectories/v01.csv       TRUE trajectory, same time stamps
 //! DIR/truth/truth.json                 seed, config, σ_range, per-pass error statistics, the
-//!                                      outage and the stop, point counts per class and strip
+//!                                      outage and the stop, point counts per class and strip,
+//!                                      the control targets' true and surveyed positions
 //! ```
 //!
 //! Everything is a pure function of the [`SimConfig`] (including its seed): files are identical
 //! for any number of threads.
 
 pub mod config;
+pub mod control;
 pub mod drive;
 pub mod field;
 pub mod gnss;
@@ -31,8 +34,8 @@ pub mod town;
 pub mod truth;
 
 pub use config::{
-    CalibrationErrors, DriveConfig, ErrorConfig, ErrorProcess, MultiBeamConfig, ParseScaleError, Scale, ScannerConfig,
-    SimConfig, TownConfig,
+    CalibrationErrors, ControlConfig, DriveConfig, ErrorConfig, ErrorProcess, MultiBeamConfig, ParseScaleError, Scale,
+    ScannerConfig, SimConfig, TownConfig,
 };
 pub use gnss::{ErrorStats, Outage};
 pub use scan::Head;
@@ -75,6 +78,8 @@ pub struct SimSummary {
     pub seconds_driven: f64,
     pub metres_driven: f64,
     pub points_per_class: BTreeMap<String, u64>,
+    /// Control and check targets by kind (all zero without control).
+    pub control_targets: control::TargetCounts,
     /// Wall-clock time of the simulation (not part of any file).
     pub wall_seconds: f64,
 }
@@ -137,6 +142,9 @@ struct TruthJson<'a> {
     stop: Option<NamedWindow>,
     trajectories: Vec<TrajectoryTruth>,
     strips: Vec<StripTruth>,
+    /// The true and surveyed positions of the control and check targets.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    control: Option<Vec<control::TargetTruth>>,
     config: &'a SimConfig,
 }
 
@@ -257,6 +265,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
     }
     let town = Town::build(&config.town, config.seed);
     tracing::info!(stats = ?town.stats(), "town built");
+    let targets = config.control.as_ref().map(|_| control::place_targets(config, &town));
     let passes: Vec<PassOutput> = (0..config.drive.passes)
         .into_par_iter()
         .map(|p| {
@@ -304,7 +313,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
             })
             .collect(),
         parameters: Parameters::default(),
-        control: None,
+        control: config.control.as_ref().zip(targets.as_ref()).map(|(c, t)| control::manifest_control(t, c.sigma_m)),
     };
     // Default parameters are left out, so the campaign follows whatever the estimator's defaults are;
     // a multi-beam head's strips say where their ring numbers are.
@@ -330,6 +339,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
         seconds_driven: trajectories.iter().map(|t| t.duration_s).sum(),
         metres_driven: trajectories.iter().map(|t| t.length_m).sum(),
         points_per_class: class_map(&counts),
+        control_targets: control::TargetCounts::of(targets.as_deref().unwrap_or_default()),
         wall_seconds: 0.0,
     };
     let truth = TruthJson {
@@ -346,6 +356,7 @@ pub fn simulate(config: &SimConfig, out: &Path, laz: bool) -> Result<SimSummary,
         stop: window(&|t| t.stop),
         trajectories,
         strips,
+        control: targets,
         config,
     };
     write_json(&out.join("truth/truth.json"), &truth)?;

@@ -644,7 +644,10 @@ impl Town {
     /// The first surface id of a solid primitive (box or cylinder; crowns are not solid) that
     /// contains local point `p`, if any. Used to check that vehicles drive through free space.
     pub fn solid_at(&self, p: [f64; 3]) -> Option<u32> {
-        let q = self.shear(p);
+        self.solid_at_sheared(self.shear(p))
+    }
+
+    fn solid_at_sheared(&self, q: [f64; 3]) -> Option<u32> {
         if q[2] < 0.0 {
             return Some(GROUND_ID);
         }
@@ -866,6 +869,9 @@ impl Town {
         }
     }
 }
+
+mod corners;
+pub use corners::FacadeCorner;
 
 #[cfg(test)]
 mod tests;

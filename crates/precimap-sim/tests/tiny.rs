@@ -239,6 +239,86 @@ fn deterministic_for_a_seed_whatever_the_threads() {
     }
 }
 
+/// Ground control changes nothing but the manifest's `control` and truth.json's `control` (and
+/// the config it echoes): every strip, trajectory and truth file is byte for byte the same. The
+/// strips see every target: points of each of its surfaces lie within 0.5 m of it.
+#[test]
+fn control_targets_are_seen_and_disturb_nothing_else() {
+    let plain = SimConfig::for_scale(Scale::Tiny, 7);
+    let mut cfg = plain.clone();
+    cfg.control = Some(precimap_sim::ControlConfig { spacing_m: 40.0, ..Default::default() });
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    simulate(&plain, a.path(), false).unwrap();
+    let summary = simulate(&cfg, b.path(), false).unwrap();
+    let (fa, fb) = (files(a.path()), files(b.path()));
+    assert_eq!(fa.keys().collect::<Vec<_>>(), fb.keys().collect::<Vec<_>>());
+    let json = |bytes: &[u8]| serde_json::from_slice::<Value>(bytes).unwrap();
+    for (name, bytes) in &fa {
+        match name.to_str().unwrap() {
+            "manifest.json" => {
+                let (x, mut y) = (json(bytes), json(&fb[name]));
+                assert!(x.get("control").is_none());
+                assert!(y.as_object_mut().unwrap().remove("control").is_some());
+                assert_eq!(x, y);
+            }
+            "truth/truth.json" => {
+                let (x, mut y) = (json(bytes), json(&fb[name]));
+                assert!(x.get("control").is_none() && x["config"].get("control").is_none());
+                assert!(y.as_object_mut().unwrap().remove("control").is_some());
+                assert!(y["config"].as_object_mut().unwrap().remove("control").is_some());
+                assert_eq!(x, y);
+            }
+            _ => assert!(bytes == &fb[name], "{} differs with control", name.display()),
+        }
+    }
+
+    let manifest = load_manifest(&b.path().join("manifest.json")).unwrap();
+    let control = manifest.control.unwrap();
+    let truth = json(&fb[Path::new("truth/truth.json")]);
+    let targets = truth["control"].as_array().unwrap();
+    assert_eq!(targets.len(), control.targets.len());
+    let c = summary.control_targets;
+    assert!(c.control_road >= 2 && c.control_facade >= 2 && c.check_road >= 1 && c.check_facade >= 1, "{c:?}");
+    for ((t, counts), spec) in targets.iter().zip(points_on_target_surfaces(b.path(), &truth)).zip(&control.targets) {
+        assert_eq!(t["id"], spec.id.as_str());
+        // Tiny's 3.6° scan step leaves a few points per face within 0.5 m (2–12 on seed 7).
+        assert!(counts.iter().all(|&n| n >= 1), "{}: points on its surfaces within 0.5 m: {counts:?}", t["id"]);
+        assert_eq!(spec.position_m, vec3(&t["surveyed_m"]));
+    }
+}
+
+fn vec3(v: &Value) -> [f64; 3] {
+    [0, 1, 2].map(|k| v[k].as_f64().unwrap())
+}
+
+/// Per target of `truth.json` (`truth`) of the campaign in `dir`, per surface it lies on: the
+/// true points of every strip within 0.5 m of it on that surface's plane, facing its way.
+fn points_on_target_surfaces(dir: &Path, truth: &Value) -> Vec<Vec<u64>> {
+    let targets = truth["control"].as_array().unwrap();
+    let mut seen: Vec<Vec<u64>> = targets.iter().map(|t| vec![0; t["surfaces"].as_array().unwrap().len()]).collect();
+    for strip in truth["strips"].as_array().unwrap() {
+        let path = dir.join(strip["truth_uri"].as_str().unwrap());
+        for tp in TruthReader::open(&path).unwrap().read_all().unwrap() {
+            for (t, counts) in targets.iter().zip(&mut seen) {
+                let p = vec3(&t["position_m"]);
+                let d = [0, 1, 2].map(|k| tp.position[k] - p[k]);
+                if d.iter().map(|x| x * x).sum::<f64>() > 0.25 {
+                    continue;
+                }
+                for (count, s) in counts.iter_mut().zip(t["surfaces"].as_array().unwrap()) {
+                    let n = vec3(&s["normal"]);
+                    let along = (0..3).map(|k| d[k] * n[k]).sum::<f64>();
+                    let aligned = (0..3).map(|k| tp.normal[k] as f64 * n[k]).sum::<f64>();
+                    if along.abs() < 1e-6 && aligned > 0.999 {
+                        *count += 1;
+                    }
+                }
+            }
+        }
+    }
+    seen
+}
+
 #[test]
 fn laz_output_reads_back_identically() {
     let mut cfg = SimConfig::for_scale(Scale::Tiny, 3);
@@ -282,4 +362,20 @@ fn small_throughput() {
         rayon::current_num_threads()
     );
     assert!(s.points > 2_000_000 && s.points < 5_000_000);
+}
+
+/// Ground control on the small campaign, how many true points lie on each target's surfaces
+/// within 0.5 m: `cargo test --release -p precimap-sim --test tiny -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn small_control_targets() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = SimConfig::for_scale(Scale::Small, 1);
+    cfg.control = Some(precimap_sim::ControlConfig::default());
+    let s = simulate(&cfg, dir.path(), false).unwrap();
+    println!("small, spacing 150 m: {:?}", s.control_targets);
+    let truth: Value = serde_json::from_slice(&std::fs::read(dir.path().join("truth/truth.json")).unwrap()).unwrap();
+    for (t, counts) in truth["control"].as_array().unwrap().iter().zip(points_on_target_surfaces(dir.path(), &truth)) {
+        println!("{} {} at {:.0} m: points per surface within 0.5 m {counts:?}", t["id"], t["kind"], t["station_m"]);
+    }
 }
