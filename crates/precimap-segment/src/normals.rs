@@ -180,40 +180,9 @@ pub fn estimate_normals(
 ) -> Vec<Option<PixelNormal>> {
     let rows = image.rows as usize;
     let columns = image.columns as usize;
-    // Scan-head advance per revolution, from the first point of each column.
-    let mut column_head: Vec<Option<[f64; 3]>> = vec![None; columns];
-    for c in 0..columns {
-        column_head[c] = grid[c * rows..(c + 1) * rows].iter().find(|&&k| k != NO_POINT).map(|&k| geo.head[k as usize]);
-    }
-    let advance: Vec<f64> = (0..columns)
-        .map(|c| {
-            let h = column_head[c];
-            let d = |o: Option<&Option<[f64; 3]>>| match (h, o.copied().flatten()) {
-                (Some(a), Some(b)) => dist(a, b),
-                _ => 0.0,
-            };
-            d(c.checked_sub(1).map(|i| &column_head[i])).max(d(column_head.get(c + 1)))
-        })
-        .collect();
-    // The neighbourhood: the 3×3 ring plus the pixels along the row and the column out to the
-    // window's half-width (a cross-shaped 5×5 window has 12 neighbours instead of 24: half the
-    // cost, and still both directions at two scales). Rows wrap around (the revolution is a
-    // circle), but a window taller than the image would meet the centre's own revolution again.
+    let advance = column_advance(geo, grid, rows, columns);
     let w = params.window.clamp(1, 8) as i64;
-    let mut offsets: Vec<Offset> = Vec::new();
-    for dc in -1..=1 {
-        for dr in -1..=1 {
-            if (dc, dr) != (0, 0) {
-                offsets.push(Offset { dc, dr, ring: 1 });
-            }
-        }
-    }
-    for d in 2..=w {
-        for (dc, dr) in [(d, 0), (-d, 0), (0, d), (0, -d)] {
-            offsets.push(Offset { dc, dr, ring: d as usize });
-        }
-    }
-    offsets.retain(|o| (o.dr.unsigned_abs() as usize) < rows);
+    let offsets = window_offsets(w, rows);
     let pairs = structured_pairs(&offsets);
     // At fine angular steps neighbouring measurements of a profile lie closer together than the
     // noise: a window a few beam spacings long along the profile holds a blob, not a plane (0.3°
@@ -225,16 +194,7 @@ pub fn estimate_normals(
     let steps_by_stride: Vec<Vec<isize>> = (1..=max_stride)
         .map(|stride| offsets.iter().map(|o| (o.dc * rows as i64 + o.dr * stride) as isize).collect())
         .collect();
-    // The coordinates in pixel order, holes NaN, and one NaN entry past the end that window
-    // pixels outside the image read. A neighbour is then one load away from its pixel (not two,
-    // through the grid) and a profile's neighbours are adjacent in memory; a hole's NaN gap fails
-    // the reach test, so holes need no test of their own.
-    let mut coords = vec![[f64::NAN; 3]; grid.len() + 1];
-    for (q, &j) in coords.iter_mut().zip(grid) {
-        if j != NO_POINT {
-            *q = geo.point(j as usize);
-        }
-    }
+    let coords = pixel_coords(geo, grid);
     let outside = grid.len();
     // Per offset, as fixed-size arrays and bit sets (the gathering below indexes them without
     // bounds checks): its window pixel, its ring, and whether it lies along the profile (same
@@ -248,7 +208,15 @@ pub fn estimate_normals(
         along_bits |= u64::from(o.dc == 0) << index;
         across_bits |= u64::from(o.dr == 0) << index;
     }
-    let (rows_i, columns_i) = (rows as i64, columns as i64);
+    let window = Window {
+        offsets: &offsets,
+        steps_by_stride,
+        rows: rows as i64,
+        columns: columns as i64,
+        w,
+        outside,
+        wraps: image.wraps,
+    };
     let mut out = Vec::with_capacity(geo.len());
     let mut cand = Candidates::new();
     let budget = Budget::new();
@@ -276,31 +244,7 @@ pub fn estimate_normals(
         let tol = params.inlier_base_m + params.inlier_per_range * range;
         let stride = if along > 0.0 { ((2.0 * tol / along).ceil() as i64).clamp(1, max_stride) } else { 1 };
         cand.m = 0;
-        // The window's pixels: away from the image's edges (nearly every pixel) a fixed step from
-        // the centre's, else with the columns checked and the rows wrapped.
-        let centre = c as usize * rows + r as usize;
-        let reach_rows = w * stride;
-        if c >= w && c + w < columns_i && r >= reach_rows && r + reach_rows < rows_i {
-            for (px, &step) in pixel[..count].iter_mut().zip(&steps_by_stride[stride as usize - 1]) {
-                *px = centre.wrapping_add_signed(step);
-            }
-        } else {
-            for (px, o) in pixel[..count].iter_mut().zip(&offsets) {
-                let cc = c + o.dc;
-                let mut rr = r + o.dr * stride;
-                let beyond = rr < 0 || rr >= rows_i;
-                if rr < 0 {
-                    rr += rows_i;
-                } else if rr >= rows_i {
-                    rr -= rows_i;
-                }
-                *px = if cc < 0 || cc >= columns_i || (beyond && !image.wraps) {
-                    outside
-                } else {
-                    cc as usize * rows + rr as usize
-                };
-            }
-        }
+        window.fill(&mut pixel[..count], c, r, stride);
         // Offsets kept, as bits.
         let mut kept = 0u64;
         for index in 0..count {
@@ -351,6 +295,111 @@ pub fn estimate_normals(
         }));
     }
     out
+}
+
+/// Scan-head advance per revolution at every column of the image: the larger distance to the
+/// neighbouring columns' heads, each from the first point of its column.
+fn column_advance(geo: &StripGeometry<'_>, grid: &[u32], rows: usize, columns: usize) -> Vec<f64> {
+    let mut column_head: Vec<Option<[f64; 3]>> = vec![None; columns];
+    for c in 0..columns {
+        column_head[c] = grid[c * rows..(c + 1) * rows].iter().find(|&&k| k != NO_POINT).map(|&k| geo.head[k as usize]);
+    }
+    (0..columns)
+        .map(|c| {
+            let h = column_head[c];
+            let d = |o: Option<&Option<[f64; 3]>>| match (h, o.copied().flatten()) {
+                (Some(a), Some(b)) => dist(a, b),
+                _ => 0.0,
+            };
+            d(c.checked_sub(1).map(|i| &column_head[i])).max(d(column_head.get(c + 1)))
+        })
+        .collect()
+}
+
+/// The window's neighbour offsets for a half-width `w` in an image of `rows` rows.
+fn window_offsets(w: i64, rows: usize) -> Vec<Offset> {
+    // The neighbourhood: the 3×3 ring plus the pixels along the row and the column out to the
+    // window's half-width (a cross-shaped 5×5 window has 12 neighbours instead of 24: half the
+    // cost, and still both directions at two scales). Rows wrap around (the revolution is a
+    // circle), but a window taller than the image would meet the centre's own revolution again.
+    let mut offsets: Vec<Offset> = Vec::new();
+    for dc in -1..=1 {
+        for dr in -1..=1 {
+            if (dc, dr) != (0, 0) {
+                offsets.push(Offset { dc, dr, ring: 1 });
+            }
+        }
+    }
+    for d in 2..=w {
+        for (dc, dr) in [(d, 0), (-d, 0), (0, d), (0, -d)] {
+            offsets.push(Offset { dc, dr, ring: d as usize });
+        }
+    }
+    offsets.retain(|o| (o.dr.unsigned_abs() as usize) < rows);
+    offsets
+}
+
+/// The coordinates in pixel order, holes NaN, and one NaN entry past the end that window pixels
+/// outside the image read. A neighbour is then one load away from its pixel (not two, through
+/// the grid) and a profile's neighbours are adjacent in memory; a hole's NaN gap fails the reach
+/// test, so holes need no test of their own.
+fn pixel_coords(geo: &StripGeometry<'_>, grid: &[u32]) -> Vec<[f64; 3]> {
+    let mut coords = vec![[f64::NAN; 3]; grid.len() + 1];
+    for (q, &j) in coords.iter_mut().zip(grid) {
+        if j != NO_POINT {
+            *q = geo.point(j as usize);
+        }
+    }
+    coords
+}
+
+/// The window of a pixel's neighbours in the image: its offsets, their pixel-index steps per
+/// stride, and what the edges do.
+struct Window<'a> {
+    offsets: &'a [Offset],
+    /// Pixel-index step of each offset per stride, for windows that neither wrap nor leave the
+    /// image.
+    steps_by_stride: Vec<Vec<isize>>,
+    rows: i64,
+    columns: i64,
+    /// Half-width.
+    w: i64,
+    /// The pixel past the end (a NaN entry of the coordinates).
+    outside: usize,
+    /// Rows wrap around (the revolution is a circle).
+    wraps: bool,
+}
+
+impl Window<'_> {
+    /// The window's pixels around column `c`, row `r` with rows `stride` apart, one per offset:
+    /// away from the image's edges (nearly every pixel) a fixed step from the centre's, else with
+    /// the columns checked and the rows wrapped.
+    #[inline]
+    fn fill(&self, pixel: &mut [usize], c: i64, r: i64, stride: i64) {
+        let centre = c as usize * self.rows as usize + r as usize;
+        let reach_rows = self.w * stride;
+        if c >= self.w && c + self.w < self.columns && r >= reach_rows && r + reach_rows < self.rows {
+            for (px, &step) in pixel.iter_mut().zip(&self.steps_by_stride[stride as usize - 1]) {
+                *px = centre.wrapping_add_signed(step);
+            }
+        } else {
+            for (px, o) in pixel.iter_mut().zip(self.offsets) {
+                let cc = c + o.dc;
+                let mut rr = r + o.dr * stride;
+                let beyond = rr < 0 || rr >= self.rows;
+                if rr < 0 {
+                    rr += self.rows;
+                } else if rr >= self.rows {
+                    rr -= self.rows;
+                }
+                *px = if cc < 0 || cc >= self.columns || (beyond && !self.wraps) {
+                    self.outside
+                } else {
+                    cc as usize * self.rows as usize + rr as usize
+                };
+            }
+        }
+    }
 }
 
 /// The plane through the origin (a centre point) and neighbours `rel` (relative to it, at most

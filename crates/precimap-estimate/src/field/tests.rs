@@ -1,4 +1,8 @@
+use super::solve::solve_field_within;
 use super::*;
+use crate::tile::cross;
+use precimap_core::Parameters;
+use std::collections::BTreeMap;
 
 #[test]
 fn bilinear_weights_reproduce_linear_functions() {

@@ -1,4 +1,11 @@
+use super::models::*;
+use super::point::*;
+use super::pulls::*;
+use super::raster::*;
+use super::triangles::*;
 use super::*;
+use crate::blocks::{IntervalMoments, TrajectoryBlocks};
+use crate::chunk::NO_NEIGHBOUR;
 
 fn patch(strip: u32, anchor: u32, normal: [f64; 3], centre: [f64; 3], count: u32) -> Patch {
     let c = count as f64;

@@ -1,0 +1,155 @@
+//! Steps 3–4 of [`super::estimate_tile`]: every point of the tile's core compared with the
+//! latent map, and the observations within the outlier threshold summed into per-anchor
+//! normal-equation blocks and the common-mode field's rows.
+
+use super::point::PointLatent;
+use super::pulls::{jacobian, CornerPulls};
+use super::triangles::Triangles;
+use super::{UsedPoint, NONE};
+use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
+use crate::control::TargetObservation;
+use crate::field::{FieldAccumulator, FieldRow};
+use crate::stats::{ResidualHistogram, TileStats};
+use std::collections::BTreeMap;
+
+/// What the observation loop reads: the tile's points on their surface models, per point the
+/// measurement vector, the scan head (common-mode field only) and the latent map, and the
+/// observations' weight and outlier threshold.
+pub(super) struct Observations<'a> {
+    pub(super) t: &'a Triangles<'a>,
+    pub(super) measurement: &'a [[f64; 3]],
+    pub(super) vehicle: &'a [[f64; 2]],
+    pub(super) latent: &'a [PointLatent],
+    pub(super) weight: f64,
+    pub(super) threshold: f64,
+    /// The points' observations of control targets, sorted by point.
+    pub(super) control: &'a [TargetObservation],
+}
+
+/// Observes every point of the tile's core: its height above its model's plane minus the latent
+/// height there. Observations within the threshold are linearised into the blocks of their
+/// trajectory's anchors and, with `field`, into the common-mode field's rows; with `pulls` (the
+/// consistent gradient) a point also carries what the other points' residuals pull on it. A
+/// point that observes a control target adds that observation to its blocks and, against the
+/// fixed target, to the field's rows. Counts
+/// and the residual histogram go to `stats`, every used point to `used`.
+pub(super) fn observe_points(
+    o: &Observations,
+    in_core: &impl Fn(&[f64; 3]) -> bool,
+    mut pulls: Option<&mut CornerPulls>,
+    mut field: Option<&mut FieldAccumulator>,
+    stats: &mut TileStats,
+    mut used: Option<&mut Vec<UsedPoint>>,
+) -> Vec<TrajectoryBlocks> {
+    let (chunks, models, position, model_of) = (o.t.chunks, o.t.models, o.t.position, o.t.model_of);
+    let (measurement, vehicle, weight, threshold) = (o.measurement, o.vehicle, o.weight, o.threshold);
+    let mut histogram = ResidualHistogram::default();
+    let mut per_trajectory: BTreeMap<u32, BTreeMap<u32, AnchorBlock>> = BTreeMap::new();
+    let mut base = 0usize;
+    let mut control = o.control.iter().peekable();
+    for chunk in chunks {
+        let Some((first, last)) = chunk.anchor_range() else { continue };
+        let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
+        for k in 0..chunk.len() {
+            let a = base + k;
+            let lambda = chunk.lambda[k] as f64;
+            let moments = &mut intervals[(chunk.anchor[k] - first) as usize];
+            // With a consistent gradient, what the other points' residuals pull on this one
+            // through the triangles it is a corner of; on its own model the pull shares the
+            // point's own Jacobian row, so it joins the point's observation below.
+            let mut own_pull = match &mut pulls {
+                Some(pulls) => pulls.take(a, models, measurement, moments, lambda),
+                None => None,
+            };
+            let p = &position[a];
+            let core = in_core(p);
+            stats.points += core as u64;
+            let id = model_of[a];
+            let at = &o.latent[a];
+            let latent = if core && id != NONE { at.height } else { f64::NAN };
+            if !latent.is_nan() {
+                let m = &models[id as usize];
+                let h = m.height(p);
+                stats.points_modelled += 1;
+                let e = h - latent;
+                histogram.add(e);
+                if e.abs() <= threshold {
+                    stats.points_used += 1;
+                    if let Some(used) = used.as_deref_mut() {
+                        used.push(UsedPoint { strip: chunk.strip, source: chunk.source[k], model: id });
+                    }
+                    stats.residual_sum_m += e;
+                    stats.residual_sum2_m2 += e * e;
+                    let w = m.w;
+                    let g = jacobian(w, measurement[a]);
+                    // With a consistent gradient the point pulls on its own pass by its share in
+                    // the latent height; the covering passes get the rest (`corner_pulls`).
+                    let own_weight = match &pulls {
+                        Some(_) => weight * at.covering as f64 / (at.covering as f64 + 1.0),
+                        None => weight,
+                    };
+                    // Both observations in one: weights add, and so do weight × residual.
+                    let (total, weighted, observations) = match own_pull.take() {
+                        Some([w_sum, we_sum]) => (own_weight + w_sum, own_weight * e - we_sum, 2),
+                        None => (own_weight, own_weight * e, 1),
+                    };
+                    moments.add_weighted(&g, weighted, total, lambda, observations);
+                    if let Some(field) = field.as_deref_mut() {
+                        let [x, y, share] = at.others;
+                        field.add(FieldRow {
+                            vehicle: vehicle[a],
+                            others: [x, y],
+                            k: share,
+                            w,
+                            e,
+                            weight,
+                            lever: [g[3], g[4], g[5]],
+                            anchored: false,
+                        });
+                    }
+                }
+            }
+            if let Some([w_sum, we_sum]) = own_pull {
+                moments.add(&jacobian(models[id as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
+            }
+            while let Some(c) = control.next_if(|c| c.point == a) {
+                let g = jacobian(c.w, measurement[a]);
+                moments.add_weighted(&g, c.weight * c.e, c.weight, lambda, 1);
+                if let Some(field) = field.as_deref_mut() {
+                    field.add(FieldRow {
+                        vehicle: vehicle[a],
+                        others: vehicle[a],
+                        k: 1.0,
+                        w: c.w,
+                        e: c.e,
+                        weight: c.weight,
+                        lever: [g[3], g[4], g[5]],
+                        anchored: true,
+                    });
+                }
+            }
+        }
+        scatter_intervals(per_trajectory.entry(chunk.trajectory).or_default(), first, &intervals);
+        base += chunk.len();
+    }
+    stats.histogram = histogram;
+    per_trajectory
+        .into_iter()
+        .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
+        .collect()
+}
+
+/// Adds the moments of a chunk's anchor intervals (the first from anchor `first`) to the blocks
+/// of the anchors either side of each.
+fn scatter_intervals(blocks: &mut BTreeMap<u32, AnchorBlock>, first: u32, intervals: &[IntervalMoments]) {
+    for (offset, moments) in intervals.iter().enumerate() {
+        if moments.is_empty() {
+            continue;
+        }
+        let i = first + offset as u32;
+        let mut at = blocks.remove(&i).unwrap_or_else(|| AnchorBlock::new(i));
+        let after = blocks.entry(i + 1).or_insert_with(|| AnchorBlock::new(i + 1));
+        moments.scatter(&mut at, after);
+        blocks.insert(i, at);
+    }
+}
