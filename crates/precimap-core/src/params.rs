@@ -156,6 +156,12 @@ pub struct Parameters {
     /// surfaces a surveyor measures (a marking on the road, a façade corner) rather than reaching
     /// a kerb or a window recess.
     pub control_radius_m: f64,
+    /// σ of one point's distance from a control target's surface: the scanner's precision. A
+    /// pass of `k` points observes a target to `√(σ_target² + σ²/k)`. Not `sigma_distance_m`,
+    /// which is inflated because the latent map's millions of observations share surfaces and
+    /// must not outweigh the GNSS/IMU prior: a target's few points are the only observation of
+    /// the datum, and weighted that way the prior held the map 7–13 mm off the targets.
+    pub control_point_sigma_m: f64,
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
@@ -334,6 +340,7 @@ impl Default for Parameters {
             normal_group_angle_deg: 30.0,
             segment_surfaces: true,
             control_radius_m: 0.5,
+            control_point_sigma_m: 0.005,
             sigma_distance_m: 0.03,
             sigma_prior_position_m: 1.0,
             sigma_prior_rotation_deg: 0.02,
@@ -491,6 +498,7 @@ impl Parameters {
         check_positive(out, "normal_group_angle_deg", self.normal_group_angle_deg);
         check_positive(out, "sigma_distance_m", self.sigma_distance_m);
         check_positive(out, "control_radius_m", self.control_radius_m);
+        check_positive(out, "control_point_sigma_m", self.control_point_sigma_m);
         check_positive(out, "sigma_prior_position_m", self.sigma_prior_position_m);
         check_positive(out, "sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
         if self.sigma_prior_heading_deg != 0.0 {

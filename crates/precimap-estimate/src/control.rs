@@ -5,9 +5,11 @@
 //! plane). Its residual is its distance from the target along the surface normal, `e = w·(p − c)`,
 //! and moving its pass moves it exactly as it moves the point's latent-map observation, so the
 //! row is the same Jacobian with another target. The target's own error is shared by every point
-//! of a pass: a pass of `k` points observes the target with variance `σ_c² + σ_d²/k`, so each of
-//! its points gets weight `1/(k·σ_c² + σ_d²)` (`σ_c` the target's σ along `w`, `σ_d`
-//! `Parameters::sigma_distance_m`). Check targets are measured alike and never observed.
+//! of a pass: a pass of `k` points observes the target with variance `σ_c² + σ_s²/k`, so each of
+//! its points gets weight `1/(k·σ_c² + σ_s²)` (`σ_c` the target's σ along `w`, `σ_s`
+//! `Parameters::control_point_sigma_m`, the scanner's own precision: unlike the latent map's
+//! observations, a target's are few and nothing else observes the datum, so they are weighted as
+//! what they are). Check targets are measured alike and never observed.
 
 use precimap_core::control::{ControlRole, ControlSums, ControlTarget};
 use precimap_core::hash::FxHashMap;
@@ -112,7 +114,7 @@ where
             }
         }
     }
-    let sigma_d2 = params.sigma_distance_m * params.sigma_distance_m;
+    let sigma_d2 = params.control_point_sigma_m * params.control_point_sigma_m;
     let mut sums: Vec<Option<ControlSums>> = vec![None; targets.len()];
     let mut observations = Vec::new();
     for &(j, i, u, e) in &seen {
@@ -190,7 +192,7 @@ mod tests {
         // Per pass the weights add up to one observation of variance σ_c² + σ_d²/k.
         let k = obs.len() as f64 / 2.0;
         let per_pass: f64 = obs.iter().take(k as usize).map(|o| o.weight).sum();
-        let want = 1.0 / (0.005f64.powi(2) + params.sigma_distance_m.powi(2) / k);
+        let want = 1.0 / (0.005f64.powi(2) + params.control_point_sigma_m.powi(2) / k);
         assert!((per_pass - want).abs() < 1e-9 * want, "{per_pass} vs {want}");
         assert_eq!(sums.len(), 1);
         assert_eq!(sums[0].passes, 2);
