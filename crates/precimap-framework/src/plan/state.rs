@@ -9,7 +9,7 @@ use precimap_estimate::{ResidualHistogram, TileStats};
 use precimap_formats::Manifest;
 use precimap_jobs::{NewCampaign, QueueConfig, StageSpec, StripRecord, TrajectoryRecord};
 use precimap_pipeline::report::{IterationReport, StripReport, TrajectoryReport};
-use std::collections::BTreeMap;
+use precimap_pipeline::ResolvedManifest;
 
 /// The planner's memory between stages (the campaign's `plan_state` column).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -93,56 +93,42 @@ pub struct PlanState {
     pub export_s: f64,
 }
 
-/// Builds a new campaign's rows and first stage from a validated manifest whose URIs are store keys.
-/// `control` holds the manifest's targets in the processing frame
-/// ([`precimap_pipeline::control_targets`]).
+/// Builds a new campaign's rows and first stage from a validated manifest whose URIs are store
+/// keys, with its references followed once ([`ResolvedManifest::new`]: each strip's trajectory
+/// and lever arm, each trajectory's mean lever arm, the control targets in the processing frame).
 pub fn new_campaign(
     manifest: &Manifest,
-    control: Vec<ControlTarget>,
+    resolved: ResolvedManifest,
     prefix: &str,
     queue: QueueConfig,
 ) -> (NewCampaign, StageSpec) {
-    let traj_index: BTreeMap<&str, u32> =
-        manifest.trajectories.iter().enumerate().map(|(i, t)| (t.id.as_str(), i as u32)).collect();
-    let mut lever_sums = vec![([0.0f64; 3], 0usize); manifest.trajectories.len()];
     let strips: Vec<StripInput> = manifest
         .strips
         .iter()
+        .zip(&resolved.strips)
         .enumerate()
-        .map(|(i, s)| {
-            let t = traj_index.get(s.trajectory.as_str()).copied().unwrap_or(0);
-            let lever_arm = manifest.scanners.get(&s.scanner).map(|sc| sc.lever_arm_m).unwrap_or([0.0; 3]);
-            let sum = &mut lever_sums[t as usize];
-            for k in 0..3 {
-                sum.0[k] += lever_arm[k];
-            }
-            sum.1 += 1;
-            StripInput {
-                index: i as u32,
-                id: s.id.clone(),
-                uri: s.uri.clone(),
-                trajectory: t,
-                trajectory_id: s.trajectory.clone(),
-                trajectory_uri: manifest.trajectories[t as usize].uri.clone(),
-                lever_arm,
-                field: field_input(manifest, t as usize),
-            }
+        .map(|(i, (s, r))| StripInput {
+            index: i as u32,
+            id: s.id.clone(),
+            uri: s.uri.clone(),
+            trajectory: r.trajectory,
+            trajectory_id: s.trajectory.clone(),
+            trajectory_uri: manifest.trajectories[r.trajectory as usize].uri.clone(),
+            lever_arm: r.lever_arm,
+            field: field_input(manifest, r.trajectory as usize),
         })
         .collect();
     let trajectories: Vec<TrajectoryInput> = manifest
         .trajectories
         .iter()
+        .zip(&resolved.mean_lever_arms)
         .enumerate()
-        .map(|(i, t)| {
-            let (sum, n) = lever_sums[i];
-            let mean = if n > 0 { sum.map(|v| v / n as f64) } else { [0.0; 3] };
-            TrajectoryInput {
-                index: i as u32,
-                id: t.id.clone(),
-                uri: t.uri.clone(),
-                mean_lever_arm: mean,
-                field: field_input(manifest, i),
-            }
+        .map(|(i, (t, mean))| TrajectoryInput {
+            index: i as u32,
+            id: t.id.clone(),
+            uri: t.uri.clone(),
+            mean_lever_arm: *mean,
+            field: field_input(manifest, i),
         })
         .collect();
     let state = PlanState {
@@ -151,7 +137,7 @@ pub fn new_campaign(
         params: manifest.parameters.clone(),
         strips: strips.clone(),
         trajectories: trajectories.clone(),
-        control,
+        control: resolved.control,
         tiles: Vec::new(),
         anchor_ranges: Vec::new(),
         strip_reports: Vec::new(),
