@@ -93,6 +93,61 @@ pub struct PlanState {
     pub export_s: f64,
 }
 
+impl PlanState {
+    /// The state a campaign starts in: its inputs, nothing prepared, no iteration run.
+    fn start(
+        name: &str,
+        prefix: &str,
+        params: &Parameters,
+        strips: Vec<StripInput>,
+        trajectories: Vec<TrajectoryInput>,
+        control: Vec<ControlTarget>,
+    ) -> Self {
+        let n = trajectories.len();
+        Self {
+            name: name.to_string(),
+            prefix: prefix.to_string(),
+            params: params.clone(),
+            strips,
+            trajectories,
+            control,
+            tiles: Vec::new(),
+            anchor_ranges: Vec::new(),
+            strip_reports: Vec::new(),
+            points_total: 0,
+            step_index: 0,
+            iteration: 0,
+            robust_sigma: None,
+            corrections: vec![None; n],
+            previous_corrections: vec![None; n],
+            previous_step: None,
+            pending_blocks: Vec::new(),
+            started_from: Vec::new(),
+            pending_field_max_m: 0.0,
+            pending_campaign_rotation_deg: [0.0; 3],
+            pending_field_heading_max_deg: 0.0,
+            pending_field_tilt_max_deg: 0.0,
+            anderson: AndersonHistory::default(),
+            pending_anderson_coefficients: Vec::new(),
+            anchor_positions: None,
+            pending_stats: None,
+            latent_std: LatentStdKeys::default(),
+            latent_map: Vec::new(),
+            pending_seconds: 0.0,
+            iteration_enqueued_at_ms: None,
+            task_s: 0.0,
+            iterations: Vec::new(),
+            converged: false,
+            trajectory_reports: Vec::new(),
+            histogram: ResidualHistogram::default(),
+            control_sums: Vec::new(),
+            prepare_s: 0.0,
+            estimate_s: 0.0,
+            export_s: 0.0,
+        }
+    }
+}
+
 /// Builds a new campaign's rows and first stage from a validated manifest whose URIs are store
 /// keys, with its references followed once ([`ResolvedManifest::new`]: each strip's trajectory
 /// and lever arm, each trajectory's mean lever arm, the control targets in the processing frame).
@@ -131,47 +186,14 @@ pub fn new_campaign(
             field: field_input(manifest, i),
         })
         .collect();
-    let state = PlanState {
-        name: manifest.name.clone(),
-        prefix: prefix.to_string(),
-        params: manifest.parameters.clone(),
-        strips: strips.clone(),
-        trajectories: trajectories.clone(),
-        control: resolved.control,
-        tiles: Vec::new(),
-        anchor_ranges: Vec::new(),
-        strip_reports: Vec::new(),
-        points_total: 0,
-        step_index: 0,
-        iteration: 0,
-        robust_sigma: None,
-        corrections: vec![None; trajectories.len()],
-        previous_corrections: vec![None; trajectories.len()],
-        previous_step: None,
-        pending_blocks: Vec::new(),
-        started_from: Vec::new(),
-        pending_field_max_m: 0.0,
-        pending_campaign_rotation_deg: [0.0; 3],
-        pending_field_heading_max_deg: 0.0,
-        pending_field_tilt_max_deg: 0.0,
-        anderson: AndersonHistory::default(),
-        pending_anderson_coefficients: Vec::new(),
-        anchor_positions: None,
-        pending_stats: None,
-        latent_std: LatentStdKeys::default(),
-        latent_map: Vec::new(),
-        pending_seconds: 0.0,
-        iteration_enqueued_at_ms: None,
-        task_s: 0.0,
-        iterations: Vec::new(),
-        converged: false,
-        trajectory_reports: Vec::new(),
-        histogram: ResidualHistogram::default(),
-        control_sums: Vec::new(),
-        prepare_s: 0.0,
-        estimate_s: 0.0,
-        export_s: 0.0,
-    };
+    let state = PlanState::start(
+        &manifest.name,
+        prefix,
+        &manifest.parameters,
+        strips.clone(),
+        trajectories.clone(),
+        resolved.control,
+    );
     let first = StageSpec {
         stage: STAGE_PREPARE.to_string(),
         iteration: 0,
