@@ -9,6 +9,7 @@ use crate::plan::new_campaign;
 use crate::worker::{Executor, ExecutorConfig};
 use precimap_formats::{Manifest, ManifestProblem};
 use precimap_jobs::{CampaignRecord, CampaignState, JobStore, QueueConfig};
+use precimap_pipeline::ResolvedManifest;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -154,15 +155,16 @@ impl Framework {
                 ),
             });
         }
-        let control = precimap_pipeline::control_targets(manifest).unwrap_or_else(|e| {
-            problems.push(ManifestProblem { path: "$.control".into(), message: e.to_string() });
-            Vec::new()
-        });
-        if !problems.is_empty() {
-            return Err(SubmitError::Invalid { problems });
-        }
+        // The manifest is validated, so its strips' references resolve: what can fail here is a
+        // control target's conversion into the processing frame.
+        let resolved = ResolvedManifest::new(manifest)
+            .map_err(|e| problems.push(ManifestProblem { path: "$.control".into(), message: e.to_string() }));
+        let resolved = match resolved {
+            Ok(resolved) if problems.is_empty() => resolved,
+            _ => return Err(SubmitError::Invalid { problems }),
+        };
         let prefix = format!("{CAMPAIGNS_PREFIX}/{}", Uuid::new_v4().simple());
-        let (campaign, first) = new_campaign(manifest, control, &prefix, self.queue);
+        let (campaign, first) = new_campaign(manifest, resolved, &prefix, self.queue);
         Ok(self.jobs.create_campaign(campaign, first).await.map_err(FrameworkError::from)?)
     }
 

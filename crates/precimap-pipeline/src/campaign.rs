@@ -84,6 +84,61 @@ pub fn control_targets(manifest: &Manifest) -> Result<Vec<ControlTarget>, Pipeli
         .collect()
 }
 
+/// A strip's references followed: the index of the trajectory it was recorded on and the lever
+/// arm of the scanner that recorded it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ResolvedStrip {
+    pub trajectory: u32,
+    pub lever_arm: [f64; 3],
+}
+
+/// What a manifest says once its references are followed, without reading any file: the part of
+/// a campaign that the in-process driver ([`Campaign::from_manifest`]) and the job framework
+/// (its campaign creation) share, resolved in one place so that both see the same campaign.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResolvedManifest {
+    /// Per strip, in manifest order.
+    pub strips: Vec<ResolvedStrip>,
+    /// Per trajectory, in manifest order: the mean lever arm of the scanners whose strips use it
+    /// (zero where no strip does). The corrected body pose is the one that moves these scan heads
+    /// as the corrections say.
+    pub mean_lever_arms: Vec<[f64; 3]>,
+    /// Surveyed control and check targets in the processing frame ([`control_targets`]).
+    pub control: Vec<ControlTarget>,
+}
+
+impl ResolvedManifest {
+    /// Follows `manifest`'s references: a strip naming an unknown trajectory or scanner is an
+    /// input error (a validated manifest has none), and so is a control target outside the
+    /// processing CRS.
+    pub fn new(manifest: &Manifest) -> Result<Self, PipelineError> {
+        let mut lever_sums = vec![([0.0f64; 3], 0usize); manifest.trajectories.len()];
+        let mut strips = Vec::with_capacity(manifest.strips.len());
+        for s in &manifest.strips {
+            let trajectory = manifest.trajectories.iter().position(|t| t.id == s.trajectory).ok_or_else(|| {
+                PipelineError::Input {
+                    what: format!("strip {}", s.id),
+                    message: format!("unknown trajectory {}", s.trajectory),
+                }
+            })?;
+            let scanner = manifest.scanners.get(&s.scanner).ok_or_else(|| PipelineError::Input {
+                what: format!("strip {}", s.id),
+                message: format!("unknown scanner {}", s.scanner),
+            })?;
+            let lever_arm = scanner.lever_arm_m;
+            let sum = &mut lever_sums[trajectory];
+            for k in 0..3 {
+                sum.0[k] += lever_arm[k];
+            }
+            sum.1 += 1;
+            strips.push(ResolvedStrip { trajectory: trajectory as u32, lever_arm });
+        }
+        let mean_lever_arms =
+            lever_sums.into_iter().map(|(sum, n)| if n > 0 { sum.map(|v| v / n as f64) } else { [0.0; 3] }).collect();
+        Ok(Self { strips, mean_lever_arms, control: control_targets(manifest)? })
+    }
+}
+
 impl Campaign {
     pub fn load(manifest_path: &Path) -> Result<Self, PipelineError> {
         let manifest = load_manifest(manifest_path)?;
@@ -128,44 +183,87 @@ impl Campaign {
                 accuracy_uri: t.accuracy_uri.clone().unwrap_or_default(),
             });
         }
-        let mut strips = Vec::with_capacity(manifest.strips.len());
-        let mut lever_sums = vec![(Vec3::zeros(), 0usize); trajectories.len()];
-        for s in &manifest.strips {
-            let path = resolve(&s.uri, &format!("strip {}", s.id))?;
-            // The manifest validation guarantees both references exist.
-            let trajectory = manifest.trajectories.iter().position(|t| t.id == s.trajectory).ok_or_else(|| {
-                PipelineError::Input {
-                    what: format!("strip {}", s.id),
-                    message: format!("unknown trajectory {}", s.trajectory),
-                }
-            })?;
-            let scanner = manifest.scanners.get(&s.scanner).ok_or_else(|| PipelineError::Input {
-                what: format!("strip {}", s.id),
-                message: format!("unknown scanner {}", s.scanner),
-            })?;
-            let lever_arm = Vec3::from(scanner.lever_arm_m);
-            lever_sums[trajectory].0 += lever_arm;
-            lever_sums[trajectory].1 += 1;
-            strips.push(StripEntry {
+        let strip_paths = manifest
+            .strips
+            .iter()
+            .map(|s| resolve(&s.uri, &format!("strip {}", s.id)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let resolved = ResolvedManifest::new(&manifest)?;
+        for (t, mean) in trajectories.iter_mut().zip(&resolved.mean_lever_arms) {
+            t.mean_lever_arm = Vec3::from(*mean);
+        }
+        let strips = manifest
+            .strips
+            .iter()
+            .zip(strip_paths)
+            .zip(&resolved.strips)
+            .map(|((s, path), r)| StripEntry {
                 id: s.id.clone(),
                 path,
-                trajectory: trajectory as u32,
-                lever_arm,
+                trajectory: r.trajectory,
+                lever_arm: Vec3::from(r.lever_arm),
                 georef: georef.clone(),
-            });
-        }
-        for (t, (sum, n)) in trajectories.iter_mut().zip(lever_sums) {
-            if n > 0 {
-                t.mean_lever_arm = sum / n as f64;
-            }
-        }
+            })
+            .collect();
         Ok(Self {
             name: manifest.name.clone(),
             manifest_path: manifest_path.to_path_buf(),
             params: manifest.parameters.clone(),
             trajectories,
             strips,
-            control: control_targets(&manifest)?,
+            control: resolved.control,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest(strips: serde_json::Value) -> Manifest {
+        serde_json::from_value(serde_json::json!({
+            "name": "lever arms",
+            "scanners": {
+                "left": { "lever_arm_m": [0.0, 0.5, 0.3] },
+                "right": { "lever_arm_m": [0.0, -0.5, 0.25] },
+                "roof": { "lever_arm_m": [1.0, 2.0, 3.0] },
+            },
+            "trajectories": [
+                { "id": "a", "uri": "a.csv" },
+                { "id": "b", "uri": "b.csv" },
+                { "id": "c", "uri": "c.csv" },
+            ],
+            "strips": strips,
+        }))
+        .unwrap()
+    }
+
+    /// Each strip gets its trajectory's index and its scanner's lever arm; a trajectory's mean
+    /// lever arm averages its strips' scanners (zero for a trajectory no strip uses).
+    #[test]
+    fn strips_follow_their_references_and_trajectories_average_their_scanners() {
+        let m = manifest(serde_json::json!([
+            { "id": "s1", "uri": "s1.las", "trajectory": "a", "scanner": "left" },
+            { "id": "s2", "uri": "s2.las", "trajectory": "b", "scanner": "roof" },
+            { "id": "s3", "uri": "s3.las", "trajectory": "a", "scanner": "right" },
+        ]));
+        let r = ResolvedManifest::new(&m).unwrap();
+        let strip = |trajectory, lever_arm| ResolvedStrip { trajectory, lever_arm };
+        assert_eq!(r.strips, vec![strip(0, [0.0, 0.5, 0.3]), strip(1, [1.0, 2.0, 3.0]), strip(0, [0.0, -0.5, 0.25])]);
+        assert_eq!(r.mean_lever_arms, vec![[0.0, 0.0, 0.275], [1.0, 2.0, 3.0], [0.0; 3]]);
+        assert!(r.control.is_empty());
+    }
+
+    #[test]
+    fn an_unknown_scanner_or_trajectory_is_an_input_error() {
+        for (trajectory, scanner, expected) in
+            [("a", "nadir", "unknown scanner nadir"), ("d", "left", "unknown trajectory d")]
+        {
+            let m = manifest(serde_json::json!([
+                { "id": "s1", "uri": "s1.las", "trajectory": trajectory, "scanner": scanner },
+            ]));
+            let e = ResolvedManifest::new(&m).unwrap_err().to_string();
+            assert!(e.contains("strip s1") && e.contains(expected), "{e}");
+        }
     }
 }

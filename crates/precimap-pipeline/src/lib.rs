@@ -13,7 +13,7 @@ pub mod report;
 pub mod run;
 pub mod tasks;
 
-pub use campaign::{control_targets, Campaign};
+pub use campaign::{control_targets, Campaign, ResolvedManifest, ResolvedStrip};
 pub use error::PipelineError;
 pub use report::Report;
 pub use run::{
