@@ -156,9 +156,9 @@ impl Framework {
             });
         }
         // The manifest is validated, so its strips' references resolve: what can fail here is a
-        // control target's conversion into the processing frame.
+        // control target's conversion into the processing frame (the message names the target).
         let resolved = ResolvedManifest::new(manifest)
-            .map_err(|e| problems.push(ManifestProblem { path: "$.control".into(), message: e.to_string() }));
+            .map_err(|e| problems.push(ManifestProblem { path: "$".into(), message: e.to_string() }));
         let resolved = match resolved {
             Ok(resolved) if problems.is_empty() => resolved,
             _ => return Err(SubmitError::Invalid { problems }),
