@@ -92,10 +92,7 @@ fn ground_control_gives_the_in_process_result_through_the_framework() {
     let report = run(&manifest, &reference);
     assert!(report.control.datum_observed, "{}", report.control.datum);
     let embedded = dir.path().join("embedded");
-    let options = precimap_framework::EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let record = rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {})).unwrap();
-    assert_eq!(record.state, precimap_jobs::CampaignState::Succeeded);
+    crate::framework::run_embedded_into(&manifest, &embedded);
     crate::framework::assert_same_results(&reference, &embedded);
     let control = |out: &Path| {
         let r: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();

@@ -183,10 +183,7 @@ fn a_field_campaign_through_the_framework_matches_in_process() {
     let reference = dir.path().join("in-process");
     run(&manifest, &reference).unwrap();
     let embedded = dir.path().join("embedded");
-    let options = precimap_framework::EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let record = rt.block_on(precimap_framework::run_embedded(&manifest, &options, |_| {})).unwrap();
-    assert_eq!(record.state, precimap_jobs::CampaignState::Succeeded);
+    crate::framework::run_embedded_into(&manifest, &embedded);
     crate::framework::assert_same_results(&reference, &embedded);
     // The latent map and the QC plots state the processing CRS, as the strips and trajectories.
     let tile = std::fs::read_dir(reference.join("latent")).unwrap().next().unwrap().unwrap().path();

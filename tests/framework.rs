@@ -26,6 +26,15 @@ fn in_process(manifest: &Path, out: &Path) {
         .unwrap();
 }
 
+/// Runs `manifest` through the embedded framework (SQLite, a local store, two executors), as
+/// `precimap run` does, into `out`, and checks that the campaign succeeded.
+pub(crate) fn run_embedded_into(manifest: &Path, out: &Path) {
+    let options = EmbeddedOptions { out_dir: out.to_path_buf(), concurrency: 2, keep_state: false };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let record = rt.block_on(run_embedded(manifest, &options, |_| {})).unwrap();
+    assert_eq!(record.state, CampaignState::Succeeded);
+}
+
 /// Every corrected strip and trajectory byte-identical (LAS stores coordinates as integers of
 /// 0.1 mm or finer and the CSV writes round-trip floats, so this is equality of the corrections
 /// far below 1e-9 m), and the same iteration statistics.
@@ -286,10 +295,7 @@ fn option_gives_the_in_process_result_through_the_framework(dir: &Path, paramete
     let reference = dir.join("in-process");
     in_process(&option, &reference);
     let embedded = dir.join("embedded");
-    let options = EmbeddedOptions { out_dir: embedded.clone(), concurrency: 2, keep_state: false };
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let record = rt.block_on(run_embedded(&option, &options, |_| {})).unwrap();
-    assert_eq!(record.state, CampaignState::Succeeded);
+    run_embedded_into(&option, &embedded);
     assert_same_results(&reference, &embedded);
 
     let default = dir.join("default");
