@@ -60,7 +60,7 @@ fn control_targets_move_the_map_onto_the_truth_and_check_targets_measure_it() {
     assert_eq!(check.targets_observed, check.targets_listed, "{c:#?}");
     assert!(control.observed_per_axis[2] > 0 && control.observed_per_axis[0] + control.observed_per_axis[1] > 0);
     // The map moves onto the truth: its shift from the truth, which the strips alone cannot see,
-    // shrinks by an order of magnitude (seed 3: 155 → 8.3 mm).
+    // shrinks by an order of magnitude (seed 3: 171 → 8.3 mm).
     let (shift_with, shift_without) = (norm(e_with.campaign_shift_m.after), norm(e_without.campaign_shift_m.after));
     assert!(shift_with < 0.1 * shift_without, "{shift_with} vs {shift_without}");
     // Check targets, kept out of the adjustment, see it too: within the RMSE a map-production
