@@ -14,6 +14,7 @@
 use precimap_core::control::{ControlRole, ControlSums, ControlTarget};
 use precimap_core::hash::FxHashMap;
 use precimap_core::{Parameters, TileKey};
+use std::collections::BTreeMap;
 
 /// Below this the gate does not shrink with the outlier threshold: a pass still a few
 /// centimetres off a target must keep observing it, and 5 cm still tells the road from the top
@@ -33,6 +34,28 @@ pub fn reaches_tile(target: &ControlTarget, tile: TileKey, params: &Parameters) 
     let reach = target.radius_m(params.control_radius_m) + params.tile_overlap_m;
     let [x, y, _] = target.position;
     x >= ox - reach && x < ox + params.tile_size_m + reach && y >= oy - reach && y < oy + params.tile_size_m + reach
+}
+
+/// Every target by the tiles it reaches ([`reaches_tile`]), each tile's in the order of
+/// `targets`: one pass over the targets instead of one per tile.
+pub fn targets_by_tile(targets: &[ControlTarget], params: &Parameters) -> BTreeMap<TileKey, Vec<ControlTarget>> {
+    let size = params.tile_size_m;
+    let mut by_tile: BTreeMap<TileKey, Vec<ControlTarget>> = BTreeMap::new();
+    for t in targets {
+        let reach = t.radius_m(params.control_radius_m) + params.tile_overlap_m;
+        let [x, y, _] = t.position;
+        // The candidates, one tile wider than the reach on every side; the predicate decides.
+        let span = |v: f64| ((v - reach) / size).floor() as i32 - 1..=((v + reach) / size).floor() as i32 + 1;
+        for tx in span(x) {
+            for ty in span(y) {
+                let tile = TileKey { tx, ty };
+                if reaches_tile(t, tile, params) {
+                    by_tile.entry(tile).or_default().push(t.clone());
+                }
+            }
+        }
+    }
+    by_tile
 }
 
 /// One point's observation of a control target.
@@ -237,6 +260,29 @@ mod tests {
         assert!(obs.len() > 2 * 250 && obs.len() < 2 * 340, "{}", obs.len());
         assert!(obs.iter().all(|o| o.w == [-1.0, 0.0, 0.0] && (o.e - 0.02).abs() < 1e-12));
         assert!((sums[0].offset().x.unwrap() + 0.02).abs() < 1e-12);
+    }
+
+    #[test]
+    fn targets_by_tile_is_the_per_tile_filter() {
+        let params = Parameters::default();
+        let targets: Vec<ControlTarget> = [[15.2, 3.0], [-0.1, 29.95], [7.0, 7.0], [44.9, -15.1]]
+            .iter()
+            .enumerate()
+            .map(|(i, &[x, y])| target(&format!("t{i}"), [x, y, 0.0], ControlRole::Control))
+            .collect();
+        let by_tile = targets_by_tile(&targets, &params);
+        for tx in -3..5 {
+            for ty in -3..5 {
+                let tile = TileKey { tx, ty };
+                let filtered: Vec<ControlTarget> =
+                    targets.iter().filter(|t| reaches_tile(t, tile, &params)).cloned().collect();
+                assert_eq!(by_tile.get(&tile).cloned().unwrap_or_default(), filtered, "{tile}");
+            }
+        }
+        // No tile outside the range compared above, and a target on a tile edge in both tiles.
+        assert!(by_tile.keys().all(|k| (-3..5).contains(&k.tx) && (-3..5).contains(&k.ty)), "{by_tile:?}");
+        assert_eq!(by_tile[&TileKey { tx: 1, ty: 0 }][0].id, "t0");
+        assert_eq!(by_tile[&TileKey { tx: 0, ty: 0 }].iter().map(|t| t.id.as_str()).collect::<Vec<_>>(), ["t0", "t2"]);
     }
 
     #[test]

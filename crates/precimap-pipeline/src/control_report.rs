@@ -4,6 +4,7 @@
 
 use precimap_core::control::{ControlOffset, ControlRole, ControlSums, ControlTarget};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ControlReport {
@@ -55,10 +56,11 @@ impl ControlReport {
     /// The section for `targets` from what the last iteration measured at them (`sums`, any
     /// order; targets without sums were not observed).
     pub fn new(targets: &[ControlTarget], sums: &[ControlSums]) -> Self {
+        let by_id: HashMap<&str, &ControlSums> = sums.iter().map(|s| (s.id.as_str(), s)).collect();
         let lines: Vec<TargetReport> = targets
             .iter()
             .map(|t| {
-                let s = sums.iter().find(|s| s.id == t.id);
+                let s = by_id.get(t.id.as_str()).copied();
                 TargetReport {
                     id: t.id.clone(),
                     role: t.role,

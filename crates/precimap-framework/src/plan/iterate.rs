@@ -5,7 +5,6 @@
 use super::accelerate::accelerate_stage;
 use super::finish::export_stage;
 use super::*;
-use precimap_core::{ControlTarget, Parameters};
 use precimap_estimate::TileStats;
 use precimap_jobs::{IterationRecord, StageSpan, StageSpec, TileRecord};
 use precimap_pipeline::report::StripReport;
@@ -98,15 +97,11 @@ pub(super) fn campaign_crs(state: &PlanState) -> Option<precimap_formats::CrsSpe
     state.strips.first().and_then(|s| s.field.as_ref()).map(|f| f.crs.clone())
 }
 
-/// The targets whose observing surfaces can reach into `tile`'s core.
-fn targets_near(targets: &[ControlTarget], tile: TileKey, params: &Parameters) -> Vec<ControlTarget> {
-    targets.iter().filter(|t| precimap_estimate::control::reaches_tile(t, tile, params)).cloned().collect()
-}
-
 pub(super) fn estimate_stage(state: &mut PlanState) -> Next {
     state.iteration += 1;
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let gather = place(state).latent_gather();
+    let control_by_tile = precimap_estimate::control::targets_by_tile(&state.control, &state.params);
     let tasks = state
         .tiles
         .iter()
@@ -126,7 +121,7 @@ pub(super) fn estimate_stage(state: &mut PlanState) -> Next {
                 std_map: gather.std_map,
                 latent_map: gather.map,
                 crs: gather.map.then(|| campaign_crs(state)).flatten(),
-                control: targets_near(&state.control, *tile, &state.params),
+                control: control_by_tile.get(tile).cloned().unwrap_or_default(),
             }
             .task(tile.to_string())
         })
