@@ -2,9 +2,11 @@
 //!
 //! Nothing in here does I/O: rotations and poses ([`geom`]), trajectories with arc length
 //! ([`trajectory`]), the estimation parameters with the paper's defaults ([`params`]), tile keys
-//! ([`tile`]), the per-anchor pose corrections ([`corrections`]), the exported latent map's
-//! points ([`latent`]) and a fast hasher for integer keys ([`hash`]).
+//! ([`tile`]), the per-anchor pose corrections ([`corrections`]), the scanners' mounting
+//! calibration ([`calibration`]), the exported latent map's points ([`latent`]) and a fast hasher
+//! for integer keys ([`hash`]).
 
+pub mod calibration;
 pub mod control;
 pub mod corrections;
 pub mod geom;
@@ -15,6 +17,7 @@ pub mod params;
 pub mod tile;
 pub mod trajectory;
 
+pub use calibration::{CalibrationLayout, CalibrationOptions, CalibrationUnknown, ScannerCalibration};
 pub use control::{ControlOffset, ControlPlane, ControlRole, ControlSums, ControlTarget};
 pub use corrections::{AnchorCovariance, ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};

@@ -1,6 +1,7 @@
 //! Estimation parameters. Every field has the paper's default (§5, §6.2, §7.1); a manifest's
 //! `parameters` object overrides single fields and may not name unknown ones.
 
+use crate::calibration::CalibrationOptions;
 use serde::{Deserialize, Serialize};
 
 /// One step of the iteration schedule: the latent map's pixel size and the outlier threshold.
@@ -162,6 +163,10 @@ pub struct Parameters {
     /// must not outweigh the GNSS/IMU prior: a target's few points are the only observation of
     /// the datum, and weighted that way the prior held the map 7–13 mm off the targets.
     pub control_point_sigma_m: f64,
+    /// The scanners' mounting calibration to estimate with the trajectories (boresight, lever
+    /// arm, range offset per scanner); by default none (docs/design/calibration.md).
+    #[serde(skip_serializing_if = "CalibrationOptions::is_empty")]
+    pub calibration: CalibrationOptions,
     /// Effective σ of one point-to-surface distance. The scanner is good to ~5 mm, but points
     /// share surfaces, pixels and triangles, so they are far from independent; weighting them
     /// as independent 5 mm observations lets tiny systematic errors outweigh the GNSS/IMU prior
@@ -341,6 +346,7 @@ impl Default for Parameters {
             segment_surfaces: true,
             control_radius_m: 0.5,
             control_point_sigma_m: 0.005,
+            calibration: CalibrationOptions::default(),
             sigma_distance_m: 0.03,
             sigma_prior_position_m: 1.0,
             sigma_prior_rotation_deg: 0.02,
@@ -499,6 +505,17 @@ impl Parameters {
         check_positive(out, "sigma_distance_m", self.sigma_distance_m);
         check_positive(out, "control_radius_m", self.control_radius_m);
         check_positive(out, "control_point_sigma_m", self.control_point_sigma_m);
+        let c = &self.calibration;
+        for (field, value) in [
+            ("calibration.prior_boresight_deg", c.prior_boresight_deg),
+            ("calibration.prior_lever_arm_m", c.prior_lever_arm_m),
+            ("calibration.prior_range_offset_m", c.prior_range_offset_m),
+            ("calibration.tolerance_boresight_deg", c.tolerance_boresight_deg),
+            ("calibration.tolerance_lever_arm_m", c.tolerance_lever_arm_m),
+            ("calibration.tolerance_range_offset_m", c.tolerance_range_offset_m),
+        ] {
+            check_positive(out, field, value);
+        }
         check_positive(out, "sigma_prior_position_m", self.sigma_prior_position_m);
         check_positive(out, "sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
         if self.sigma_prior_heading_deg != 0.0 {

@@ -18,11 +18,15 @@ pub struct AnchorBlock {
     pub rhs: [f64; 6],
     /// Observations whose interval starts at this anchor.
     pub observations: u32,
+    /// `H_i,c`: the coupling of this anchor's six unknowns with the campaign's calibration
+    /// unknowns (6 × K, row-major); empty without calibration.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cross: Vec<f64>,
 }
 
 impl AnchorBlock {
     pub fn new(anchor: u32) -> Self {
-        Self { anchor, diag: [0.0; 21], next: [0.0; 21], rhs: [0.0; 6], observations: 0 }
+        Self { anchor, diag: [0.0; 21], next: [0.0; 21], rhs: [0.0; 6], observations: 0, cross: Vec::new() }
     }
 
     pub fn add(&mut self, other: &AnchorBlock) {
@@ -34,6 +38,14 @@ impl AnchorBlock {
             self.rhs[k] += other.rhs[k];
         }
         self.observations += other.observations;
+        if !other.cross.is_empty() {
+            if self.cross.is_empty() {
+                self.cross.resize(other.cross.len(), 0.0);
+            }
+            for (a, b) in self.cross.iter_mut().zip(&other.cross) {
+                *a += b;
+            }
+        }
     }
 }
 
@@ -42,6 +54,9 @@ impl AnchorBlock {
 pub struct TrajectoryBlocks {
     pub trajectory: u32,
     pub blocks: Vec<AnchorBlock>,
+    /// The calibration's own normal equations from this trajectory's observations in the tile.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::calibration::CalibrationNormals>,
 }
 
 /// Per-interval moment sums while a tile is processed: with `S_m = Σ w λ^m ggᵀ` and

@@ -13,7 +13,9 @@
 //! those differences are small: the scan head moves micrometres between points, anchors and
 //! strip indices step by 0 or 1, a neighbour along the profile is the next point. Every tile's
 //! chunks are read again in every iteration (from an object store, by executors elsewhere), so
-//! their size is traffic. Versions 3 and 4 are read; older chunks are rejected (re-run the
+//! their size is traffic. Version 5 is version 4 with the body attitude of every point (its
+//! rotation vector, three more such columns), written only for campaigns that estimate the
+//! scanners' mounting calibration. Versions 3–5 are read; older chunks are rejected (re-run the
 //! preparation).
 
 use precimap_core::TileKey;
@@ -24,13 +26,15 @@ pub const NO_NEIGHBOUR: u32 = u32::MAX;
 const MAGIC: &[u8; 7] = b"PMCHUNK";
 /// The version written.
 const VERSION: u8 = 4;
+/// The version written when the chunk carries the points' body attitudes.
+const VERSION_ATTITUDE: u8 = 5;
 /// The fixed-width version still read.
 const VERSION_FIXED: u8 = 3;
 const HEADER_BYTES: usize = 8 + 4 * 4 + 3 * 8 + 8;
 /// Bytes per point of the fixed-width version 3.
 const FIXED_BYTES_PER_POINT: usize = 12 + 12 + 12 + 4 + 4 + 4 + 4 + 4 + 4 + 4;
 /// Columns of version 4, in order (each behind its byte length, a u64).
-const COLUMNS: [&str; 16] = [
+const COLUMNS: [&str; 19] = [
     "t0.x",
     "t0.y",
     "t0.z",
@@ -47,6 +51,9 @@ const COLUMNS: [&str; 16] = [
     "edge_limit",
     "segment",
     "source",
+    "attitude.x",
+    "attitude.y",
+    "attitude.z",
 ];
 
 #[derive(Clone, Debug, PartialEq)]
@@ -74,6 +81,9 @@ pub struct TileChunk {
     pub segment: Vec<u32>,
     /// Index of the point in its strip file (acquisition order).
     pub source: Vec<u32>,
+    /// Body attitude at the point's time as a rotation vector (`R = Exp(θ)`), world frame; empty
+    /// unless the campaign estimates the scanners' calibration.
+    pub attitude: Vec<[f32; 3]>,
 }
 
 #[derive(Clone, Debug, thiserror::Error, PartialEq)]
@@ -82,7 +92,7 @@ pub enum ChunkError {
     TooShort(usize),
     #[error("not a precimap tile chunk (bad magic)")]
     BadMagic,
-    #[error("chunk format version {0} is not supported (this build reads versions {VERSION_FIXED} and {VERSION}; older chunks lack segment ids or point indices: prepare the strips again)")]
+    #[error("chunk format version {0} is not supported (this build reads versions {VERSION_FIXED} to {VERSION_ATTITUDE}; older chunks lack segment ids or point indices: prepare the strips again)")]
     Version(u8),
     #[error("chunk column {column} (point {index} of {points}) is truncated or corrupt at byte {offset} of the chunk; prepare the strip again")]
     Column { column: &'static str, index: usize, points: u64, offset: usize },
@@ -111,6 +121,7 @@ impl TileChunk {
             edge_limit: Vec::with_capacity(n),
             segment: Vec::with_capacity(n),
             source: Vec::with_capacity(n),
+            attitude: Vec::new(),
         }
     }
 
@@ -155,12 +166,13 @@ impl TileChunk {
         Some((min, max + 1))
     }
 
-    /// The chunk in the current version (4).
+    /// The chunk in the current version: 4, or 5 with the points' attitudes.
     pub fn encode(&self) -> Vec<u8> {
         let n = self.len();
+        let with_attitude = !self.attitude.is_empty();
         // Room for ~48 bytes per point (small s1's chunks take 41.4); more grows the buffer.
         let mut out = Vec::with_capacity(HEADER_BYTES + 8 * COLUMNS.len() + 48 * n);
-        self.encode_header(&mut out, VERSION);
+        self.encode_header(&mut out, if with_attitude { VERSION_ATTITUDE } else { VERSION });
         for a in [&self.t0, &self.r, &self.normal] {
             for axis in 0..3 {
                 put_column(&mut out, n, deltas(a.iter().map(|v| v[axis].to_bits())));
@@ -174,6 +186,11 @@ impl TileChunk {
         put_column(&mut out, n, deltas(self.edge_limit.iter().map(|v| v.to_bits())));
         put_column(&mut out, n, deltas(self.segment.iter().copied()));
         put_column(&mut out, n, deltas(self.source.iter().copied()));
+        if with_attitude {
+            for axis in 0..3 {
+                put_column(&mut out, n, deltas(self.attitude.iter().map(|v| v[axis].to_bits())));
+            }
+        }
         out
     }
 
@@ -189,7 +206,7 @@ impl TileChunk {
         out.extend_from_slice(&(self.len() as u64).to_le_bytes());
     }
 
-    /// A chunk of version 3 or 4.
+    /// A chunk of version 3, 4 or 5.
     pub fn decode(bytes: &[u8]) -> Result<Self, ChunkError> {
         if bytes.len() < HEADER_BYTES {
             return Err(ChunkError::TooShort(bytes.len()));
@@ -198,7 +215,7 @@ impl TileChunk {
             return Err(ChunkError::BadMagic);
         }
         let version = bytes[7];
-        if version != VERSION && version != VERSION_FIXED {
+        if ![VERSION_FIXED, VERSION, VERSION_ATTITUDE].contains(&version) {
             return Err(ChunkError::Version(version));
         }
         let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes"));
@@ -211,7 +228,7 @@ impl TileChunk {
         if version == VERSION_FIXED {
             chunk.decode_fixed_body(&bytes[HEADER_BYTES..], points)?;
         } else {
-            chunk.decode_body(bytes, points)?;
+            chunk.decode_body(bytes, points, version == VERSION_ATTITUDE)?;
         }
         let n = chunk.len();
         for (index, &neighbour) in chunk.right.iter().chain(chunk.down.iter()).enumerate() {
@@ -222,14 +239,15 @@ impl TileChunk {
         Ok(chunk)
     }
 
-    /// Version 4's columns into this chunk (`bytes` is the whole chunk, for the offsets in
-    /// errors).
-    fn decode_body(&mut self, bytes: &[u8], points: u64) -> Result<(), ChunkError> {
+    /// Version 4's columns (and version 5's attitudes) into this chunk (`bytes` is the whole
+    /// chunk, for the offsets in errors).
+    fn decode_body(&mut self, bytes: &[u8], points: u64, with_attitude: bool) -> Result<(), ChunkError> {
         // Each point takes at least one byte in every column: a count beyond the bytes is corrupt,
         // and found before anything of its size is allocated.
         let body = bytes.len() - HEADER_BYTES;
         if points > body as u64 {
-            let expected = (points as usize).saturating_mul(COLUMNS.len());
+            let columns = if with_attitude { COLUMNS.len() } else { COLUMNS.len() - 3 };
+            let expected = (points as usize).saturating_mul(columns);
             return Err(ChunkError::Length { points, expected, found: body });
         }
         let n = points as usize;
@@ -244,6 +262,9 @@ impl TileChunk {
         self.edge_limit = columns.values(13, n)?.into_iter().map(f32::from_bits).collect();
         self.segment = columns.values(14, n)?;
         self.source = columns.values(15, n)?;
+        if with_attitude {
+            self.attitude = columns.vec3(16, n)?;
+        }
         if columns.at != bytes.len() {
             return Err(ChunkError::Length { points, expected: columns.at - HEADER_BYTES, found: body });
         }
@@ -528,9 +549,15 @@ mod tests {
         let mut c = TileChunk::with_capacity(TileKey { tx: -3, ty: 386_893 }, 7, 2, [549_795.0, 5_803_395.0, 0.0], 2);
         c.push([1.0, 2.0, 3.0], [4.0, -5.0, 6.5], [0.0, 0.0, 1.0], 17, 0.25, 1, NO_NEIGHBOUR, 0.1, 4, 1_000_001);
         c.push([1.5, 2.0, 3.0], [4.0, -5.5, 6.5], [0.0, 0.6, 0.8], 18, 0.75, NO_NEIGHBOUR, 0, 0.2, 4, 1_000_003);
-        for (bytes, version) in [(c.encode(), VERSION), (encode_fixed(&c), VERSION_FIXED)] {
+        let mut with_attitude = c.clone();
+        with_attitude.attitude = vec![[0.01, -0.02, 3.1], [0.011, -0.02, 3.099]];
+        for (chunk, bytes, version) in [
+            (&c, c.encode(), VERSION),
+            (&c, encode_fixed(&c), VERSION_FIXED),
+            (&with_attitude, with_attitude.encode(), VERSION_ATTITUDE),
+        ] {
             assert_eq!(bytes[7], version);
-            assert_eq!(TileChunk::decode(&bytes).unwrap(), c);
+            assert_eq!(&TileChunk::decode(&bytes).unwrap(), chunk);
             assert!(matches!(
                 TileChunk::decode(&bytes[..bytes.len() - 1]),
                 Err(ChunkError::Length { .. } | ChunkError::Column { .. })

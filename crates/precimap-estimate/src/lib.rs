@@ -10,6 +10,7 @@
 
 pub mod anderson;
 pub mod blocks;
+pub mod calibration;
 pub mod chunk;
 pub mod control;
 pub mod field;
@@ -20,6 +21,7 @@ pub mod stats;
 pub mod tile;
 
 pub use blocks::{merge_blocks, AnchorBlock, TrajectoryBlocks};
+pub use calibration::{CalibrationNormals, TileCalibration};
 pub use chunk::TileChunk;
 pub use field::{solve_field, FieldEquations, FieldSolution, FieldTrajectory};
 pub use latent::{LatentMapGrid, LatentSample};

@@ -201,6 +201,20 @@ impl<'a> GeometryCursor<'a> {
     }
 }
 
+impl GeometryCursor<'_> {
+    /// The body attitude at `t` (within the segment of the last [`Self::at`]) as a rotation
+    /// vector: `R_i·Exp(λ·ω_i)`, the interpolation [`Trajectory`] uses.
+    pub fn attitude(&self, t: f64) -> [f64; 3] {
+        use precimap_core::geom::{so3_exp, so3_log};
+        let s = &self.segment;
+        let lambda = ((t - s.t0) / (s.t1 - s.t0)).clamp(0.0, 1.0);
+        let r = precimap_core::Mat3::from_fn(|a, b| s.rotation[a][b]);
+        let step = so3_exp(&Vec3::from(s.omega.map(|w| w * lambda)));
+        let theta = so3_log(&(r * step));
+        [theta.x, theta.y, theta.z]
+    }
+}
+
 /// Everything a strip contributes to estimation, and its segmentation.
 #[derive(Debug)]
 pub struct PreparedStrip {
@@ -569,6 +583,8 @@ struct HeadGeometry {
     head: Vec<[f64; 3]>,
     anchor: Vec<u32>,
     lambda: Vec<f32>,
+    /// Body attitudes (rotation vectors), only for campaigns that estimate the calibration.
+    attitude: Vec<[f32; 3]>,
 }
 
 impl HeadGeometry {
@@ -583,8 +599,13 @@ impl HeadGeometry {
 fn strip_geometry(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<HeadGeometry, PrepareError> {
     let (start, end) = ctx.trajectory_data.time_span();
     let n = samples.len();
-    let mut out =
-        HeadGeometry { head: Vec::with_capacity(n), anchor: Vec::with_capacity(n), lambda: Vec::with_capacity(n) };
+    let with_attitude = !ctx.params.calibration.is_empty();
+    let mut out = HeadGeometry {
+        head: Vec::with_capacity(n),
+        anchor: Vec::with_capacity(n),
+        lambda: Vec::with_capacity(n),
+        attitude: Vec::with_capacity(if with_attitude { n } else { 0 }),
+    };
     let mut previous = f64::NEG_INFINITY;
     let mut cursor = GeometryCursor::new(ctx.trajectory_data, &ctx.lever_arm, ctx.params.anchor_spacing_m);
     for k in 0..samples.len() {
@@ -606,6 +627,9 @@ fn strip_geometry(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<
         out.head.push(g.t0);
         out.anchor.push(g.anchor);
         out.lambda.push(g.lambda);
+        if with_attitude {
+            out.attitude.push(cursor.attitude(t).map(|v| v as f32));
+        }
     }
     Ok(out)
 }
@@ -858,6 +882,9 @@ fn emit_tiles(
                     segment[k],
                     g,
                 );
+                if let Some(a) = geometry.attitude.get(k) {
+                    chunk.attitude.push(*a);
+                }
             }
             for &g in &globals {
                 local[g as usize] = NO_NEIGHBOUR;

@@ -4,6 +4,7 @@
 //! Gauss–Newton system exactly in linear time.
 
 use crate::blocks::{sym_index, AnchorBlock};
+use crate::calibration::{CalibrationNormals, CalibrationShare};
 use precimap_core::corrections::{AnchorCovariance, ChangeHistogram, TrajectoryCorrections};
 use precimap_core::Parameters;
 use precimap_solve::{BlockTridiagonal, Mat6, Vec6};
@@ -28,6 +29,11 @@ pub struct TrajectorySolution {
     /// given the latent map this iteration held fixed, so it says how well the pass fits the
     /// map, not how far the map itself is from the truth.
     pub covariance: Option<Vec<AnchorCovariance>>,
+    /// The trajectory's share of the joint solve with the scanners' calibration, where the
+    /// campaign estimates it: its corrections above are those of an unchanged calibration, and
+    /// [`CalibrationShare::apply`] moves them by the calibration's step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationShare>,
 }
 
 /// Nominal range at which a rotation change is expressed as a displacement.
@@ -50,7 +56,7 @@ const ROTATION_SCALE_M: f64 = 10.0;
 ///
 /// Only the first `dims` unknowns (3: translation, when the step holds rotation fixed) are
 /// considered; the others keep their data terms.
-fn filter_weak_directions(sys: &mut BlockTridiagonal, dims: usize, ratio: f64) {
+fn filter_weak_directions(sys: &mut BlockTridiagonal, dims: usize, ratio: f64, extra: &mut [Vec<Vec6>]) {
     let n = sys.len();
     let t = Vec6::new(1.0, 1.0, 1.0, 1.0 / ROTATION_SCALE_M, 1.0 / ROTATION_SCALE_M, 1.0 / ROTATION_SCALE_M);
     let projections: Vec<Option<Mat6>> = (0..n)
@@ -81,6 +87,9 @@ fn filter_weak_directions(sys: &mut BlockTridiagonal, dims: usize, ratio: f64) {
         if let Some(r) = &projections[k] {
             sys.diag[k] = r.transpose() * sys.diag[k] * r;
             sys.rhs[k] = r.transpose() * sys.rhs[k];
+            for column in extra.iter_mut() {
+                column[k] = r.transpose() * column[k];
+            }
         }
         if k + 1 < n && (projections[k].is_some() || projections[k + 1].is_some()) {
             let left = projections[k].unwrap_or_else(Mat6::identity);
@@ -161,7 +170,8 @@ fn solve_pairs(
     sys: &BlockTridiagonal,
     skip: &[Mat6],
     with_sigma: bool,
-) -> Result<(Vec<Vec6>, Option<Vec<Mat6>>), precimap_solve::SolveError> {
+    extra: &[Vec<Vec6>],
+) -> Result<(Vec<Vec6>, Option<Vec<Mat6>>, Vec<Vec<Vec6>>), precimap_solve::SolveError> {
     let n = sys.len();
     let m = n.div_ceil(2);
     let block = |i: usize, j: usize| -> Mat6 {
@@ -205,17 +215,29 @@ fn solve_pairs(
             upper.push(u);
         }
     }
-    let (x, cov) = precimap_solve::generic::solve_blocks(&diag, &upper, &rhs, with_sigma)?;
-    let mut delta = Vec::with_capacity(n);
-    let mut sigma = with_sigma.then(|| Vec::with_capacity(n));
-    for i in 0..n {
-        let (j, o) = (i / 2, (i % 2) * 6);
-        delta.push(Vec6::from_iterator(x[j].rows(o, 6).iter().copied()));
-        if let (Some(s), Some(c)) = (sigma.as_mut(), cov.as_ref()) {
-            s.push(Mat6::from_fn(|r, k| c[j][(o + r, o + k)]));
-        }
+    let factor = precimap_solve::generic::BlocksLdlt::factor(&diag, &upper)?;
+    let x = factor.solve(&rhs)?;
+    let cov = with_sigma.then(|| factor.marginal_covariances());
+    let unpair = |x: &[Vec12]| -> Vec<Vec6> {
+        (0..n).map(|i| Vec6::from_iterator(x[i / 2].rows((i % 2) * 6, 6).iter().copied())).collect()
+    };
+    let delta = unpair(&x);
+    let sigma = cov.map(|c| (0..n).map(|i| Mat6::from_fn(|r, k| c[i / 2][((i % 2) * 6 + r, (i % 2) * 6 + k)])).collect());
+    let mut solved = Vec::with_capacity(extra.len());
+    for column in extra {
+        let paired: Vec<Vec12> = (0..m)
+            .map(|j| {
+                let mut r = Vec12::zeros();
+                r.rows_mut(0, 6).copy_from(&column[2 * j]);
+                if 2 * j + 1 < n {
+                    r.rows_mut(6, 6).copy_from(&column[2 * j + 1]);
+                }
+                r
+            })
+            .collect();
+        solved.push(unpair(&factor.solve(&paired)?));
     }
-    Ok((delta, sigma))
+    Ok((delta, sigma, solved))
 }
 
 fn sym_to_mat(s: &[f64; 21]) -> Mat6 {
@@ -374,6 +396,10 @@ pub fn campaign_prior_weights(params: &Parameters) -> [f64; 6] {
 ///
 /// `prior[k]` (weights as [`campaign_prior_weights`]) is anchor `current.first_anchor + k`'s
 /// prior; `None`, or an anchor beyond the slice, takes the campaign's.
+///
+/// With `calibration` (the calibration's normal equations this trajectory's observations
+/// summed, in steps that estimate it) the blocks' cross terms are solved for as well and the
+/// solution carries the trajectory's [`CalibrationShare`].
 #[allow(clippy::too_many_arguments)]
 pub fn solve_trajectory<'a>(
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
@@ -384,12 +410,16 @@ pub fn solve_trajectory<'a>(
     prior: Option<&[[f64; 6]]>,
     estimate_rotation: bool,
     with_sigma: bool,
+    calibration: Option<&CalibrationNormals>,
 ) -> Result<TrajectorySolution, precimap_solve::SolveError> {
     let n = current.values.len();
     let first = current.first_anchor;
     let mut sys = BlockTridiagonal::zeros(n);
     let mut observed = vec![false; n];
     let mut observations = 0u64;
+    // The cross terms `H_xc`, one column of right-hand sides per calibration unknown.
+    let unknowns = calibration.map_or(0, CalibrationNormals::len);
+    let mut cross = vec![vec![Vec6::zeros(); n]; unknowns];
     for b in blocks {
         // Blocks outside the range cannot occur for a consistent campaign; clamping keeps the
         // system well-formed if they do (e.g. a point exactly at the last anchor).
@@ -401,12 +431,19 @@ pub fn solve_trajectory<'a>(
         for a in 0..6 {
             sys.rhs[k][a] += b.rhs[a];
         }
+        if b.cross.len() == 6 * unknowns {
+            for (j, column) in cross.iter_mut().enumerate() {
+                for a in 0..6 {
+                    column[k][a] += b.cross[a * unknowns + j];
+                }
+            }
+        }
         if b.observations > 0 {
             observed[k] = true;
             observations += b.observations as u64;
         }
     }
-    filter_weak_directions(&mut sys, if estimate_rotation { 6 } else { 3 }, params.weak_information_ratio);
+    filter_weak_directions(&mut sys, if estimate_rotation { 6 } else { 3 }, params.weak_information_ratio, &mut cross);
     let (campaign_prior, smooth) = weights(params);
     let x = |k: usize| Vec6::from_column_slice(&current.values[k]);
     for k in 0..n {
@@ -427,27 +464,30 @@ pub fn solve_trajectory<'a>(
             }
         }
     }
+    if !estimate_rotation {
+        // Rotations frozen: so are their couplings with the calibration.
+        cross.iter_mut().flatten().for_each(|v| v.fixed_rows_mut::<3>(3).fill(0.0));
+    }
     let curvature = curvature_weights(params);
-    let (delta, marginals) = match curvature {
+    let (delta, marginals, solved) = match curvature {
         None => {
             if !estimate_rotation {
                 freeze_rotation(&mut sys, None);
             }
-            if with_sigma {
-                let (d, cov) = precimap_solve::solve_with_covariance(&sys)?;
-                (d, Some(cov))
-            } else {
-                (precimap_solve::solve(&sys)?, None)
-            }
+            let factor = precimap_solve::BlockLdlt::factor(&sys)?;
+            let d = factor.solve(&sys.rhs)?;
+            let solved = cross.iter().map(|c| factor.solve(c)).collect::<Result<Vec<_>, _>>()?;
+            (d, with_sigma.then(|| factor.marginal_covariances()), solved)
         }
         Some(weight) => {
             let mut skip = add_curvature(&mut sys, &current.values, &weight);
             if !estimate_rotation {
                 freeze_rotation(&mut sys, Some(&mut skip));
             }
-            solve_pairs(&sys, &skip, with_sigma)?
+            solve_pairs(&sys, &skip, with_sigma, &cross)?
         }
     };
+    let calibration = calibration.map(|normals| CalibrationShare::new(normals.clone(), first, &cross, &solved, &delta));
     let covariance = marginals.map(|cov| cov.iter().map(|c| AnchorCovariance::from_fn(|a, b| c[(a, b)])).collect());
     let beta = if previous.is_some() { params.momentum } else { 0.0 };
     let values: Vec<[f64; 6]> = current
@@ -475,7 +515,19 @@ pub fn solve_trajectory<'a>(
         anchors_observed: observed.iter().filter(|&&o| o).count() as u32,
         observations,
         covariance,
+        calibration,
     })
+}
+
+/// Moves a solution by the calibration's step `delta` (its share's `−Y·δc`) and measures its
+/// change again from `change_from` (as [`solve_trajectory`] did).
+pub fn apply_calibration_step(solution: &mut TrajectorySolution, delta: &[f64], change_from: &TrajectoryCorrections) {
+    let Some(share) = &solution.calibration else { return };
+    share.apply(delta, &mut solution.corrections.values);
+    let changes = solution.corrections.changes(change_from, CHANGE_RANGE_M);
+    solution.max_change_m = changes.max_m;
+    solution.max_change_anchor = changes.max_anchor;
+    solution.change_histogram = changes.histogram;
 }
 
 #[cfg(test)]
@@ -530,7 +582,7 @@ mod tests {
             let chol = dense.cholesky().expect("SPD");
             let exact = chol.solve(&b);
             let inverse = chol.inverse();
-            let (x, cov) = solve_pairs(&sys, &skip, true).unwrap();
+            let (x, cov, _) = solve_pairs(&sys, &skip, true, &[]).unwrap();
             let cov = cov.unwrap();
             for i in 0..n {
                 for a in 0..6 {
@@ -549,7 +601,7 @@ mod tests {
         let current = TrajectoryCorrections { first_anchor: 7, values: vec![[0.0; 6]] };
         let sigma = |params: &Parameters| {
             let solution =
-                solve_trajectory(std::iter::empty(), &current, None, None, params, None, true, true).unwrap();
+                solve_trajectory(std::iter::empty(), &current, None, None, params, None, true, true, None).unwrap();
             solution.covariance.unwrap()[0].sigma()
         };
         let tilt = 0.02f64.to_radians();
@@ -572,9 +624,9 @@ mod tests {
         let current =
             TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
         let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
-        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false).unwrap();
+        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false, None).unwrap();
         let carried =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false, None).unwrap();
         for k in 0..n {
             for a in 0..6 {
                 let expected = plain.corrections.values[k][a] + 0.5 * (current.values[k][a] - previous.values[k][a]);
@@ -582,7 +634,7 @@ mod tests {
             }
         }
         let frozen =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false, None).unwrap();
         for k in 0..n {
             assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
             assert!((frozen.corrections.values[k][0] - plain.corrections.values[k][0] - 0.005).abs() < 1e-9);
@@ -633,7 +685,7 @@ mod tests {
                 .collect();
             let current = TrajectoryCorrections::zeros(range.0, range.1);
             let solved =
-                solve_trajectory(&blocks, &current, None, None, params, None, true, false).unwrap().corrections;
+                solve_trajectory(&blocks, &current, None, None, params, None, true, false, None).unwrap().corrections;
             for (k, (e, s)) in extended.values.iter().zip(&solved.values).enumerate() {
                 for a in 0..6 {
                     let scale = if a < 3 { 1e-6 } else { 1e-9 };
@@ -684,7 +736,7 @@ mod tests {
             })
             .collect();
         let solve = |prior: Option<&[[f64; 6]]>| {
-            solve_trajectory(blocks.iter(), &current, None, None, &params, prior, true, true).unwrap()
+            solve_trajectory(blocks.iter(), &current, None, None, &params, prior, true, true, None).unwrap()
         };
         let plain = solve(None);
         let campaign = vec![campaign_prior_weights(&params); 41];
@@ -720,9 +772,133 @@ mod tests {
         kinked[4][0] += 0.05;
         let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
         let sol_kinked =
-            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false).unwrap();
+            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false, None).unwrap();
         let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
         assert!(second(&current_kinked.values, 4).abs() > 0.09);
         assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");
+    }
+
+    /// The joint solve of two trajectories with shared calibration unknowns — each trajectory's
+    /// share, the calibration's Schur step and the shares moved by it — equals a dense solve of
+    /// the whole bordered system, prior, smoothness and curvature included.
+    #[test]
+    fn joint_calibration_solve_matches_the_dense_bordered_system() {
+        use crate::calibration::{solve_calibration, CalibrationNormals};
+        use precimap_core::{CalibrationOptions, CalibrationUnknown};
+        let mut seed = 11u64;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let options = CalibrationOptions {
+            estimate: vec![CalibrationUnknown::Boresight],
+            tolerance_boresight_deg: 1e9,
+            ..Default::default()
+        };
+        let layout = options.layout(1);
+        let k = layout.len();
+        let params = Parameters { weak_information_ratio: 0.0, ..Default::default() };
+        let n = 5;
+        let mut trajectories = Vec::new();
+        for t in 0..2 {
+            let mut blocks: Vec<AnchorBlock> = (0..n as u32).map(AnchorBlock::new).collect();
+            let mut normals = CalibrationNormals::zeros(k);
+            for b in &mut blocks {
+                b.cross = vec![0.0; 6 * k];
+            }
+            for i in 0..n - 1 {
+                for _ in 0..12 {
+                    let g: [f64; 6] = std::array::from_fn(|a| rand() * if a < 3 { 1.0 } else { 10.0 });
+                    let gc: Vec<f64> = (0..k).map(|_| rand() * 10.0).collect();
+                    let (l, e, w) = (rand() + 0.5, rand() * 0.01, 1e3 * (1.0 + t as f64));
+                    for a in 0..6 {
+                        for c in a..6 {
+                            let q = w * g[a] * g[c];
+                            blocks[i].diag[sym_index(a, c)] += (1.0 - l) * (1.0 - l) * q;
+                            blocks[i].next[sym_index(a, c)] += l * (1.0 - l) * q;
+                            blocks[i + 1].diag[sym_index(a, c)] += l * l * q;
+                        }
+                        blocks[i].rhs[a] -= w * (1.0 - l) * g[a] * e;
+                        blocks[i + 1].rhs[a] -= w * l * g[a] * e;
+                        for j in 0..k {
+                            blocks[i].cross[a * k + j] += w * (1.0 - l) * g[a] * gc[j];
+                            blocks[i + 1].cross[a * k + j] += w * l * g[a] * gc[j];
+                        }
+                    }
+                    normals.add_observation(0, &gc, w * e, w);
+                }
+            }
+            trajectories.push((blocks, normals));
+        }
+        let current = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; n] };
+        let solve = |blocks: &[AnchorBlock], normals: Option<&CalibrationNormals>| {
+            solve_trajectory(blocks, &current, None, None, &params, None, true, false, normals).unwrap()
+        };
+        let mut solutions: Vec<_> = trajectories.iter().map(|(b, c)| solve(b, Some(c))).collect();
+        let step = solve_calibration(
+            solutions.iter().map(|s| s.calibration.as_ref().unwrap()),
+            &vec![0.0; k],
+            &layout,
+            &options,
+        )
+        .unwrap();
+        assert!(step.determined.iter().all(|&d| d));
+        for s in &mut solutions {
+            apply_calibration_step(s, &step.delta, &current);
+        }
+        // The dense reference: each trajectory's matrix from its solves of unit right-hand sides.
+        let m = 6 * n;
+        let total = 2 * m + k;
+        let mut dense = DMatrix::<f64>::zeros(total, total);
+        let mut rhs = DVector::<f64>::zeros(total);
+        for (t, (blocks, normals)) in trajectories.iter().enumerate() {
+            let mut inverse = DMatrix::<f64>::zeros(m, m);
+            for col in 0..m {
+                let mut probe: Vec<AnchorBlock> = blocks
+                    .iter()
+                    .map(|b| AnchorBlock { rhs: [0.0; 6], cross: Vec::new(), ..b.clone() })
+                    .collect();
+                probe[col / 6].rhs[col % 6] = 1.0;
+                let x = solve(&probe, None).corrections.values;
+                for row in 0..m {
+                    inverse[(row, col)] = x[row / 6][row % 6];
+                }
+            }
+            let h = inverse.try_inverse().unwrap();
+            dense.view_mut((t * m, t * m), (m, m)).copy_from(&h);
+            for (a, b) in blocks.iter().enumerate() {
+                for r in 0..6 {
+                    rhs[t * m + a * 6 + r] = b.rhs[r];
+                    for j in 0..k {
+                        dense[(t * m + a * 6 + r, 2 * m + j)] = b.cross[r * k + j];
+                        dense[(2 * m + j, t * m + a * 6 + r)] = b.cross[r * k + j];
+                    }
+                }
+            }
+            for i in 0..k {
+                rhs[2 * m + i] += normals.b[i];
+                for j in 0..k {
+                    dense[(2 * m + i, 2 * m + j)] += normals.h[i * k + j];
+                }
+            }
+        }
+        let prior = 1.0 / options.prior_boresight_deg.to_radians().powi(2);
+        for i in 0..k {
+            dense[(2 * m + i, 2 * m + i)] += prior;
+        }
+        let exact = dense.lu().solve(&rhs).unwrap();
+        for i in 0..k {
+            let want = exact[2 * m + i];
+            assert!((step.delta[i] - want).abs() < 1e-9 * want.abs().max(1e-6), "unknown {i}: {} against {want}", step.delta[i]);
+        }
+        for (t, s) in solutions.iter().enumerate() {
+            for a in 0..n {
+                for r in 0..6 {
+                    let want = exact[t * m + a * 6 + r];
+                    let got = s.corrections.values[a][r];
+                    assert!((got - want).abs() < 1e-9 * want.abs().max(1e-6), "trajectory {t} anchor {a}: {got} against {want}");
+                }
+            }
+        }
     }
 }

@@ -24,6 +24,7 @@
 //!    common-mode field minimises and both levels share one fixed point.
 
 use crate::blocks::TrajectoryBlocks;
+use crate::calibration::TileCalibration;
 use crate::chunk::TileChunk;
 use crate::field::{FieldAccumulator, FieldEquations};
 use crate::latent::{LatentMapGrid, LatentRecord, LatentSink};
@@ -58,6 +59,10 @@ pub enum EstimateError {
     WrongTile { strip: u32, expected: TileKey, found: TileKey },
     #[error("chunk of strip {strip} names trajectory {trajectory}, but only {known} trajectories have corrections")]
     UnknownTrajectory { strip: u32, trajectory: u32, known: usize },
+    #[error("chunk of strip {strip} has no scanner in the calibration ({known} strips known)")]
+    UnknownScanner { strip: u32, known: usize },
+    #[error("chunk of strip {strip} carries no body attitudes, which estimating the calibration needs: prepare the strips again with the calibration switched on")]
+    NoAttitude { strip: u32 },
 }
 
 /// What one tile emits: normal-equation blocks per trajectory and statistics.
@@ -136,7 +141,7 @@ pub fn estimate_tile(
     step: &IterationStep,
     control: &[ControlTarget],
 ) -> Result<TileEstimate, EstimateError> {
-    estimate_tile_recording(tile, chunks, corrections, params, step, control, None, LatentGather::default())
+    estimate_tile_recording(tile, chunks, corrections, params, step, control, None, None, LatentGather::default())
 }
 
 /// A point of a tile's core that became an observation: its strip, its index in the strip file
@@ -161,7 +166,9 @@ pub struct LatentGather {
 /// [`estimate_tile`], also appending to `used` every point that became an observation (what the
 /// assignment audit compares with the simulator's true surfaces) and gathering what `gather`
 /// asks of the latent map. `control` holds the control and check targets that can reach the
-/// tile ([`crate::control::reaches_tile`]).
+/// tile ([`crate::control::reaches_tile`]); `calibration`, where the campaign estimates the
+/// scanners' mounting, its current values (applied to the points) and layout (the blocks then
+/// carry the calibration's terms).
 #[allow(clippy::too_many_arguments)]
 pub fn estimate_tile_recording(
     tile: TileKey,
@@ -170,38 +177,46 @@ pub fn estimate_tile_recording(
     params: &Parameters,
     step: &IterationStep,
     control: &[ControlTarget],
+    calibration: Option<&TileCalibration>,
     used: Option<&mut Vec<UsedPoint>>,
     gather: LatentGather,
 ) -> Result<TileEstimate, EstimateError> {
     let map = gather.map && params.latent_map_grid_m > 0.0;
+    let inputs = TileInputs { tile, chunks, corrections, params, step, control, calibration };
     if !(gather.std_map || map) {
-        return estimate_tile_into(tile, chunks, corrections, params, step, control, used, &mut ());
+        return estimate_tile_into(&inputs, used, &mut ());
     }
     let mut record = LatentRecord {
         std: gather.std_map.then(|| LatentStdMap::new(params.tile_size_m)),
         map: map.then(|| LatentMapGrid::new(params.latent_map_grid_m, step.threshold_m)),
     };
-    let estimate = estimate_tile_into(tile, chunks, corrections, params, step, control, used, &mut record)?;
+    let estimate = estimate_tile_into(&inputs, used, &mut record)?;
     let (ox, oy) = tile.origin(params.tile_size_m);
     Ok(TileEstimate { latent_std: record.std, latent_map: record.map.map(|g| g.finish([ox, oy])), ..estimate })
 }
 
-#[allow(clippy::too_many_arguments)]
-fn estimate_tile_into<S: LatentSink>(
+/// What one tile's map task reads.
+struct TileInputs<'a> {
     tile: TileKey,
-    chunks: &[TileChunk],
-    corrections: &[TrajectoryCorrections],
-    params: &Parameters,
-    step: &IterationStep,
-    control: &[ControlTarget],
+    chunks: &'a [TileChunk],
+    corrections: &'a [TrajectoryCorrections],
+    params: &'a Parameters,
+    step: &'a IterationStep,
+    control: &'a [ControlTarget],
+    calibration: Option<&'a TileCalibration<'a>>,
+}
+
+fn estimate_tile_into<S: LatentSink>(
+    inputs: &TileInputs,
     used: Option<&mut Vec<UsedPoint>>,
     sink: &mut S,
 ) -> Result<TileEstimate, EstimateError> {
-    check_chunks(tile, chunks, corrections)?;
+    let TileInputs { tile, chunks, corrections, params, step, control, calibration } = *inputs;
+    check_chunks(tile, chunks, corrections, calibration)?;
     let cos_group = params.normal_group_angle_deg.to_radians().cos();
     // 1. Every point corrected and sorted into a patch, the patches joined into surface models.
     let CorrectedPoints { position, measurement, vehicle, patch_of, patches } =
-        correct_points(tile, chunks, corrections, params, step, cos_group);
+        correct_points(tile, chunks, corrections, params, step, cos_group, calibration);
     let (models, model_of) = join_into_models(&patches, &patch_of, params, step, cos_group);
     drop((patch_of, patches));
     let triangles = Triangles {
@@ -235,6 +250,8 @@ fn estimate_tile_into<S: LatentSink>(
         weight: 1.0 / (params.sigma_distance_m * params.sigma_distance_m),
         threshold: step.threshold_m,
         control: &control,
+        // The calibration is estimated with the attitude, in the steps that estimate it.
+        calibration: calibration.filter(|_| step.rotation),
     };
     let blocks = observe_points(&observations, &in_core, pulls.as_mut(), field.as_mut(), &mut stats, used);
     Ok(TileEstimate {
@@ -247,11 +264,13 @@ fn estimate_tile_into<S: LatentSink>(
     })
 }
 
-/// Every chunk in `tile`, and every chunk's trajectory among `corrections`.
+/// Every chunk in `tile`, every chunk's trajectory among `corrections`, and with a calibration
+/// every chunk's strip with a scanner and its points with attitudes.
 fn check_chunks(
     tile: TileKey,
     chunks: &[TileChunk],
     corrections: &[TrajectoryCorrections],
+    calibration: Option<&TileCalibration>,
 ) -> Result<(), EstimateError> {
     for c in chunks {
         if c.tile != tile {
@@ -263,6 +282,14 @@ fn check_chunks(
                 trajectory: c.trajectory,
                 known: corrections.len(),
             });
+        }
+        if let Some(calibration) = calibration {
+            if calibration.of_strip(c.strip).is_none() {
+                return Err(EstimateError::UnknownScanner { strip: c.strip, known: calibration.scanner_of_strip.len() });
+            }
+            if c.attitude.len() != c.len() {
+                return Err(EstimateError::NoAttitude { strip: c.strip });
+            }
         }
     }
     Ok(())

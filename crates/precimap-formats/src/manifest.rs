@@ -544,8 +544,19 @@ impl Checker {
         // Optional fields absent from the defaults' JSON; their values are checked by parsing.
         if let Some(t) = template.as_object_mut() {
             t.entry("ring").or_insert(Value::Null);
+            // Checked on its own below: its fields are all optional.
+            t.entry("calibration").or_insert(Value::Null);
         }
         self.like("$.parameters", v, &template, false);
+        if let Some(calibration) = v.get("calibration") {
+            let options = precimap_core::CalibrationOptions {
+                estimate: vec![precimap_core::CalibrationUnknown::Boresight],
+                ..Default::default()
+            };
+            if let Ok(t) = serde_json::to_value(options) {
+                self.like("$.parameters.calibration", calibration, &t, false);
+            }
+        }
         if self.problems.len() > before {
             return;
         }

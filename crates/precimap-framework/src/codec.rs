@@ -133,7 +133,7 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
         let diag = r.f64s::<21>()?;
         let next = r.f64s::<21>()?;
         let rhs = r.f64s::<6>()?;
-        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations });
+        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations, cross: Vec::new() });
     }
     r.finish()?;
     Ok(blocks)

@@ -362,6 +362,7 @@ fn strip_entry(s: &StripInput, path: &Path) -> Result<StripEntry, TaskError> {
         path: path.to_path_buf(),
         trajectory: s.trajectory,
         lever_arm: Vec3::from(s.lever_arm),
+        scanner: 0,
         georef: georeference(s.field.as_ref())?,
     })
 }

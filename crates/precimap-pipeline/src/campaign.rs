@@ -36,6 +36,8 @@ pub struct StripEntry {
     pub path: PathBuf,
     pub trajectory: u32,
     pub lever_arm: Vec3,
+    /// The index of its scanner among [`Campaign::scanners`].
+    pub scanner: u32,
     /// The processing frame and the strip files' CRS of a field campaign.
     pub georef: Option<Arc<Georeference>>,
 }
@@ -49,6 +51,20 @@ pub struct Campaign {
     pub strips: Vec<StripEntry>,
     /// Surveyed control and check targets in the processing frame.
     pub control: Vec<ControlTarget>,
+    /// The scanners the strips use, by name (the calibration's order).
+    pub scanners: Vec<String>,
+}
+
+impl Campaign {
+    /// The layout of the calibration unknowns the parameters ask for.
+    pub fn calibration_layout(&self) -> precimap_core::CalibrationLayout {
+        self.params.calibration.layout(self.scanners.len())
+    }
+
+    /// Each strip's scanner index (the map tile tasks take).
+    pub fn scanner_of_strip(&self) -> Vec<u32> {
+        self.strips.iter().map(|s| s.scanner).collect()
+    }
 }
 
 /// The georeference of a manifest with `$.crs`.
@@ -84,12 +100,14 @@ pub fn control_targets(manifest: &Manifest) -> Result<Vec<ControlTarget>, Pipeli
         .collect()
 }
 
-/// A strip's references followed: the index of the trajectory it was recorded on and the lever
-/// arm of the scanner that recorded it.
+/// A strip's references followed: the index of the trajectory it was recorded on, and the lever
+/// arm and index of the scanner that recorded it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ResolvedStrip {
     pub trajectory: u32,
     pub lever_arm: [f64; 3],
+    /// Index into [`ResolvedManifest::scanners`].
+    pub scanner: u32,
 }
 
 /// What a manifest says once its references are followed, without reading any file: the part of
@@ -105,6 +123,8 @@ pub struct ResolvedManifest {
     pub mean_lever_arms: Vec<[f64; 3]>,
     /// Surveyed control and check targets in the processing frame ([`control_targets`]).
     pub control: Vec<ControlTarget>,
+    /// The scanners at least one strip uses, by name in the manifest's (sorted) order.
+    pub scanners: Vec<String>,
 }
 
 impl ResolvedManifest {
@@ -113,6 +133,12 @@ impl ResolvedManifest {
     /// processing CRS.
     pub fn new(manifest: &Manifest) -> Result<Self, PipelineError> {
         let mut lever_sums = vec![([0.0f64; 3], 0usize); manifest.trajectories.len()];
+        let scanners: Vec<String> = manifest
+            .scanners
+            .keys()
+            .filter(|name| manifest.strips.iter().any(|s| &s.scanner == *name))
+            .cloned()
+            .collect();
         let mut strips = Vec::with_capacity(manifest.strips.len());
         for s in &manifest.strips {
             let trajectory = manifest.trajectories.iter().position(|t| t.id == s.trajectory).ok_or_else(|| {
@@ -131,11 +157,12 @@ impl ResolvedManifest {
                 sum.0[k] += lever_arm[k];
             }
             sum.1 += 1;
-            strips.push(ResolvedStrip { trajectory: trajectory as u32, lever_arm });
+            let scanner_index = scanners.iter().position(|n| n == &s.scanner).unwrap_or_default() as u32;
+            strips.push(ResolvedStrip { trajectory: trajectory as u32, lever_arm, scanner: scanner_index });
         }
         let mean_lever_arms =
             lever_sums.into_iter().map(|(sum, n)| if n > 0 { sum.map(|v| v / n as f64) } else { [0.0; 3] }).collect();
-        Ok(Self { strips, mean_lever_arms, control: control_targets(manifest)? })
+        Ok(Self { strips, mean_lever_arms, control: control_targets(manifest)?, scanners })
     }
 }
 
@@ -202,6 +229,7 @@ impl Campaign {
                 path,
                 trajectory: r.trajectory,
                 lever_arm: Vec3::from(r.lever_arm),
+                scanner: r.scanner,
                 georef: georef.clone(),
             })
             .collect();
@@ -212,6 +240,7 @@ impl Campaign {
             trajectories,
             strips,
             control: resolved.control,
+            scanners: resolved.scanners,
         })
     }
 }

@@ -3,6 +3,7 @@
 //! on the paper's schedule, export corrected strips and trajectories and `report.json`.
 //! The task functions in [`tasks`] are the units a job framework invokes one at a time.
 
+pub mod calibration;
 pub mod campaign;
 pub mod control_report;
 pub mod error;

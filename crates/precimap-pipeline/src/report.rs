@@ -19,6 +19,9 @@ pub struct Report {
     /// How ground control fixes the map, and the offsets at control and check targets.
     #[serde(default)]
     pub control: crate::control_report::ControlReport,
+    /// The scanners' mounting calibration, where the campaign estimates it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::calibration::CalibrationReport>,
     pub timings: Timings,
 }
 

@@ -2,6 +2,7 @@
 //! on the schedule, export. Parallel with rayon; deterministic (results are combined in a fixed
 //! order, independent of the thread count).
 
+use crate::calibration::CalibrationState;
 use crate::campaign::Campaign;
 use crate::control_report::ControlReport;
 use crate::error::PipelineError;
@@ -13,7 +14,7 @@ use crate::tasks::{
 use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::TileKey;
 use precimap_estimate::anderson::AndersonHistory;
-use precimap_estimate::{solve_field, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
+use precimap_estimate::{solve_field, CalibrationNormals, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -153,15 +154,20 @@ pub fn iterate(
     previous: Option<&[TrajectoryCorrections]>,
     step: &precimap_core::IterationStep,
     place: Place,
+    mut calibration: Option<&mut CalibrationState>,
 ) -> Result<Iterated, PipelineError> {
     let latent = place.latent_gather();
+    let tile_calibration = calibration.as_deref().map(CalibrationState::tile);
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
     let mut estimates = tiles
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
             let mut estimate =
-                estimate_tile_task(work, **tile, &ids, corrections, campaign, step, Gather { used: None, latent })?;
+                estimate_tile_task(work, **tile, &ids, corrections, campaign, step, tile_calibration.as_ref(), Gather {
+                    used: None,
+                    latent,
+                })?;
             // Written as each tile finishes, so the map never has to fit in memory whole.
             if let Some(points) = estimate.latent_map.take() {
                 let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
@@ -172,11 +178,23 @@ pub fn iterate(
         .collect::<Result<Vec<_>, _>>()?;
     let mut stats = TileStats::new(TileKey { tx: 0, ty: 0 });
     let mut per_trajectory: Vec<Vec<&precimap_estimate::AnchorBlock>> = vec![Vec::new(); corrections.len()];
+    let mut calibration_normals: Vec<Option<CalibrationNormals>> = vec![None; corrections.len()];
     let latent_std: Vec<_> = estimates.iter_mut().filter_map(|e| Some((e.tile, e.latent_std.take()?))).collect();
     for e in &estimates {
         stats.merge(&e.stats);
         for tb in &e.blocks {
             per_trajectory[tb.trajectory as usize].extend(tb.blocks.iter());
+            if let Some(normals) = &tb.calibration {
+                calibration_normals[tb.trajectory as usize].get_or_insert_with(CalibrationNormals::default).add(normals);
+            }
+        }
+    }
+    // The calibration is solved in the steps that estimate the attitude, with every trajectory
+    // (one without observations of its own brings an empty share).
+    let unknowns = calibration.as_deref().map_or(0, |c| c.layout.len());
+    if unknowns > 0 && step.rotation {
+        for n in &mut calibration_normals {
+            n.get_or_insert_with(|| CalibrationNormals::zeros(unknowns));
         }
     }
     let mut field = None;
@@ -211,7 +229,7 @@ pub fn iterate(
         }
         field = Some(solved);
     }
-    let solutions = per_trajectory
+    let mut solutions = per_trajectory
         .par_iter()
         .enumerate()
         .map(|(t, blocks)| {
@@ -228,9 +246,13 @@ pub fn iterate(
                 prepared.anchor_priors[t].as_deref(),
                 step,
                 place.last,
+                calibration_normals[t].as_ref(),
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
+    if let Some(calibration) = calibration.as_deref_mut() {
+        calibration.step(&mut solutions, corrections)?;
+    }
     Ok(Iterated { solutions, stats, field, started_from, latent_std })
 }
 
@@ -283,6 +305,7 @@ fn run_campaign_in(
     // The corrections before the last iteration and that iteration's step (for momentum).
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     let mut anderson = AndersonHistory::default();
+    let mut calibration = CalibrationState::new(&campaign);
     // The coefficients that made the next iteration's start (its report names them).
     let mut anderson_coefficients = Vec::new();
     // An iteration's clock starts where the previous one's stopped, so that the Anderson
@@ -297,7 +320,7 @@ fn run_campaign_in(
         // schedule's last step (early convergence jumps to it).
         let first = iterations.is_empty();
         let Iterated { solutions: sol, stats, field, started_from, latent_std } =
-            iterate(&campaign, &work, &prepared, &corrections, before, step, Place { first, last })?;
+            iterate(&campaign, &work, &prepared, &corrections, before, step, Place { first, last }, calibration.as_mut())?;
         if first {
             first_latent_std = latent_std.clone();
         }
@@ -361,11 +384,11 @@ fn run_campaign_in(
     let estimate_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    export_all(&campaign, &corrections, &solutions, out, progress)?;
+    export_all(&campaign, &corrections, &solutions, calibration.as_ref(), out, progress)?;
     let export_s = t.elapsed().as_secs_f64();
     if options.assignments {
         let step = effective_step(&campaign.params, schedule.len() - 1, robust_sigma);
-        write_assignments(&campaign, &work, &prepared, &corrections, &step, out)?;
+        write_assignments(&campaign, &work, &prepared, &corrections, &step, calibration.as_ref(), out)?;
     }
     move_results_out_of_work(&work, out, options.keep_work)?;
 
@@ -382,6 +405,7 @@ fn run_campaign_in(
         trajectories,
         residual_histogram: histogram,
         control: ControlReport::new(&campaign.control, &control_sums),
+        calibration: calibration.as_ref().map(|c| c.report(&campaign.scanners)),
         timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64(), task_s: None },
     };
     let path = out.join("report.json");
@@ -400,13 +424,16 @@ fn export_all(
     campaign: &Campaign,
     corrections: &[TrajectoryCorrections],
     solutions: &[precimap_estimate::TrajectorySolution],
+    calibration: Option<&CalibrationState>,
     out: &Path,
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<(), PipelineError> {
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = campaign.strips.len();
     (0..total).into_par_iter().try_for_each(|s| -> Result<(), PipelineError> {
-        export_strip_task(campaign, s, &corrections[campaign.strips[s].trajectory as usize], out)?;
+        let strip = &campaign.strips[s];
+        let mounting = calibration.and_then(|c| c.scanners.get(strip.scanner as usize));
+        export_strip_task(campaign, s, &corrections[strip.trajectory as usize], mounting, out)?;
         let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         progress(Progress::Exported { done: d, total });
         Ok(())
@@ -449,9 +476,11 @@ fn write_assignments(
     prepared: &Prepared,
     corrections: &[TrajectoryCorrections],
     step: &precimap_core::IterationStep,
+    calibration: Option<&CalibrationState>,
     out: &Path,
 ) -> Result<(), PipelineError> {
     let tiles: Vec<(&TileKey, &Vec<usize>)> = prepared.tiles.iter().collect();
+    let tile_calibration = calibration.map(CalibrationState::tile);
     let used = tiles
         .par_iter()
         .map(|(tile, strips)| {
@@ -464,6 +493,7 @@ fn write_assignments(
                 corrections,
                 campaign,
                 step,
+                tile_calibration.as_ref(),
                 Gather { used: Some(&mut used), latent: LatentGather::default() },
             )?;
             Ok(used)

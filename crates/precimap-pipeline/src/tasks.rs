@@ -6,10 +6,11 @@ use crate::campaign::{Campaign, StripEntry, TrajectoryEntry};
 use crate::error::PipelineError;
 use precimap_core::corrections::{apply, AnchorCovariance, TrajectoryCorrections};
 use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
-use precimap_core::{IterationStep, LatentMapPoint, Parameters, TileKey, Vec3};
+use precimap_core::{IterationStep, LatentMapPoint, Parameters, ScannerCalibration, TileKey, Vec3};
 use precimap_estimate::usable_share_problem;
 use precimap_estimate::{
-    estimate_tile_recording, prepare_strip_observed, AnchorBlock, GeometryCursor, LatentGather, PreparePhase,
+    estimate_tile_recording, prepare_strip_observed, AnchorBlock, CalibrationNormals, GeometryCursor, LatentGather,
+    PreparePhase, TileCalibration,
     PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate,
     TrajectorySolution, UsedPoint,
 };
@@ -167,6 +168,7 @@ pub fn estimate_tile_task(
     corrections: &[TrajectoryCorrections],
     campaign: &Campaign,
     step: &IterationStep,
+    calibration: Option<&TileCalibration>,
     gather: Gather,
 ) -> Result<TileEstimate, PipelineError> {
     let chunks = load_tile(work, tile, strip_ids)?;
@@ -176,7 +178,8 @@ pub fn estimate_tile_task(
         .filter(|t| precimap_estimate::control::reaches_tile(t, tile, &campaign.params))
         .cloned()
         .collect();
-    estimate_tile_recording(tile, &chunks, corrections, &campaign.params, step, &control, gather.used, gather.latent)
+    let params = &campaign.params;
+    estimate_tile_recording(tile, &chunks, corrections, params, step, &control, calibration, gather.used, gather.latent)
         .map_err(|source| PipelineError::Estimate { tile: tile.to_string(), source })
 }
 
@@ -204,6 +207,7 @@ pub fn solve_trajectory_task<'a>(
     prior: Option<&[[f64; 6]]>,
     step: &IterationStep,
     with_sigma: bool,
+    calibration: Option<&CalibrationNormals>,
 ) -> Result<TrajectorySolution, PipelineError> {
     precimap_estimate::solve_trajectory(
         blocks,
@@ -214,6 +218,7 @@ pub fn solve_trajectory_task<'a>(
         prior,
         step.rotation,
         with_sigma,
+        calibration,
     )
     .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
 }
@@ -223,13 +228,14 @@ pub fn export_strip_task(
     campaign: &Campaign,
     strip: usize,
     corrections: &TrajectoryCorrections,
+    mounting: Option<&ScannerCalibration>,
     out_dir: &Path,
 ) -> Result<(PathBuf, u64), PipelineError> {
     let entry = &campaign.strips[strip];
     let traj = &campaign.trajectories[entry.trajectory as usize];
     let dst = out_dir.join("strips").join(export_strip_name(entry));
     fs::create_dir_all(dst.parent().unwrap_or(out_dir)).map_err(|e| PipelineError::io(out_dir, e))?;
-    let written = export_strip_file(entry, traj, campaign.params.anchor_spacing_m, corrections, &dst)?;
+    let written = export_strip_file(entry, traj, campaign.params.anchor_spacing_m, corrections, mounting, &dst)?;
     Ok((dst, written))
 }
 
@@ -240,13 +246,16 @@ pub fn export_strip_name(entry: &StripEntry) -> String {
 }
 
 /// Writes the corrected copy of `entry`'s strip file to `dst`; returns the number of points.
+/// `mounting`: the scanner's estimated calibration, applied before the corrections.
 pub fn export_strip_file(
     entry: &StripEntry,
     traj: &TrajectoryEntry,
     anchor_spacing_m: f64,
     corrections: &TrajectoryCorrections,
+    mounting: Option<&ScannerCalibration>,
     dst: &Path,
 ) -> Result<u64, PipelineError> {
+    let mounting = mounting.filter(|m| !m.is_zero());
     let mut uncovered = None;
     let mut unmapped = None;
     let mut cursor = GeometryCursor::new(&traj.data, &entry.lever_arm, anchor_spacing_m);
@@ -264,8 +273,18 @@ pub fn export_strip_file(
                 return xyz;
             }
         };
-        let moved = match cursor.at(gps_time + offset, local) {
-            Some(g) => apply(g.t0, g.r, &corrections.at(g.anchor, g.lambda)),
+        let t = gps_time + offset;
+        let moved = match cursor.at(t, local) {
+            Some(g) => {
+                let (mut t0, mut r) = (g.t0, g.r);
+                if let Some(m) = mounting {
+                    let attitude = cursor.attitude(t).map(|v| v as f32);
+                    let (head, beam) = m.apply(&precimap_core::calibration::attitude_matrix(attitude), r);
+                    t0 = std::array::from_fn(|a| t0[a] + head[a]);
+                    r = beam;
+                }
+                apply(t0, r, &corrections.at(g.anchor, g.lambda))
+            }
             None => {
                 uncovered.get_or_insert(i);
                 return xyz;

@@ -18,42 +18,87 @@ pub fn solve_blocks<const N: usize>(
     if rhs.len() != n || upper.len() != n.saturating_sub(1) {
         return Err(SolveError::Shape { diag: n, upper: upper.len(), rhs: rhs.len() });
     }
-    let mut chol = Vec::with_capacity(n);
-    let mut gain: Vec<SMatrix<f64, N, N>> = Vec::with_capacity(n.saturating_sub(1));
-    let mut y = Vec::with_capacity(n);
-    let mut pivot = diag.first().copied().unwrap_or_else(SMatrix::zeros);
-    let mut carry = rhs.first().copied().unwrap_or_else(SVector::zeros);
-    for i in 0..n {
-        let c = nalgebra::Cholesky::new(pivot).ok_or(SolveError::NotPositiveDefinite { block: i })?;
-        y.push(carry);
-        if i + 1 < n {
-            let g = c.solve(&upper[i]);
-            pivot = diag[i + 1] - upper[i].transpose() * g;
-            carry = rhs[i + 1] - g.transpose() * carry;
-            gain.push(g);
+    let factor = BlocksLdlt::factor(diag, upper)?;
+    let x = factor.solve(rhs)?;
+    Ok((x, with_covariance.then(|| factor.marginal_covariances())))
+}
+
+/// The block LDLᵀ factorisation of a block-tridiagonal matrix with N×N blocks: per block the
+/// Cholesky factor of the pivot and the gain `D_i⁻¹ H_{i,i+1}`, for solves with many right-hand
+/// sides.
+#[derive(Clone, Debug)]
+pub struct BlocksLdlt<const N: usize> {
+    chol: Vec<nalgebra::Cholesky<f64, nalgebra::Const<N>>>,
+    gain: Vec<SMatrix<f64, N, N>>,
+}
+
+impl<const N: usize> BlocksLdlt<N> {
+    pub fn factor(diag: &[SMatrix<f64, N, N>], upper: &[SMatrix<f64, N, N>]) -> Result<Self, SolveError> {
+        let n = diag.len();
+        if upper.len() != n.saturating_sub(1) {
+            return Err(SolveError::Shape { diag: n, upper: upper.len(), rhs: n });
         }
-        chol.push(c);
-    }
-    let mut x = vec![SVector::<f64, N>::zeros(); n];
-    for i in (0..n).rev() {
-        let mut xi = chol[i].solve(&y[i]);
-        if i + 1 < n {
-            xi -= gain[i] * x[i + 1];
+        let mut chol = Vec::with_capacity(n);
+        let mut gain: Vec<SMatrix<f64, N, N>> = Vec::with_capacity(n.saturating_sub(1));
+        let mut pivot = diag.first().copied().unwrap_or_else(SMatrix::zeros);
+        for i in 0..n {
+            let c = nalgebra::Cholesky::new(pivot).ok_or(SolveError::NotPositiveDefinite { block: i })?;
+            if i + 1 < n {
+                let g = c.solve(&upper[i]);
+                pivot = diag[i + 1] - upper[i].transpose() * g;
+                gain.push(g);
+            }
+            chol.push(c);
         }
-        x[i] = xi;
+        Ok(Self { chol, gain })
     }
-    let covariance = with_covariance.then(|| {
+
+    pub fn len(&self) -> usize {
+        self.chol.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.chol.is_empty()
+    }
+
+    /// Solves `H x = rhs`.
+    pub fn solve(&self, rhs: &[SVector<f64, N>]) -> Result<Vec<SVector<f64, N>>, SolveError> {
+        let n = self.len();
+        if rhs.len() != n {
+            return Err(SolveError::Shape { diag: n, upper: self.gain.len(), rhs: rhs.len() });
+        }
+        let mut y = Vec::with_capacity(n);
+        let mut carry = rhs.first().copied().unwrap_or_else(SVector::zeros);
+        for i in 0..n {
+            y.push(carry);
+            if i + 1 < n {
+                carry = rhs[i + 1] - self.gain[i].transpose() * carry;
+            }
+        }
+        let mut x = vec![SVector::<f64, N>::zeros(); n];
+        for i in (0..n).rev() {
+            let mut xi = self.chol[i].solve(&y[i]);
+            if i + 1 < n {
+                xi -= self.gain[i] * x[i + 1];
+            }
+            x[i] = xi;
+        }
+        Ok(x)
+    }
+
+    /// The diagonal blocks of `H⁻¹`.
+    pub fn marginal_covariances(&self) -> Vec<SMatrix<f64, N, N>> {
+        let n = self.len();
         let mut cov = vec![SMatrix::<f64, N, N>::zeros(); n];
         for i in (0..n).rev() {
-            let mut s = chol[i].inverse();
+            let mut s = self.chol[i].inverse();
             if i + 1 < n {
-                s += gain[i] * cov[i + 1] * gain[i].transpose();
+                s += self.gain[i] * cov[i + 1] * self.gain[i].transpose();
             }
             cov[i] = s;
         }
         cov
-    });
-    Ok((x, covariance))
+    }
 }
 
 #[cfg(test)]

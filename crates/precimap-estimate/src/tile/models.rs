@@ -5,6 +5,8 @@
 use super::{cross, dominant_axis, dot, floor_i64, normalize, NONE};
 use crate::chunk::TileChunk;
 use precimap_core::corrections::TrajectoryCorrections;
+use crate::calibration::TileCalibration;
+use precimap_core::calibration::attitude_matrix;
 use precimap_core::geom::SmallRotation;
 use precimap_core::hash::FxHashMap;
 use precimap_core::{IterationStep, Parameters, TileKey};
@@ -218,6 +220,7 @@ pub(super) fn correct_points(
     params: &Parameters,
     step: &IterationStep,
     cos_group: f64,
+    calibration: Option<&TileCalibration>,
 ) -> CorrectedPoints {
     let (ox, oy) = tile.origin(params.tile_size_m);
     let inv_cell = 1.0 / step.cell_size(params);
@@ -241,19 +244,31 @@ pub(super) fn correct_points(
         let corr = &corrections[chunk.trajectory as usize];
         let shift = [chunk.origin[0] - ox, chunk.origin[1] - oy, chunk.origin[2]];
         let mut last = ((u64::MAX, 0u32, 0u32), CellModels::default());
+        // The scanner's current calibration, where the campaign estimates it (checked by
+        // `check_chunks`: every chunk then carries its points' attitudes).
+        let mounting = calibration.and_then(|c| c.of_strip(chunk.strip)).map(|(_, s)| *s).filter(|s| !s.is_zero());
         for k in 0..chunk.len() {
             let c = corr.at(chunk.anchor[k], chunk.lambda[k]);
             let rotation = SmallRotation::new([c[3], c[4], c[5]]);
-            let rr = rotation.apply(chunk.r[k].map(f64::from));
-            let t0 = chunk.t0[k];
+            let mut t0 = chunk.t0[k].map(f64::from);
+            let mut r = chunk.r[k].map(f64::from);
+            let mut normal = chunk.normal[k].map(f64::from);
+            if let Some(mounting) = &mounting {
+                let attitude = attitude_matrix(chunk.attitude[k]);
+                let (head, beam) = mounting.apply(&attitude, r);
+                t0 = [t0[0] + head[0], t0[1] + head[1], t0[2] + head[2]];
+                r = beam;
+                normal = mounting.turn(&attitude, normal);
+            }
+            let rr = rotation.apply(r);
             let p = [
-                t0[0] as f64 + shift[0] + c[0] + rr[0],
-                t0[1] as f64 + shift[1] + c[1] + rr[1],
-                t0[2] as f64 + shift[2] + c[2] + rr[2],
+                t0[0] + shift[0] + c[0] + rr[0],
+                t0[1] + shift[1] + c[1] + rr[1],
+                t0[2] + shift[2] + c[2] + rr[2],
             ];
-            let n = rotation.apply(chunk.normal[k].map(f64::from));
+            let n = rotation.apply(normal);
             if solves_field {
-                vehicle.push([chunk.origin[0] + t0[0] as f64, chunk.origin[1] + t0[1] as f64]);
+                vehicle.push([chunk.origin[0] + t0[0], chunk.origin[1] + t0[1]]);
             }
             position.push(p);
             measurement.push(rr);

@@ -7,6 +7,7 @@ use super::pulls::{jacobian, CornerPulls};
 use super::triangles::Triangles;
 use super::{UsedPoint, NONE};
 use crate::blocks::{AnchorBlock, IntervalMoments, TrajectoryBlocks};
+use crate::calibration::{CalibrationNormals, CrossMoments, TileCalibration};
 use crate::control::TargetObservation;
 use crate::field::{FieldAccumulator, FieldRow};
 use crate::stats::{ResidualHistogram, TileStats};
@@ -24,6 +25,32 @@ pub(super) struct Observations<'a> {
     pub(super) threshold: f64,
     /// The points' observations of control targets, sorted by point.
     pub(super) control: &'a [TargetObservation],
+    /// The calibration, where the campaign estimates it.
+    pub(super) calibration: Option<&'a TileCalibration<'a>>,
+}
+
+/// One chunk's calibration terms while its points are observed: the scanner's columns, the
+/// cross moments per anchor interval and the calibration's own normal equations.
+struct ChunkCalibration<'a> {
+    layout: &'a precimap_core::CalibrationLayout,
+    offset: usize,
+    cross: CrossMoments,
+    normals: CalibrationNormals,
+    gc: [f64; 7],
+}
+
+impl ChunkCalibration<'_> {
+    /// One observation along `w` of a point with beam `m` and body attitude `attitude`, with
+    /// Jacobian row `g`, weighted residual `we` and weight `weight`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn add(&mut self, interval: usize, g: &[f64; 6], attitude: [f32; 3], m: [f64; 3], w: [f64; 3], we: f64, weight: f64, lambda: f64) {
+        let k = self.layout.per_scanner();
+        let rotation = precimap_core::calibration::attitude_matrix(attitude);
+        self.layout.jacobian(&rotation, m, w, &mut self.gc[..k]);
+        self.cross.add(interval, g, &self.gc[..k], weight, lambda);
+        self.normals.add_observation(self.offset, &self.gc[..k], we, weight);
+    }
 }
 
 /// Observes every point of the tile's core: its height above its model's plane minus the latent
@@ -45,15 +72,28 @@ pub(super) fn observe_points(
     let (measurement, vehicle, weight, threshold) = (o.measurement, o.vehicle, o.weight, o.threshold);
     let mut histogram = ResidualHistogram::default();
     let mut per_trajectory: BTreeMap<u32, BTreeMap<u32, AnchorBlock>> = BTreeMap::new();
+    let mut calibration_normals: BTreeMap<u32, CalibrationNormals> = BTreeMap::new();
     let mut base = 0usize;
     let mut control = o.control.iter().peekable();
     for chunk in chunks {
         let Some((first, last)) = chunk.anchor_range() else { continue };
         let mut intervals = vec![IntervalMoments::default(); (last - first) as usize];
+        let mut cal = o.calibration.and_then(|c| {
+            let (scanner, _) = c.of_strip(chunk.strip)?;
+            let k = c.layout.per_scanner();
+            Some(ChunkCalibration {
+                layout: c.layout,
+                offset: scanner as usize * k,
+                cross: CrossMoments::new(intervals.len(), k),
+                normals: CalibrationNormals::zeros(c.layout.len()),
+                gc: [0.0; 7],
+            })
+        });
         for k in 0..chunk.len() {
             let a = base + k;
             let lambda = chunk.lambda[k] as f64;
-            let moments = &mut intervals[(chunk.anchor[k] - first) as usize];
+            let interval = (chunk.anchor[k] - first) as usize;
+            let moments = &mut intervals[interval];
             // With a consistent gradient, what the other points' residuals pull on this one
             // through the triangles it is a corner of; on its own model the pull shares the
             // point's own Jacobian row, so it joins the point's observation below.
@@ -94,6 +134,9 @@ pub(super) fn observe_points(
                         None => (own_weight, own_weight * e, 1),
                     };
                     moments.add_weighted(&g, weighted, total, lambda, observations);
+                    if let Some(cal) = cal.as_mut() {
+                        cal.add(interval, &g, chunk.attitude[k], measurement[a], w, weighted, total, lambda);
+                    }
                     if let Some(field) = field.as_deref_mut() {
                         let [x, y, share] = at.others;
                         field.add(FieldRow {
@@ -110,11 +153,19 @@ pub(super) fn observe_points(
                 }
             }
             if let Some([w_sum, we_sum]) = own_pull {
-                moments.add(&jacobian(models[id as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
+                let w = models[id as usize].w;
+                let g = jacobian(w, measurement[a]);
+                moments.add(&g, -we_sum / w_sum, w_sum, lambda);
+                if let Some(cal) = cal.as_mut() {
+                    cal.add(interval, &g, chunk.attitude[k], measurement[a], w, -we_sum, w_sum, lambda);
+                }
             }
             while let Some(c) = control.next_if(|c| c.point == a) {
                 let g = jacobian(c.w, measurement[a]);
                 moments.add_weighted(&g, c.weight * c.e, c.weight, lambda, 1);
+                if let Some(cal) = cal.as_mut() {
+                    cal.add(interval, &g, chunk.attitude[k], measurement[a], c.w, c.weight * c.e, c.weight, lambda);
+                }
                 if let Some(field) = field.as_deref_mut() {
                     field.add(FieldRow {
                         vehicle: vehicle[a],
@@ -129,19 +180,32 @@ pub(super) fn observe_points(
                 }
             }
         }
-        scatter_intervals(per_trajectory.entry(chunk.trajectory).or_default(), first, &intervals);
+        let blocks = per_trajectory.entry(chunk.trajectory).or_default();
+        scatter_intervals(blocks, first, &intervals, cal.as_ref());
+        if let Some(cal) = cal {
+            calibration_normals.entry(chunk.trajectory).or_default().add(&cal.normals);
+        }
         base += chunk.len();
     }
     stats.histogram = histogram;
     per_trajectory
         .into_iter()
-        .map(|(trajectory, map)| TrajectoryBlocks { trajectory, blocks: map.into_values().collect() })
+        .map(|(trajectory, map)| TrajectoryBlocks {
+            trajectory,
+            blocks: map.into_values().collect(),
+            calibration: calibration_normals.remove(&trajectory),
+        })
         .collect()
 }
 
 /// Adds the moments of a chunk's anchor intervals (the first from anchor `first`) to the blocks
-/// of the anchors either side of each.
-fn scatter_intervals(blocks: &mut BTreeMap<u32, AnchorBlock>, first: u32, intervals: &[IntervalMoments]) {
+/// of the anchors either side of each, and with a calibration their cross terms.
+fn scatter_intervals(
+    blocks: &mut BTreeMap<u32, AnchorBlock>,
+    first: u32,
+    intervals: &[IntervalMoments],
+    cal: Option<&ChunkCalibration>,
+) {
     for (offset, moments) in intervals.iter().enumerate() {
         if moments.is_empty() {
             continue;
@@ -150,6 +214,9 @@ fn scatter_intervals(blocks: &mut BTreeMap<u32, AnchorBlock>, first: u32, interv
         let mut at = blocks.remove(&i).unwrap_or_else(|| AnchorBlock::new(i));
         let after = blocks.entry(i + 1).or_insert_with(|| AnchorBlock::new(i + 1));
         moments.scatter(&mut at, after);
+        if let Some(cal) = cal {
+            cal.cross.scatter(offset, cal.offset, cal.layout.len(), &mut at.cross, &mut after.cross);
+        }
         blocks.insert(i, at);
     }
 }

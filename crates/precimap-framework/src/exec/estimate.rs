@@ -59,7 +59,7 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
             .collect::<Result<Vec<_>, _>>()?;
         let gather = precimap_estimate::LatentGather { std_map, map: latent_map };
         let mut estimate =
-            precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, &control, None, gather)
+            precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, &control, None, None, gather)
                 .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
         let map = match estimate.latent_map.take() {
             Some(points) => {

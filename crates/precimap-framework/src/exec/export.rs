@@ -19,7 +19,7 @@ pub(super) async fn export_strip(
     let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
     let counter = points.clone();
     ctx.put_produced(&key, move |dst| {
-        let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, dst)?;
+        let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, None, dst)?;
         counter.store(n, std::sync::atomic::Ordering::Relaxed);
         Ok(())
     })

@@ -58,6 +58,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
             prior.as_deref(),
             step.rotation,
             with_sigma,
+            None,
         )
     })
     .await?

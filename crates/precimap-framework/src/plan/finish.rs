@@ -45,6 +45,7 @@ fn corrections_or_zero(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 /// The report, written at `now_ms` (database clock) by its own task.
 pub(super) fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Next {
     let report = Report {
+        calibration: None,
         campaign: state.name.clone(),
         manifest: format!("campaign {}", campaign.id),
         points_total: state.points_total,
