@@ -207,7 +207,8 @@ impl ScannerCalibration {
     /// `v` (a world-frame direction, e.g. a normal) turned by the boresight alone.
     #[inline]
     pub fn turn(&self, rotation: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
-        let body: [f64; 3] = std::array::from_fn(|a| rotation[0][a] * v[0] + rotation[1][a] * v[1] + rotation[2][a] * v[2]);
+        let body: [f64; 3] =
+            std::array::from_fn(|a| rotation[0][a] * v[0] + rotation[1][a] * v[1] + rotation[2][a] * v[2]);
         let turned = SmallRotation::new(self.boresight_rad).apply(body);
         std::array::from_fn(|a| rotation[a][0] * turned[0] + rotation[a][1] * turned[1] + rotation[a][2] * turned[2])
     }
@@ -252,7 +253,11 @@ mod tests {
 
     fn layout_all() -> CalibrationLayout {
         CalibrationOptions {
-            estimate: vec![CalibrationUnknown::RangeOffset, CalibrationUnknown::Boresight, CalibrationUnknown::LeverArm],
+            estimate: vec![
+                CalibrationUnknown::RangeOffset,
+                CalibrationUnknown::Boresight,
+                CalibrationUnknown::LeverArm,
+            ],
             ..Default::default()
         }
         .layout(2)
@@ -289,7 +294,11 @@ mod tests {
     #[test]
     fn blocks_round_trip_and_zero_changes_nothing() {
         let layout = layout_all();
-        let s = ScannerCalibration { boresight_rad: [1e-3, -2e-3, 3e-3], lever_arm_m: [0.01, 0.02, -0.03], range_offset_m: 0.004 };
+        let s = ScannerCalibration {
+            boresight_rad: [1e-3, -2e-3, 3e-3],
+            lever_arm_m: [0.01, 0.02, -0.03],
+            range_offset_m: 0.004,
+        };
         assert_eq!(ScannerCalibration::from_block(&layout, &s.to_block(&layout)), s);
         let rotation = attitude_matrix([0.0, 0.0, 1.0]);
         let r = [1.0, 2.0, 3.0];

@@ -108,7 +108,14 @@ impl CrossMoments {
 
     /// Adds interval `interval`'s terms to the cross blocks (6 × `total` unknowns, row-major)
     /// of anchors `i` (`at`) and `i+1` (`after`), at the scanner's columns from `offset`.
-    pub(crate) fn scatter(&self, interval: usize, offset: usize, total: usize, at: &mut Vec<f64>, after: &mut Vec<f64>) {
+    pub(crate) fn scatter(
+        &self,
+        interval: usize,
+        offset: usize,
+        total: usize,
+        at: &mut Vec<f64>,
+        after: &mut Vec<f64>,
+    ) {
         let k = self.per_scanner;
         let base = interval * 6 * k;
         for block in [&mut *at, &mut *after] {

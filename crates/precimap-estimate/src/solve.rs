@@ -222,7 +222,8 @@ fn solve_pairs(
         (0..n).map(|i| Vec6::from_iterator(x[i / 2].rows((i % 2) * 6, 6).iter().copied())).collect()
     };
     let delta = unpair(&x);
-    let sigma = cov.map(|c| (0..n).map(|i| Mat6::from_fn(|r, k| c[i / 2][((i % 2) * 6 + r, (i % 2) * 6 + k)])).collect());
+    let sigma =
+        cov.map(|c| (0..n).map(|i| Mat6::from_fn(|r, k| c[i / 2][((i % 2) * 6 + r, (i % 2) * 6 + k)])).collect());
     let mut solved = Vec::with_capacity(extra.len());
     for column in extra {
         let paired: Vec<Vec12> = (0..m)
@@ -624,9 +625,11 @@ mod tests {
         let current =
             TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
         let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
-        let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false, None).unwrap();
+        let plain =
+            solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false, None).unwrap();
         let carried =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false, None).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false, None)
+                .unwrap();
         for k in 0..n {
             for a in 0..6 {
                 let expected = plain.corrections.values[k][a] + 0.5 * (current.values[k][a] - previous.values[k][a]);
@@ -634,7 +637,8 @@ mod tests {
             }
         }
         let frozen =
-            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false, None).unwrap();
+            solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false, None)
+                .unwrap();
         for k in 0..n {
             assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
             assert!((frozen.corrections.values[k][0] - plain.corrections.values[k][0] - 0.005).abs() < 1e-9);
@@ -772,7 +776,8 @@ mod tests {
         kinked[4][0] += 0.05;
         let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
         let sol_kinked =
-            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false, None).unwrap();
+            solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false, None)
+                .unwrap();
         let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
         assert!(second(&current_kinked.values, 4).abs() > 0.09);
         assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");
@@ -854,10 +859,8 @@ mod tests {
         for (t, (blocks, normals)) in trajectories.iter().enumerate() {
             let mut inverse = DMatrix::<f64>::zeros(m, m);
             for col in 0..m {
-                let mut probe: Vec<AnchorBlock> = blocks
-                    .iter()
-                    .map(|b| AnchorBlock { rhs: [0.0; 6], cross: Vec::new(), ..b.clone() })
-                    .collect();
+                let mut probe: Vec<AnchorBlock> =
+                    blocks.iter().map(|b| AnchorBlock { rhs: [0.0; 6], cross: Vec::new(), ..b.clone() }).collect();
                 probe[col / 6].rhs[col % 6] = 1.0;
                 let x = solve(&probe, None).corrections.values;
                 for row in 0..m {
@@ -889,14 +892,21 @@ mod tests {
         let exact = dense.lu().solve(&rhs).unwrap();
         for i in 0..k {
             let want = exact[2 * m + i];
-            assert!((step.delta[i] - want).abs() < 1e-9 * want.abs().max(1e-6), "unknown {i}: {} against {want}", step.delta[i]);
+            assert!(
+                (step.delta[i] - want).abs() < 1e-9 * want.abs().max(1e-6),
+                "unknown {i}: {} against {want}",
+                step.delta[i]
+            );
         }
         for (t, s) in solutions.iter().enumerate() {
             for a in 0..n {
                 for r in 0..6 {
                     let want = exact[t * m + a * 6 + r];
                     let got = s.corrections.values[a][r];
-                    assert!((got - want).abs() < 1e-9 * want.abs().max(1e-6), "trajectory {t} anchor {a}: {got} against {want}");
+                    assert!(
+                        (got - want).abs() < 1e-9 * want.abs().max(1e-6),
+                        "trajectory {t} anchor {a}: {got} against {want}"
+                    );
                 }
             }
         }

@@ -285,7 +285,10 @@ fn check_chunks(
         }
         if let Some(calibration) = calibration {
             if calibration.of_strip(c.strip).is_none() {
-                return Err(EstimateError::UnknownScanner { strip: c.strip, known: calibration.scanner_of_strip.len() });
+                return Err(EstimateError::UnknownScanner {
+                    strip: c.strip,
+                    known: calibration.scanner_of_strip.len(),
+                });
             }
             if c.attitude.len() != c.len() {
                 return Err(EstimateError::NoAttitude { strip: c.strip });

@@ -4,9 +4,14 @@
 //! anything else with a clear error.
 
 use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
-use precimap_estimate::{AnchorBlock, FieldEquations};
+use precimap_estimate::{AnchorBlock, CalibrationNormals, FieldEquations};
 
 const BLOCKS_MAGIC: &[u8; 8] = b"PMBLOCK1";
+/// With the calibration's terms: version 1's blocks each followed by its cross terms (6 × K),
+/// then the calibration's normal equations (K × K and K).
+const BLOCKS_MAGIC_CALIBRATION: &[u8; 8] = b"PMBLOCK2";
+/// A trajectory's share of the calibration's solve: `Y` per anchor.
+const SHARE_MAGIC: &[u8; 8] = b"PMSHARE1";
 const FIELD_MAGIC: &[u8; 8] = b"PMFIELD1";
 /// With the field's heading (`Parameters::common_mode_heading`): version 1 followed by the
 /// heading's right-hand side per node and its seven terms per node pair.
@@ -83,6 +88,14 @@ impl<'a> Reader<'a> {
         Ok(out)
     }
 
+    /// `n` values, after checking they fit in the remaining bytes.
+    fn f64_vec(&mut self, n: usize) -> Result<Vec<f64>, CodecError> {
+        if n.saturating_mul(8) > self.bytes.len() - self.at {
+            return Err(CodecError::Truncated { what: self.what, at: self.at, len: self.bytes.len() });
+        }
+        (0..n).map(|_| self.f64()).collect()
+    }
+
     /// A count that must fit in the remaining bytes at `unit` bytes per item (guards allocations
     /// against a corrupt length).
     fn count(&mut self, unit: usize) -> Result<usize, CodecError> {
@@ -121,6 +134,78 @@ pub fn encode_blocks(blocks: &[AnchorBlock]) -> Vec<u8> {
         put_f64s(&mut out, &b.rhs);
     }
     out
+}
+
+/// A tile's blocks of one trajectory, with the calibration's terms where it carries them
+/// (version 2; version 1 without).
+pub fn encode_trajectory_blocks(blocks: &[AnchorBlock], calibration: Option<&CalibrationNormals>) -> Vec<u8> {
+    let Some(normals) = calibration else { return encode_blocks(blocks) };
+    let k = normals.len();
+    let mut out = Vec::with_capacity(16 + blocks.len() * (BLOCK_BYTES + 48 * k) + 8 * k * (k + 1));
+    out.extend_from_slice(BLOCKS_MAGIC_CALIBRATION);
+    out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
+    out.extend_from_slice(&(k as u32).to_le_bytes());
+    for b in blocks {
+        out.extend_from_slice(&b.anchor.to_le_bytes());
+        out.extend_from_slice(&b.observations.to_le_bytes());
+        put_f64s(&mut out, &b.diag);
+        put_f64s(&mut out, &b.next);
+        put_f64s(&mut out, &b.rhs);
+        if b.cross.len() == 6 * k {
+            put_f64s(&mut out, &b.cross);
+        } else {
+            put_f64s(&mut out, &vec![0.0; 6 * k]);
+        }
+    }
+    put_f64s(&mut out, &normals.h);
+    put_f64s(&mut out, &normals.b);
+    out
+}
+
+/// Either version of a tile's blocks of one trajectory, and the calibration's terms of version 2.
+pub fn decode_trajectory_blocks(bytes: &[u8]) -> Result<(Vec<AnchorBlock>, Option<CalibrationNormals>), CodecError> {
+    if !bytes.starts_with(BLOCKS_MAGIC_CALIBRATION) {
+        return Ok((decode_blocks(bytes)?, None));
+    }
+    let mut r = Reader::new(bytes, BLOCKS_MAGIC_CALIBRATION, "normal-equation blocks")?;
+    let n = r.count(BLOCK_BYTES)?;
+    let k = r.count(8)?;
+    let mut blocks = Vec::with_capacity(n);
+    for _ in 0..n {
+        let anchor = r.u32()?;
+        let observations = r.u32()?;
+        let diag = r.f64s::<21>()?;
+        let next = r.f64s::<21>()?;
+        let rhs = r.f64s::<6>()?;
+        let cross = r.f64_vec(6 * k)?;
+        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations, cross });
+    }
+    let h = r.f64_vec(k * k)?;
+    let b = r.f64_vec(k)?;
+    r.finish()?;
+    Ok((blocks, Some(CalibrationNormals { h, b })))
+}
+
+/// A trajectory's `Y` of its calibration share (anchors × 6 × K), from `first_anchor`.
+pub fn encode_share(first_anchor: u32, unknowns: usize, y: &[f64]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(20 + 8 * y.len());
+    out.extend_from_slice(SHARE_MAGIC);
+    out.extend_from_slice(&first_anchor.to_le_bytes());
+    out.extend_from_slice(&(unknowns as u32).to_le_bytes());
+    out.extend_from_slice(&(y.len() as u32).to_le_bytes());
+    put_f64s(&mut out, y);
+    out
+}
+
+/// [`encode_share`]'s `(first_anchor, unknowns, y)`.
+pub fn decode_share(bytes: &[u8]) -> Result<(u32, usize, Vec<f64>), CodecError> {
+    let mut r = Reader::new(bytes, SHARE_MAGIC, "calibration share")?;
+    let first = r.u32()?;
+    let k = r.u32()? as usize;
+    let n = r.count(8)?;
+    let y = r.f64_vec(n)?;
+    r.finish()?;
+    Ok((first, k, y))
 }
 
 pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {

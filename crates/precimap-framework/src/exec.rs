@@ -4,15 +4,16 @@
 //! records. CPU work runs on the blocking pool; nothing here touches the database.
 
 use crate::codec::{
-    decode_blocks, decode_corrections, decode_field, decode_positions, encode_blocks, encode_corrections, encode_field,
-    encode_positions,
+    decode_corrections, decode_field, decode_positions, decode_share, decode_trajectory_blocks, encode_corrections,
+    encode_field, encode_positions, encode_share, encode_trajectory_blocks,
 };
 use crate::error::{FrameworkError, TaskError};
 use crate::objects::Objects;
 use crate::plan::{
-    CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput, FieldResult, MomentsResult, SegmentResult,
-    SolveResult, StripInput, TaskInput, TrajectoryInput, BLOCKS_PREFIX, OUTPUT_ACCELERATED, OUTPUT_CORRECTIONS,
-    OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS, PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
+    ApplyResult, CalibrationInput, CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput,
+    FieldResult, MomentsResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput, BLOCKS_PREFIX,
+    OUTPUT_ACCELERATED, OUTPUT_CORRECTIONS, OUTPUT_FIELD, OUTPUT_LATENT_STD, OUTPUT_POSITIONS, OUTPUT_SHARE,
+    PREVIOUS_PREFIX, SEGMENTS_PREFIX, START_PREFIX,
 };
 use bytes::Bytes;
 use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
@@ -33,6 +34,7 @@ use std::time::{Instant, SystemTime};
 use uuid::Uuid;
 
 mod accelerate;
+mod calibrate;
 mod estimate;
 mod export;
 mod field;
@@ -362,7 +364,7 @@ fn strip_entry(s: &StripInput, path: &Path) -> Result<StripEntry, TaskError> {
         path: path.to_path_buf(),
         trajectory: s.trajectory,
         lever_arm: Vec3::from(s.lever_arm),
-        scanner: 0,
+        scanner: s.scanner,
         georef: georeference(s.field.as_ref())?,
     })
 }
@@ -442,6 +444,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             latent_map,
             crs,
             control,
+            calibration,
         } => {
             let task = estimate::TileTask {
                 prefix,
@@ -456,6 +459,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 latent_map,
                 crs,
                 control,
+                calibration,
             };
             estimate::estimate_tile(&at, task).await
         }
@@ -475,6 +479,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
             previous,
             iteration_start,
             blocks,
+            calibration,
         } => {
             let task = solve::TrajectoryTask {
                 prefix,
@@ -487,6 +492,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
                 previous,
                 iteration_start,
                 blocks,
+                calibration,
             };
             solve::solve_trajectory(&at, task).await
         }
@@ -496,8 +502,30 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::AndersonCombine { prefix, iteration, trajectory, results, coefficients } => {
             accelerate::anderson_combine(&at, prefix, iteration, trajectory, results, coefficients).await
         }
-        TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections } => {
-            export::export_strip(&at, prefix, strip, anchor_spacing_m, corrections).await
+        TaskInput::ApplyCalibration {
+            prefix,
+            iteration,
+            trajectory,
+            corrections,
+            share,
+            iteration_start,
+            delta,
+            report,
+        } => {
+            let task = calibrate::ApplyTask {
+                prefix,
+                iteration,
+                trajectory,
+                corrections,
+                share,
+                iteration_start,
+                delta,
+                report,
+            };
+            calibrate::apply_calibration(&at, task).await
+        }
+        TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections, mounting } => {
+            export::export_strip(&at, prefix, strip, anchor_spacing_m, corrections, mounting).await
         }
         TaskInput::ExportTrajectory { prefix, trajectory, anchor_spacing_m, corrections, params } => {
             export::export_trajectory(&at, prefix, trajectory, anchor_spacing_m, corrections, params).await

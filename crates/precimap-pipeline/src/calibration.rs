@@ -46,7 +46,11 @@ impl CalibrationState {
     /// change measured again from `starts`, the corrections the iteration started from) and to
     /// the calibration. Solutions without shares (a step that holds the attitude) leave it as it
     /// is.
-    pub fn step(&mut self, solutions: &mut [TrajectorySolution], starts: &[TrajectoryCorrections]) -> Result<(), PipelineError> {
+    pub fn step(
+        &mut self,
+        solutions: &mut [TrajectorySolution],
+        starts: &[TrajectoryCorrections],
+    ) -> Result<(), PipelineError> {
         if solutions.iter().all(|s| s.calibration.is_none()) {
             return Ok(());
         }

@@ -267,8 +267,9 @@ mod tests {
         .unwrap()
     }
 
-    /// Each strip gets its trajectory's index and its scanner's lever arm; a trajectory's mean
-    /// lever arm averages its strips' scanners (zero for a trajectory no strip uses).
+    /// Each strip gets its trajectory's index and its scanner's lever arm and index among the
+    /// scanners in use (by name); a trajectory's mean lever arm averages its strips' scanners
+    /// (zero for a trajectory no strip uses).
     #[test]
     fn strips_follow_their_references_and_trajectories_average_their_scanners() {
         let m = manifest(serde_json::json!([
@@ -277,8 +278,12 @@ mod tests {
             { "id": "s3", "uri": "s3.las", "trajectory": "a", "scanner": "right" },
         ]));
         let r = ResolvedManifest::new(&m).unwrap();
-        let strip = |trajectory, lever_arm| ResolvedStrip { trajectory, lever_arm };
-        assert_eq!(r.strips, vec![strip(0, [0.0, 0.5, 0.3]), strip(1, [1.0, 2.0, 3.0]), strip(0, [0.0, -0.5, 0.25])]);
+        let strip = |trajectory, lever_arm, scanner| ResolvedStrip { trajectory, lever_arm, scanner };
+        assert_eq!(
+            r.strips,
+            vec![strip(0, [0.0, 0.5, 0.3], 0), strip(1, [1.0, 2.0, 3.0], 2), strip(0, [0.0, -0.5, 0.25], 1)]
+        );
+        assert_eq!(r.scanners, ["left", "right", "roof"]);
         assert_eq!(r.mean_lever_arms, vec![[0.0, 0.0, 0.275], [1.0, 2.0, 3.0], [0.0; 3]]);
         assert!(r.control.is_empty());
     }

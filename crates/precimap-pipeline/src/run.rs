@@ -14,7 +14,9 @@ use crate::tasks::{
 use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::TileKey;
 use precimap_estimate::anderson::AndersonHistory;
-use precimap_estimate::{solve_field, CalibrationNormals, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats};
+use precimap_estimate::{
+    solve_field, CalibrationNormals, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats,
+};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -145,7 +147,9 @@ impl Place {
 }
 
 /// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
-/// then every trajectory's reduce task.
+/// then every trajectory's reduce task, and with `calibration` the calibration's step from
+/// every trajectory's share.
+#[allow(clippy::too_many_arguments)]
 pub fn iterate(
     campaign: &Campaign,
     work: &Path,
@@ -154,7 +158,7 @@ pub fn iterate(
     previous: Option<&[TrajectoryCorrections]>,
     step: &precimap_core::IterationStep,
     place: Place,
-    mut calibration: Option<&mut CalibrationState>,
+    calibration: Option<&mut CalibrationState>,
 ) -> Result<Iterated, PipelineError> {
     let latent = place.latent_gather();
     let tile_calibration = calibration.as_deref().map(CalibrationState::tile);
@@ -163,11 +167,16 @@ pub fn iterate(
         .par_iter()
         .map(|(tile, strips)| {
             let ids: Vec<&str> = strips.iter().map(|&s| campaign.strips[s].id.as_str()).collect();
-            let mut estimate =
-                estimate_tile_task(work, **tile, &ids, corrections, campaign, step, tile_calibration.as_ref(), Gather {
-                    used: None,
-                    latent,
-                })?;
+            let mut estimate = estimate_tile_task(
+                work,
+                **tile,
+                &ids,
+                corrections,
+                campaign,
+                step,
+                tile_calibration.as_ref(),
+                Gather { used: None, latent },
+            )?;
             // Written as each tile finishes, so the map never has to fit in memory whole.
             if let Some(points) = estimate.latent_map.take() {
                 let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
@@ -185,7 +194,9 @@ pub fn iterate(
         for tb in &e.blocks {
             per_trajectory[tb.trajectory as usize].extend(tb.blocks.iter());
             if let Some(normals) = &tb.calibration {
-                calibration_normals[tb.trajectory as usize].get_or_insert_with(CalibrationNormals::default).add(normals);
+                calibration_normals[tb.trajectory as usize]
+                    .get_or_insert_with(CalibrationNormals::default)
+                    .add(normals);
             }
         }
     }
@@ -250,7 +261,7 @@ pub fn iterate(
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
-    if let Some(calibration) = calibration.as_deref_mut() {
+    if let Some(calibration) = calibration {
         calibration.step(&mut solutions, corrections)?;
     }
     Ok(Iterated { solutions, stats, field, started_from, latent_std })
@@ -319,8 +330,16 @@ fn run_campaign_in(
         // Posterior σ is only reported for the final corrections, and the loop always ends on the
         // schedule's last step (early convergence jumps to it).
         let first = iterations.is_empty();
-        let Iterated { solutions: sol, stats, field, started_from, latent_std } =
-            iterate(&campaign, &work, &prepared, &corrections, before, step, Place { first, last }, calibration.as_mut())?;
+        let Iterated { solutions: sol, stats, field, started_from, latent_std } = iterate(
+            &campaign,
+            &work,
+            &prepared,
+            &corrections,
+            before,
+            step,
+            Place { first, last },
+            calibration.as_mut(),
+        )?;
         if first {
             first_latent_std = latent_std.clone();
         }

@@ -10,9 +10,8 @@ use precimap_core::{IterationStep, LatentMapPoint, Parameters, ScannerCalibratio
 use precimap_estimate::usable_share_problem;
 use precimap_estimate::{
     estimate_tile_recording, prepare_strip_observed, AnchorBlock, CalibrationNormals, GeometryCursor, LatentGather,
-    PreparePhase, TileCalibration,
-    PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileChunk, TileEstimate,
-    TrajectorySolution, UsedPoint,
+    PreparePhase, PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileCalibration, TileChunk,
+    TileEstimate, TrajectorySolution, UsedPoint,
 };
 use precimap_formats::crs::Georeference;
 use std::fs;
@@ -161,6 +160,7 @@ pub struct Gather<'a> {
 }
 
 /// `estimate_tile` over chunk files, gathering what `gather` asks for.
+#[allow(clippy::too_many_arguments)]
 pub fn estimate_tile_task(
     work: &Path,
     tile: TileKey,

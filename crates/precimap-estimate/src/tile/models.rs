@@ -3,10 +3,10 @@
 //! local surface models.
 
 use super::{cross, dominant_axis, dot, floor_i64, normalize, NONE};
-use crate::chunk::TileChunk;
-use precimap_core::corrections::TrajectoryCorrections;
 use crate::calibration::TileCalibration;
+use crate::chunk::TileChunk;
 use precimap_core::calibration::attitude_matrix;
+use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::SmallRotation;
 use precimap_core::hash::FxHashMap;
 use precimap_core::{IterationStep, Parameters, TileKey};
@@ -261,11 +261,7 @@ pub(super) fn correct_points(
                 normal = mounting.turn(&attitude, normal);
             }
             let rr = rotation.apply(r);
-            let p = [
-                t0[0] + shift[0] + c[0] + rr[0],
-                t0[1] + shift[1] + c[1] + rr[1],
-                t0[2] + shift[2] + c[2] + rr[2],
-            ];
+            let p = [t0[0] + shift[0] + c[0] + rr[0], t0[1] + shift[1] + c[1] + rr[1], t0[2] + shift[2] + c[2] + rr[2]];
             let n = rotation.apply(normal);
             if solves_field {
                 vehicle.push([chunk.origin[0] + t0[0], chunk.origin[1] + t0[1]]);

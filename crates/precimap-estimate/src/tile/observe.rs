@@ -44,7 +44,17 @@ impl ChunkCalibration<'_> {
     /// Jacobian row `g`, weighted residual `we` and weight `weight`.
     #[allow(clippy::too_many_arguments)]
     #[inline]
-    fn add(&mut self, interval: usize, g: &[f64; 6], attitude: [f32; 3], m: [f64; 3], w: [f64; 3], we: f64, weight: f64, lambda: f64) {
+    fn add(
+        &mut self,
+        interval: usize,
+        g: &[f64; 6],
+        attitude: [f32; 3],
+        m: [f64; 3],
+        w: [f64; 3],
+        we: f64,
+        weight: f64,
+        lambda: f64,
+    ) {
         let k = self.layout.per_scanner();
         let rotation = precimap_core::calibration::attitude_matrix(attitude);
         self.layout.jacobian(&rotation, m, w, &mut self.gc[..k]);

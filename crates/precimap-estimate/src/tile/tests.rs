@@ -223,7 +223,8 @@ fn the_latent_std_map_holds_the_spread_of_the_passes_where_they_are() {
         let params = Parameters { point_latent_below_grid_m: 0.02, ..Default::default() };
         let step = IterationStep::new(grid, 0.05);
         let gather = LatentGather { std_map: true, map: true };
-        let mut e = estimate_tile_recording(tile, &chunks, &corrections, &params, &step, &[], None, None, gather).unwrap();
+        let mut e =
+            estimate_tile_recording(tile, &chunks, &corrections, &params, &step, &[], None, None, gather).unwrap();
         let map = e.latent_std.take().expect("asked for the σ map");
         let latent = e.latent_map.take().expect("asked for the latent map");
         // Recording the maps changes nothing else.

@@ -19,6 +19,7 @@ pub(super) struct TileTask {
     pub(super) latent_map: bool,
     pub(super) crs: Option<precimap_formats::CrsSpec>,
     pub(super) control: Vec<precimap_core::ControlTarget>,
+    pub(super) calibration: Option<CalibrationInput>,
 }
 
 pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<TaskOutcome, TaskError> {
@@ -35,6 +36,7 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
         latent_map,
         crs,
         control,
+        calibration,
     } = task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
@@ -58,9 +60,19 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
             })
             .collect::<Result<Vec<_>, _>>()?;
         let gather = precimap_estimate::LatentGather { std_map, map: latent_map };
-        let mut estimate =
-            precimap_estimate::estimate_tile_recording(tile, &chunks, &all, &params, &step, &control, None, None, gather)
-                .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
+        let calibration = calibration.as_ref().map(CalibrationInput::tile);
+        let mut estimate = precimap_estimate::estimate_tile_recording(
+            tile,
+            &chunks,
+            &all,
+            &params,
+            &step,
+            &control,
+            calibration.as_ref(),
+            None,
+            gather,
+        )
+        .map_err(|e| TaskError::permanent(format!("tile {tile}: {e}")))?;
         let map = match estimate.latent_map.take() {
             Some(points) => {
                 let (points, wkt) = precimap_pipeline::tasks::latent_map_in_crs(tile, &points, georef.as_ref())
@@ -78,7 +90,8 @@ pub(super) async fn estimate_tile(at: &Attempt<'_>, task: TileTask) -> Result<Ta
     let mut objects = Vec::with_capacity(estimate.blocks.len() + 1);
     for tb in &estimate.blocks {
         let key = format!("{prefix}/it/{iteration}/blocks/{}/{tile}.{tag}.blk", tb.trajectory);
-        objects.push((format!("{BLOCKS_PREFIX}{}", tb.trajectory), key, encode_blocks(&tb.blocks)));
+        let bytes = encode_trajectory_blocks(&tb.blocks, tb.calibration.as_ref());
+        objects.push((format!("{BLOCKS_PREFIX}{}", tb.trajectory), key, bytes));
     }
     if let Some(field) = &estimate.field {
         let key = format!("{prefix}/it/{iteration}/field/{tile}.{tag}.fld");

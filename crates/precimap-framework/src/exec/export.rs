@@ -8,6 +8,7 @@ pub(super) async fn export_strip(
     strip: StripInput,
     anchor_spacing_m: f64,
     corrections: CorrectionsRef,
+    mounting: Option<precimap_core::ScannerCalibration>,
 ) -> Result<TaskOutcome, TaskError> {
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let (corrections, _) = read_corrections(ctx, &corrections).await?;
@@ -19,7 +20,7 @@ pub(super) async fn export_strip(
     let points = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
     let counter = points.clone();
     ctx.put_produced(&key, move |dst| {
-        let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, None, dst)?;
+        let n = export_strip_file(&entry, &traj, anchor_spacing_m, &corrections, mounting.as_ref(), dst)?;
         counter.store(n, std::sync::atomic::Ordering::Relaxed);
         Ok(())
     })

@@ -16,6 +16,7 @@ pub(super) struct TrajectoryTask {
     pub(super) previous: Option<CorrectionsRef>,
     pub(super) iteration_start: Option<CorrectionsRef>,
     pub(super) blocks: Vec<String>,
+    pub(super) calibration: u32,
 }
 
 pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> Result<TaskOutcome, TaskError> {
@@ -30,6 +31,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
         previous,
         iteration_start,
         blocks,
+        calibration,
     } = task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let params = required(params)?;
@@ -43,8 +45,18 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
     let previous = if has_previous { read.next() } else { None };
     let iteration_start = read.next();
     let mut all = Vec::new();
+    // The calibration's normal equations, summed in tile order (as the in-process driver does).
+    let mut normals = (calibration > 0).then(precimap_estimate::CalibrationNormals::default);
     for (key, bytes) in blocks.iter().zip(ctx.get_many(&blocks).await?) {
-        all.extend(decode_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?);
+        let (b, n) =
+            decode_trajectory_blocks(&bytes).map_err(|e| TaskError::permanent(format!("blocks object {key}: {e}")))?;
+        all.extend(b);
+        if let (Some(sum), Some(n)) = (normals.as_mut(), n) {
+            sum.add(&n);
+        }
+    }
+    if let Some(n) = normals.as_mut().filter(|n| n.is_empty()) {
+        *n = precimap_estimate::CalibrationNormals::zeros(calibration as usize);
     }
     let id = trajectory.id.clone();
     let solution = blocking(move || {
@@ -58,7 +70,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
             prior.as_deref(),
             step.rotation,
             with_sigma,
-            None,
+            normals.as_ref(),
         )
     })
     .await?
@@ -69,6 +81,21 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
     })?;
     let key = format!("{prefix}/it/{iteration}/corr/{}.{tag}.bin", trajectory.index);
     ctx.put(&key, encode_corrections(&solution.corrections, solution.covariance.as_deref())).await?;
+    let mut outputs = vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }];
+    // The share's `Y` goes to an object; the planner reads the rest from the result.
+    let share = solution.calibration.clone().map(|mut share| {
+        let y = std::mem::take(&mut share.y);
+        (share, y)
+    });
+    let share = match share {
+        Some((share, y)) => {
+            let key = format!("{prefix}/it/{iteration}/share/{}.{tag}.bin", trajectory.index);
+            ctx.put(&key, encode_share(share.first_anchor, share.len(), &y)).await?;
+            outputs.push(OutputKey { name: OUTPUT_SHARE.into(), object_key: key });
+            Some(share)
+        }
+        None => None,
+    };
     let result = SolveResult {
         trajectory: trajectory.index,
         max_change_m: solution.max_change_m,
@@ -76,9 +103,7 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
         change_histogram: solution.change_histogram.clone(),
         report: precimap_pipeline::trajectory_report(&trajectory.id, &solution),
         seconds: started.elapsed().as_secs_f64(),
+        calibration: share,
     };
-    Ok(TaskOutcome {
-        result: to_json(&result)?,
-        outputs: vec![OutputKey { name: OUTPUT_CORRECTIONS.into(), object_key: key }],
-    })
+    Ok(TaskOutcome { result: to_json(&result)?, outputs })
 }

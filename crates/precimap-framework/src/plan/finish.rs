@@ -8,6 +8,7 @@ use precimap_pipeline::report::{Report, Timings};
 
 pub(super) fn export_stage(state: &PlanState) -> Next {
     let spacing = state.params.anchor_spacing_m;
+    let calibration = state.calibration_input();
     let mut tasks: Vec<NewTask> = state
         .strips
         .iter()
@@ -17,6 +18,7 @@ pub(super) fn export_stage(state: &PlanState) -> Next {
                 strip: s.clone(),
                 anchor_spacing_m: spacing,
                 corrections: corrections_or_zero(state, s.trajectory),
+                mounting: calibration.as_ref().and_then(|c| c.scanners.get(s.scanner as usize).copied()),
             }
             .task(s.id.clone())
         })
@@ -45,7 +47,7 @@ fn corrections_or_zero(state: &PlanState, trajectory: u32) -> CorrectionsRef {
 /// The report, written at `now_ms` (database clock) by its own task.
 pub(super) fn report_stage(state: &PlanState, campaign: &CampaignRecord, now_ms: i64) -> Next {
     let report = Report {
-        calibration: None,
+        calibration: state.calibration_state().map(|c| c.report(&state.scanners)),
         campaign: state.name.clone(),
         manifest: format!("campaign {}", campaign.id),
         points_total: state.points_total,

@@ -102,6 +102,7 @@ pub(super) fn estimate_stage(state: &mut PlanState) -> Next {
     let step = effective_step(&state.params, state.step_index, state.robust_sigma);
     let gather = place(state).latent_gather();
     let control_by_tile = precimap_estimate::control::targets_by_tile(&state.control, &state.params);
+    let calibration = state.calibration_input();
     let tasks = state
         .tiles
         .iter()
@@ -122,6 +123,7 @@ pub(super) fn estimate_stage(state: &mut PlanState) -> Next {
                 latent_map: gather.map,
                 crs: gather.map.then(|| campaign_crs(state)).flatten(),
                 control: control_by_tile.get(tile).cloned().unwrap_or_default(),
+                calibration: calibration.clone(),
             }
             .task(tile.to_string())
         })
@@ -275,6 +277,7 @@ fn solve_stage(
                 previous: previous.as_ref().map(|p| reference(p, traj.index)),
                 iteration_start: iteration_start.as_ref().map(|s| reference(s, traj.index)),
                 blocks: std::mem::take(&mut blocks[traj.index as usize]),
+                calibration: if step.rotation { state.calibration.len() as u32 } else { 0 },
             }
             .task(traj.id.clone())
         })
@@ -285,6 +288,125 @@ fn solve_stage(
 pub(super) fn after_solve(
     state: &mut PlanState,
     tasks: &[FinishedTask],
+    span: Option<StageSpan>,
+) -> Result<(Option<IterationRecord>, Next), String> {
+    let mut solved = Vec::with_capacity(tasks.len());
+    for task in tasks {
+        let r: SolveResult = parse(task)?;
+        if r.trajectory as usize >= state.trajectories.len() {
+            return Err(format!("{}: result names unknown trajectory {}", task.key, r.trajectory));
+        }
+        let output = |name: &str| task.outputs.iter().find(|o| o.name == name).map(|o| o.object_key.clone());
+        let corrections = output(OUTPUT_CORRECTIONS).ok_or_else(|| format!("{}: no corrections recorded", task.key))?;
+        let share = output(OUTPUT_SHARE);
+        solved.push((r, corrections, share));
+    }
+    // Trajectory order: the in-process driver sums the calibration's shares in it.
+    solved.sort_by_key(|(r, _, _)| r.trajectory);
+    if solved.iter().any(|(r, _, _)| r.calibration.is_some()) {
+        return calibrate_stage(state, solved).map(|next| (None, next));
+    }
+    let outcomes = solved
+        .into_iter()
+        .map(|(r, corrections, _)| TrajectoryOutcome {
+            trajectory: r.trajectory,
+            max_change_m: r.max_change_m,
+            max_change_anchor: r.max_change_anchor,
+            change_histogram: r.change_histogram,
+            report: r.report,
+            seconds: r.seconds,
+            corrections,
+        })
+        .collect();
+    finish_iteration(state, outcomes, span).map(|(record, next)| (Some(record), next))
+}
+
+/// What an iteration's last stage reports of one trajectory.
+struct TrajectoryOutcome {
+    trajectory: u32,
+    max_change_m: f64,
+    max_change_anchor: u32,
+    change_histogram: precimap_core::ChangeHistogram,
+    report: precimap_pipeline::report::TrajectoryReport,
+    seconds: f64,
+    corrections: String,
+}
+
+/// The calibration's step from every trajectory's share (solved here, like Anderson's
+/// coefficients: the shares are small), and the stage that applies it to each trajectory.
+fn calibrate_stage(state: &mut PlanState, solved: Vec<(SolveResult, String, Option<String>)>) -> Result<Next, String> {
+    let shares: Vec<&precimap_estimate::calibration::CalibrationShare> =
+        solved.iter().filter_map(|(r, _, _)| r.calibration.as_ref()).collect();
+    let layout = state.params.calibration.layout(state.scanners.len());
+    let step = precimap_estimate::calibration::solve_calibration(
+        shares,
+        &state.calibration,
+        &layout,
+        &state.params.calibration,
+    )
+    .map_err(|e| format!("the scanners' calibration: {e}"))?;
+    for (value, delta) in state.calibration.iter_mut().zip(&step.delta) {
+        *value += delta;
+    }
+    let starts = state.corrections.clone();
+    let mut tasks = Vec::with_capacity(solved.len());
+    for (r, corrections, share) in solved {
+        state.pending_seconds += r.seconds;
+        let t = r.trajectory;
+        let share = share.ok_or_else(|| format!("trajectory {t}: its solve recorded no calibration share"))?;
+        let reference =
+            |key: Option<String>| CorrectionsRef { trajectory: t, anchors: state.anchor_ranges[t as usize], key };
+        let traj = state.trajectories[t as usize].clone();
+        tasks.push(
+            TaskInput::ApplyCalibration {
+                prefix: state.prefix.clone(),
+                iteration: state.iteration,
+                corrections: reference(Some(corrections)),
+                share,
+                iteration_start: reference(starts[t as usize].clone()),
+                delta: step.delta.clone(),
+                report: Box::new(r.report),
+                trajectory: traj.clone(),
+            }
+            .task(traj.id.clone()),
+        );
+    }
+    state.calibration_step = Some(step);
+    Ok(Next::Stage(StageSpec { stage: STAGE_CALIBRATE.to_string(), iteration: state.iteration as i32, tasks }))
+}
+
+pub(super) fn after_calibrate(
+    state: &mut PlanState,
+    tasks: &[FinishedTask],
+    span: Option<StageSpan>,
+) -> Result<(IterationRecord, Next), String> {
+    let mut outcomes = Vec::with_capacity(tasks.len());
+    for task in tasks {
+        let r: ApplyResult = parse(task)?;
+        let corrections = task
+            .outputs
+            .iter()
+            .find(|o| o.name == OUTPUT_CORRECTIONS)
+            .map(|o| o.object_key.clone())
+            .ok_or_else(|| format!("{}: no corrections recorded", task.key))?;
+        outcomes.push(TrajectoryOutcome {
+            trajectory: r.trajectory,
+            max_change_m: r.max_change_m,
+            max_change_anchor: r.max_change_anchor,
+            change_histogram: r.change_histogram,
+            report: r.report,
+            seconds: r.seconds,
+            corrections,
+        });
+    }
+    finish_iteration(state, outcomes, span)
+}
+
+/// The end of an iteration, once every trajectory's corrections are final: the iteration's
+/// report and record, and what follows it.
+fn finish_iteration(
+    state: &mut PlanState,
+    outcomes: Vec<TrajectoryOutcome>,
     span: Option<StageSpan>,
 ) -> Result<(IterationRecord, Next), String> {
     let mut changes = precimap_core::ChangeHistogram::default();
@@ -300,21 +422,15 @@ pub(super) fn after_solve(
         if state.started_from.is_empty() { state.corrections.clone() } else { std::mem::take(&mut state.started_from) };
     state.previous_step = Some(effective_step(&state.params, state.step_index, state.robust_sigma));
     let mut seconds = state.pending_seconds;
-    for task in tasks {
-        let r: SolveResult = parse(task)?;
+    for r in outcomes {
         let t = r.trajectory as usize;
         if t >= reports.len() {
-            return Err(format!("{}: result names unknown trajectory {t}", task.key));
+            return Err(format!("a result names unknown trajectory {t}"));
         }
         largest[t] = Some((r.max_change_m, r.max_change_anchor));
         changes.merge(&r.change_histogram);
         seconds += r.seconds;
-        let key = task
-            .outputs
-            .iter()
-            .find(|o| o.name == OUTPUT_CORRECTIONS)
-            .ok_or_else(|| format!("{}: no corrections recorded", task.key))?;
-        state.corrections[t] = Some(key.object_key.clone());
+        state.corrections[t] = Some(r.corrections);
         reports[t] = Some(r.report);
     }
     state.trajectory_reports = reports.into_iter().flatten().collect();

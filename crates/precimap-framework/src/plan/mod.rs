@@ -29,13 +29,13 @@ mod task;
 
 pub use state::{new_campaign, PlanState};
 pub use task::{
-    ChunkRef, CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput, FieldResult, MomentsResult,
-    SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
+    ApplyResult, CalibrationInput, ChunkRef, CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput,
+    FieldResult, MomentsResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
 };
 
 use accelerate::{after_accelerate, after_combine};
 use finish::{export_stage, report_stage};
-use iterate::{after_estimate, after_field, after_prepare, after_solve, estimate_stage};
+use iterate::{after_calibrate, after_estimate, after_field, after_prepare, after_solve, estimate_stage};
 use precimap_core::TileKey;
 use precimap_jobs::{CampaignRecord, FinishedStage, FinishedTask, Next, StagePlanner, Transition};
 use precimap_pipeline::overlap_problem;
@@ -50,6 +50,9 @@ pub const STAGE_SOLVE: &str = "solve";
 /// coefficients) each trajectory's combination.
 pub const STAGE_ACCELERATE: &str = "accelerate";
 pub const STAGE_COMBINE: &str = "combine";
+/// The calibration's step applied to every trajectory (campaigns that estimate the scanners'
+/// calibration, in steps that estimate the attitude).
+pub const STAGE_CALIBRATE: &str = "calibrate";
 pub const STAGE_EXPORT: &str = "export";
 pub const STAGE_REPORT: &str = "report";
 
@@ -59,6 +62,7 @@ pub const KIND_SOLVE_FIELD: &str = "solve_field";
 pub const KIND_SOLVE_TRAJECTORY: &str = "solve_trajectory";
 pub const KIND_ANDERSON_MOMENTS: &str = "anderson_moments";
 pub const KIND_ANDERSON_COMBINE: &str = "anderson_combine";
+pub const KIND_APPLY_CALIBRATION: &str = "apply_calibration";
 pub const KIND_EXPORT_STRIP: &str = "export_strip";
 pub const KIND_EXPORT_TRAJECTORY: &str = "export_trajectory";
 pub const KIND_WRITE_REPORT: &str = "write_report";
@@ -71,6 +75,8 @@ pub const OUTPUT_FIELD: &str = "field";
 /// `solve_field` outputs: each trajectory's corrections with the field added (`start/{t}`), and
 /// the corrections momentum measures from, shifted alike (`previous/{t}`).
 pub const START_PREFIX: &str = "start/";
+/// `solve_trajectory` output with the calibration: the trajectory's share of its solve.
+pub const OUTPUT_SHARE: &str = "share";
 /// `anderson_combine` output: the trajectory's start for the next iteration.
 pub const OUTPUT_ACCELERATED: &str = "accelerated";
 pub const PREVIOUS_PREFIX: &str = "previous/";
@@ -130,6 +136,11 @@ impl StagePlanner for CampaignPlanner {
             STAGE_FIELD => after_field(&mut state, &finished.tasks)?,
             STAGE_SOLVE => {
                 let (record, next) = after_solve(&mut state, &finished.tasks, finished.span_ms)?;
+                iteration = record;
+                next
+            }
+            STAGE_CALIBRATE => {
+                let (record, next) = after_calibrate(&mut state, &finished.tasks, finished.span_ms)?;
                 iteration = Some(record);
                 next
             }

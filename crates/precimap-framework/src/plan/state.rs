@@ -91,6 +91,42 @@ pub struct PlanState {
     pub prepare_s: f64,
     pub estimate_s: f64,
     pub export_s: f64,
+    /// The scanners the strips use, by name (the calibration's order).
+    #[serde(default)]
+    pub scanners: Vec<String>,
+    /// The scanners' current calibration (empty unless the campaign estimates it).
+    #[serde(default)]
+    pub calibration: Vec<f64>,
+    /// The calibration's last step: its precision and which unknowns the geometry determines.
+    #[serde(default)]
+    pub calibration_step: Option<precimap_estimate::calibration::CalibrationStep>,
+}
+
+impl PlanState {
+    /// What a map task takes of the calibration, where the campaign estimates it.
+    pub(super) fn calibration_input(&self) -> Option<CalibrationInput> {
+        if self.calibration.is_empty() {
+            return None;
+        }
+        let layout = self.params.calibration.layout(self.scanners.len());
+        let per = layout.per_scanner().max(1);
+        let scanners =
+            self.calibration.chunks(per).map(|b| precimap_core::ScannerCalibration::from_block(&layout, b)).collect();
+        Some(CalibrationInput { layout, scanner_of_strip: self.strips.iter().map(|s| s.scanner).collect(), scanners })
+    }
+
+    /// The calibration as the in-process driver keeps it (for the report and the export).
+    pub fn calibration_state(&self) -> Option<precimap_pipeline::calibration::CalibrationState> {
+        let input = self.calibration_input()?;
+        Some(precimap_pipeline::calibration::CalibrationState {
+            layout: input.layout,
+            options: self.params.calibration.clone(),
+            scanner_of_strip: input.scanner_of_strip,
+            values: self.calibration.clone(),
+            scanners: input.scanners,
+            last: self.calibration_step.clone(),
+        })
+    }
 }
 
 impl PlanState {
@@ -102,8 +138,10 @@ impl PlanState {
         strips: Vec<StripInput>,
         trajectories: Vec<TrajectoryInput>,
         control: Vec<ControlTarget>,
+        scanners: Vec<String>,
     ) -> Self {
         let n = trajectories.len();
+        let calibration = vec![0.0; params.calibration.layout(scanners.len()).len()];
         Self {
             name: name.to_string(),
             prefix: prefix.to_string(),
@@ -144,6 +182,9 @@ impl PlanState {
             prepare_s: 0.0,
             estimate_s: 0.0,
             export_s: 0.0,
+            scanners,
+            calibration,
+            calibration_step: None,
         }
     }
 }
@@ -170,6 +211,7 @@ pub fn new_campaign(
             trajectory_id: s.trajectory.clone(),
             trajectory_uri: manifest.trajectories[r.trajectory as usize].uri.clone(),
             lever_arm: r.lever_arm,
+            scanner: r.scanner,
             field: field_input(manifest, r.trajectory as usize),
         })
         .collect();
@@ -193,6 +235,7 @@ pub fn new_campaign(
         strips.clone(),
         trajectories.clone(),
         resolved.control,
+        resolved.scanners,
     );
     let first = StageSpec {
         stage: STAGE_PREPARE.to_string(),

@@ -19,9 +19,30 @@ pub struct StripInput {
     pub trajectory_id: String,
     pub trajectory_uri: String,
     pub lever_arm: [f64; 3],
+    /// The index of the strip's scanner among the campaign's (the calibration's order).
+    #[serde(default)]
+    pub scanner: u32,
     /// A field campaign's CRS and how the strip's trajectory is read.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<FieldInput>,
+}
+
+/// What a map task needs of the scanners' calibration, where the campaign estimates it.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct CalibrationInput {
+    pub layout: precimap_core::CalibrationLayout,
+    pub scanner_of_strip: Vec<u32>,
+    pub scanners: Vec<precimap_core::ScannerCalibration>,
+}
+
+impl CalibrationInput {
+    pub fn tile(&self) -> precimap_estimate::TileCalibration<'_> {
+        precimap_estimate::TileCalibration {
+            layout: &self.layout,
+            scanner_of_strip: &self.scanner_of_strip,
+            scanners: &self.scanners,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -107,6 +128,9 @@ pub enum TaskInput {
         /// The control and check targets near the tile (processing frame).
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         control: Vec<ControlTarget>,
+        /// The scanners' current calibration, where the campaign estimates it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        calibration: Option<CalibrationInput>,
     },
     SolveField {
         prefix: String,
@@ -148,15 +172,32 @@ pub enum TaskInput {
         iteration_start: Option<CorrectionsRef>,
         /// Blocks object keys in tile order (the in-process driver's summation order).
         blocks: Vec<String>,
+        /// The calibration's unknowns, where the step estimates it: solve with the terms the
+        /// blocks carry, and write the trajectory's share of the calibration's solve (`share`).
+        #[serde(default, skip_serializing_if = "is_zero")]
+        calibration: u32,
+    },
+    /// One trajectory's corrections moved by the calibration's step the planner solved from
+    /// every trajectory's share (`precimap_estimate::solve::apply_calibration_step`).
+    ApplyCalibration {
+        prefix: String,
+        iteration: u32,
+        trajectory: TrajectoryInput,
+        /// The corrections the solve wrote (with an unchanged calibration).
+        corrections: CorrectionsRef,
+        /// The trajectory's share object.
+        share: String,
+        /// The corrections the iteration started from (the change is measured from them).
+        iteration_start: CorrectionsRef,
+        delta: Vec<f64>,
+        /// The solve's report of the trajectory (its observation counts), made again from the
+        /// moved corrections.
+        report: Box<TrajectoryReport>,
     },
     /// One trajectory's share of Anderson's coefficient problem from its settling iterations'
     /// history (`precimap_estimate::anderson::trajectory_moments`), oldest first. The shares
     /// are small; the planner sums them in trajectory order and solves for the coefficients.
-    AndersonMoments {
-        trajectory: u32,
-        starts: Vec<CorrectionsRef>,
-        results: Vec<CorrectionsRef>,
-    },
+    AndersonMoments { trajectory: u32, starts: Vec<CorrectionsRef>, results: Vec<CorrectionsRef> },
     /// One trajectory's start for the next iteration from its results and the campaign's
     /// coefficients (`precimap_estimate::anderson::combine`).
     AndersonCombine {
@@ -171,6 +212,9 @@ pub enum TaskInput {
         strip: StripInput,
         anchor_spacing_m: f64,
         corrections: CorrectionsRef,
+        /// The strip's scanner's estimated calibration, where the campaign estimates it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mounting: Option<precimap_core::ScannerCalibration>,
     },
     ExportTrajectory {
         prefix: String,
@@ -217,6 +261,7 @@ impl TaskInput {
             }
             Self::AndersonMoments { .. }
             | Self::AndersonCombine { .. }
+            | Self::ApplyCalibration { .. }
             | Self::ExportStrip { .. }
             | Self::WriteReport { .. } => {}
         }
@@ -243,6 +288,7 @@ impl TaskInput {
             Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
             Self::AndersonMoments { .. } => KIND_ANDERSON_MOMENTS,
             Self::AndersonCombine { .. } => KIND_ANDERSON_COMBINE,
+            Self::ApplyCalibration { .. } => KIND_APPLY_CALIBRATION,
             Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
             Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
             Self::WriteReport { .. } => KIND_WRITE_REPORT,
@@ -301,6 +347,21 @@ pub struct SolveResult {
     pub change_histogram: precimap_core::ChangeHistogram,
     pub report: TrajectoryReport,
     pub seconds: f64,
+    /// The trajectory's share of the calibration's solve without its `y` (which the share
+    /// object holds), where the task solved with the calibration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<precimap_estimate::calibration::CalibrationShare>,
+}
+
+/// `apply_calibration`'s result: the trajectory's change once the calibration's step is applied.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ApplyResult {
+    pub trajectory: u32,
+    pub max_change_m: f64,
+    pub max_change_anchor: u32,
+    pub change_histogram: precimap_core::ChangeHistogram,
+    pub report: TrajectoryReport,
+    pub seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -320,6 +381,10 @@ pub struct CombineResult {
 pub struct ExportResult {
     pub points: u64,
     pub seconds: f64,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 #[cfg(test)]
