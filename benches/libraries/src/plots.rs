@@ -1,7 +1,7 @@
 //! precimap's QC plot writer (`precimap_pipeline::qc`) against `plotters` with its SVG backend,
 //! on the largest QC plot: a trajectory's six correction panels. Both draw the same series (the
 //! per-pixel-column envelope precimap draws, so plotters is not charged for 20,000 vertices a
-//! panel) with the same titles and axis labels; the figures are the SVG's size and the time to
+//! panel) with titles and axis labels like precimap's; the figures are the SVG's size and the time to
 //! write it.
 
 use plotters::prelude::*;
@@ -86,7 +86,8 @@ fn plotters_svg(rows: &[VehicleCorrection]) -> Result<String, Box<dyn std::error
     Ok(out)
 }
 
-/// The output of `f` and its best wall time (seconds) over `repeats` calls.
+/// The output of `f` and its least wall time (seconds) over `repeats` calls (milliseconds each:
+/// below the resolution of a thread's CPU time).
 fn best_of(repeats: usize, mut f: impl FnMut() -> String) -> (String, f64) {
     let mut best = (String::new(), f64::INFINITY);
     for _ in 0..repeats {
@@ -103,11 +104,11 @@ fn best_of(repeats: usize, mut f: impl FnMut() -> String) -> (String, f64) {
 pub fn run(anchors: usize) {
     let rows = rows(anchors);
     println!("# QC plot: a trajectory's six correction panels, {anchors} anchors");
-    let (ours, ours_s) = best_of(10, || corrections_svg("T", 1.0, &rows));
-    let (theirs, theirs_s) = best_of(10, || plotters_svg(&rows).expect("plotters draws the plot"));
+    let (ours, ours_s) = best_of(50, || corrections_svg("T", 1.0, &rows));
+    let (theirs, theirs_s) = best_of(50, || plotters_svg(&rows).expect("plotters draws the plot"));
     for (name, svg, s) in [("precimap qc", &ours, ours_s), ("plotters SVGBackend", &theirs, theirs_s)] {
         println!(
-            "{name:<20} {:>8} bytes  {:>6.2} ms (best of 10)  elements: {:>4} <text>, {:>4} <line>, {:>3} <polyline>",
+            "{name:<20} {:>8} bytes  {:>6.2} ms (least of 50)  elements: {:>4} <text>, {:>4} <line>, {:>3} <polyline>",
             svg.len(),
             s * 1e3,
             svg.matches("<text").count(),

@@ -4,6 +4,7 @@
 //! field solve runs on one thread, and faer is built without rayon.
 
 use crate::alloc::peak_during;
+use crate::thread_cpu_s;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::perm::PermRef;
@@ -15,11 +16,10 @@ use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, Par, Side, Spec};
 use precimap_bench::solve::street_network_system;
 use precimap_solve::sparse::{geometric_nested_dissection, SymmetricSparse};
-use std::time::Instant;
 
 /// One solver's figures on one system.
 struct Run {
-    /// Best wall seconds over the repeats: ordering, conversion, factorisation and solve.
+    /// Least CPU seconds over the repeats: ordering, conversion, factorisation and solve.
     seconds: f64,
     /// Stored factor entries (faer's supernodal blocks count in full, as they are stored).
     entries: usize,
@@ -95,19 +95,20 @@ fn faer_llt(m: &SymmetricSparse, rhs: &[f64], coordinates: Option<&[[f64; 2]]>, 
     Run { seconds: 0.0, entries, peak, x, kind }
 }
 
-/// Best of `repeats` timed runs, the first of which also gives the figures.
-fn timed(repeats: usize, mut f: impl FnMut() -> Run) -> Run {
-    let mut best = f64::INFINITY;
-    let mut first = None;
+/// Runs each solver `repeats` times, round robin (a change of the machine's load falls on all
+/// of them), and keeps each one's least CPU time and its first run's figures.
+fn timed(repeats: usize, solvers: &mut [&mut dyn FnMut() -> Run]) -> Vec<Run> {
+    let mut runs: Vec<Option<Run>> = solvers.iter().map(|_| None).collect();
+    let mut best = vec![f64::INFINITY; solvers.len()];
     for _ in 0..repeats {
-        let start = Instant::now();
-        let run = f();
-        best = best.min(start.elapsed().as_secs_f64());
-        first.get_or_insert(run);
+        for (k, solve) in solvers.iter_mut().enumerate() {
+            let start = thread_cpu_s();
+            let run = solve();
+            best[k] = best[k].min(thread_cpu_s() - start);
+            runs[k].get_or_insert(run);
+        }
     }
-    let mut run = first.expect("at least one repeat");
-    run.seconds = best;
-    run
+    runs.into_iter().zip(best).map(|(run, s)| Run { seconds: s, ..run.expect("at least one repeat") }).collect()
 }
 
 /// ‖A x − b‖ / ‖b‖ with A given by its lower triangle.
@@ -124,17 +125,23 @@ fn relative_residual(m: &SymmetricSparse, x: &[f64], b: &[f64]) -> f64 {
 }
 
 pub fn run(blocks: &[usize], per_node: usize, repeats: usize) {
-    println!("# sparse Cholesky: precimap (geometric nested dissection) vs faer 0.24 (one thread)");
+    println!("# sparse Cholesky: precimap (geometric nested dissection) vs faer 0.24, one thread, least CPU-seconds of {repeats}");
     println!(
-        "blocks unknowns | solver                 kind        seconds  speed-up  factor-entries  peak-MiB  rel-residual  max|x-x_ours|/max|x_ours|"
+        "blocks unknowns | solver                 kind      CPU-seconds speed-up  factor-entries  peak-MiB  rel-residual  max|x-x_ours|/max|x_ours|"
     );
     for &b in blocks {
         let (m, rhs, coordinates) = street_network_system(b, per_node, 0x5EED);
         let n = m.unknowns();
-        let base = timed(repeats, || ours(&m, &rhs, &coordinates));
-        let amd = timed(repeats, || faer_llt(&m, &rhs, None, true));
-        let amd_tight = timed(repeats, || faer_llt(&m, &rhs, None, false));
-        let nd = timed(repeats, || faer_llt(&m, &rhs, Some(&coordinates), true));
+        let runs = timed(
+            repeats,
+            &mut [
+                &mut || ours(&m, &rhs, &coordinates),
+                &mut || faer_llt(&m, &rhs, None, true),
+                &mut || faer_llt(&m, &rhs, None, false),
+                &mut || faer_llt(&m, &rhs, Some(&coordinates), true),
+            ],
+        );
+        let [base, amd, amd_tight, nd] = <[Run; 4]>::try_from(runs).ok().expect("four solvers");
         let scale = base.x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
         for (name, run) in [
             ("precimap", &base),
