@@ -1,7 +1,8 @@
 //! precimap's sparse Cholesky (`precimap_solve::sparse`, geometric nested dissection) against
 //! faer's sparse Cholesky, with faer's own AMD ordering and with precimap's ordering, on the
 //! street-network systems of `precimap bench field-solve`. Single-threaded on both sides: the
-//! field solve runs on one thread, and faer is built without rayon.
+//! field solve runs on one thread, and faer is built without rayon. Indices are 32-bit on both
+//! sides, as precimap's are.
 
 use crate::alloc::peak_during;
 use crate::thread_cpu_s;
@@ -45,16 +46,19 @@ fn faer_llt(m: &SymmetricSparse, rhs: &[f64], coordinates: Option<&[[f64; 2]]>, 
     let n = m.unknowns();
     let ((x, entries, kind), peak) = peak_during(|| {
         let order = coordinates.map(|c| {
-            let forward: Vec<usize> = geometric_nested_dissection(c, m.lower_entries().map(|(i, j, _)| (i, j)));
-            let mut inverse = vec![0usize; n];
+            let forward: Vec<u32> = geometric_nested_dissection(c, m.lower_entries().map(|(i, j, _)| (i, j)))
+                .into_iter()
+                .map(|v| v as u32)
+                .collect();
+            let mut inverse = vec![0u32; n];
             for (new, &old) in forward.iter().enumerate() {
-                inverse[old] = new;
+                inverse[old as usize] = new as u32;
             }
             (forward, inverse)
         });
-        let triplets: Vec<Triplet<usize, usize, f64>> =
-            m.lower_entries().map(|(row, col, val)| Triplet { row, col, val }).collect();
-        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).expect("valid entries");
+        let triplets: Vec<Triplet<u32, u32, f64>> =
+            m.lower_entries().map(|(row, col, val)| Triplet { row: row as u32, col: col as u32, val }).collect();
+        let a = SparseColMat::<u32, f64>::try_new_from_triplets(n, n, &triplets).expect("valid entries");
         drop(triplets);
         let ordering = match &order {
             Some((forward, inverse)) => SymmetricOrdering::Custom(PermRef::new_checked(forward, inverse, n)),
