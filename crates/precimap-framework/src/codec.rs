@@ -508,6 +508,31 @@ mod tests {
         assert_eq!(decode_field(&plain).unwrap(), f);
     }
 
+    /// Blocks with the calibration's terms and a share's `Y` come back bit for bit; blocks
+    /// without them keep version 1, which the reader of both versions takes.
+    #[test]
+    fn calibration_blocks_and_shares_round_trip_bit_exact() {
+        let k = 3;
+        let mut blocks: Vec<_> = (0..4).map(|i| block(7 + i, 0.3 + i as f64 / 7.0)).collect();
+        for (i, b) in blocks.iter_mut().enumerate() {
+            b.cross = (0..6 * k).map(|j| (i * 31 + j) as f64 / 17.0 - 1.1).collect();
+        }
+        let normals = CalibrationNormals { h: (0..k * k).map(|j| j as f64 * 0.37).collect(), b: vec![0.1, -0.2, 1e-9] };
+        let bytes = encode_trajectory_blocks(&blocks, Some(&normals));
+        let (back, back_normals) = decode_trajectory_blocks(&bytes).unwrap();
+        assert_eq!(back, blocks);
+        assert_eq!(back_normals, Some(normals));
+        assert!(decode_trajectory_blocks(&bytes[..bytes.len() - 1]).is_err());
+        let plain: Vec<_> = blocks.iter().map(|b| AnchorBlock { cross: Vec::new(), ..b.clone() }).collect();
+        let v1 = encode_trajectory_blocks(&plain, None);
+        assert_eq!(v1, encode_blocks(&plain));
+        assert_eq!(decode_trajectory_blocks(&v1).unwrap(), (plain, None));
+        let y: Vec<f64> = (0..5 * 6 * k).map(|j| (j as f64).sin()).collect();
+        let share = encode_share(42, k, &y);
+        assert_eq!(decode_share(&share).unwrap(), (42, k, y));
+        assert!(decode_share(&share[..share.len() - 8]).is_err());
+    }
+
     #[test]
     fn blocks_round_trip_bit_exact() {
         let blocks: Vec<_> = (0..5).map(|i| block(100 + i, 0.1 + i as f64 / 3.0)).collect();

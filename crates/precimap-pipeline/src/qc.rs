@@ -35,6 +35,10 @@ pub fn report_qc(report: &Report) -> Vec<(String, String)> {
         files.push((format!("{QC_DIR}/control.csv"), crate::control_report::control_csv(&report.control)));
         files.push((format!("{QC_DIR}/control.svg"), control_svg(&report.control)));
     }
+    if let Some(c) = &report.calibration {
+        files.push((format!("{QC_DIR}/calibration.csv"), calibration::calibration_csv(c)));
+        files.push((format!("{QC_DIR}/calibration.svg"), calibration::calibration_svg(c)));
+    }
     files
 }
 
@@ -65,6 +69,8 @@ pub fn frame_note(georef: &Georeference) -> String {
         georef.frame.crs()
     )
 }
+
+mod calibration;
 
 const WIDTH: f64 = 960.0;
 const LEFT: f64 = 78.0;

@@ -258,3 +258,23 @@ fn all_problems_at_once_and_display_names_the_file() {
     let missing = load_manifest(&dir.path().join("none.json")).unwrap_err();
     assert!(matches!(missing, ManifestError::Io { .. }) && missing.to_string().contains("none.json"));
 }
+
+/// The calibration's options: any subset of its fields, kinds by name; an unknown field, an
+/// unknown kind or a non-positive σ is refused with its path.
+#[test]
+fn calibration_options_are_checked_with_their_path() {
+    let ok = with(|v| {
+        v["parameters"]["calibration"] =
+            serde_json::json!({"estimate": ["boresight", "range_offset"], "prior_lever_arm_m": 0.2});
+    });
+    let m = parse_manifest(&ok).unwrap();
+    assert_eq!(m.parameters.calibration.estimate.len(), 2);
+    assert_eq!(m.parameters.calibration.prior_lever_arm_m, 0.2);
+    let p =
+        problems(&with(|v| v["parameters"]["calibration"] = serde_json::json!({"estimate": ["boresight"], "tilt": 1})));
+    assert!(has(&p, "$.parameters.calibration.tilt", "unknown field"), "{p:#?}");
+    let p = problems(&with(|v| v["parameters"]["calibration"] = serde_json::json!({"estimate": ["scale"]})));
+    assert!(has(&p, "$.parameters", "scale"), "{p:#?}");
+    let p = problems(&with(|v| v["parameters"]["calibration"] = serde_json::json!({"tolerance_boresight_deg": 0})));
+    assert!(has(&p, "$.parameters.calibration.tolerance_boresight_deg", "positive"), "{p:#?}");
+}
