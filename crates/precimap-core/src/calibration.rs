@@ -60,6 +60,10 @@ pub struct CalibrationOptions {
     pub tolerance_boresight_deg: f64,
     pub tolerance_lever_arm_m: f64,
     pub tolerance_range_offset_m: f64,
+    /// An unknown of which the trajectories' corrections can take up all but this share of what
+    /// the observations say of it (the report's `separation`) is not
+    /// separated from the trajectories' errors, and is held at the manifest's value too.
+    pub min_separation: f64,
 }
 
 impl Default for CalibrationOptions {
@@ -72,6 +76,7 @@ impl Default for CalibrationOptions {
             tolerance_boresight_deg: 0.005,
             tolerance_lever_arm_m: 0.005,
             tolerance_range_offset_m: 0.005,
+            min_separation: 0.05,
         }
     }
 }

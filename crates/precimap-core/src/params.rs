@@ -516,6 +516,12 @@ impl Parameters {
         ] {
             check_positive(out, field, value);
         }
+        if !(0.0..1.0).contains(&c.min_separation) {
+            out.push(ParameterProblem {
+                field: "calibration.min_separation".into(),
+                problem: format!("must be in [0, 1), got {}", c.min_separation),
+            });
+        }
         check_positive(out, "sigma_prior_position_m", self.sigma_prior_position_m);
         check_positive(out, "sigma_prior_rotation_deg", self.sigma_prior_rotation_deg);
         if self.sigma_prior_heading_deg != 0.0 {

@@ -64,7 +64,7 @@ impl CalibrationNormals {
 
     /// One observation of scanner block `offset` with derivatives `gc`, weight `w` and
     /// weighted residual `we`.
-    #[inline]
+    #[cfg(test)]
     pub(crate) fn add_observation(&mut self, offset: usize, gc: &[f64], we: f64, w: f64) {
         let k = self.len();
         for (i, gi) in gc.iter().enumerate() {
@@ -78,30 +78,31 @@ impl CalibrationNormals {
 }
 
 /// Per anchor interval of one chunk (one scanner): `Σ w·g·gcᵀ` and `Σ w·λ·g·gcᵀ` (6 × the
-/// scanner's unknowns, row-major), from which anchor `i` gets `(1−λ)` and anchor `i+1` `λ`.
+/// scanner's unknowns, at most 7, row-major), from which anchor `i` gets `(1−λ)` and anchor
+/// `i+1` `λ`.
 #[derive(Clone, Debug)]
 pub(crate) struct CrossMoments {
     per_scanner: usize,
-    m0: Vec<f64>,
-    m1: Vec<f64>,
+    m0: Vec<[f64; 42]>,
+    m1: Vec<[f64; 42]>,
 }
 
 impl CrossMoments {
     pub(crate) fn new(intervals: usize, per_scanner: usize) -> Self {
-        Self { per_scanner, m0: vec![0.0; intervals * 6 * per_scanner], m1: vec![0.0; intervals * 6 * per_scanner] }
+        assert!(per_scanner <= 7, "at most 7 calibration unknowns per scanner");
+        Self { per_scanner, m0: vec![[0.0; 42]; intervals], m1: vec![[0.0; 42]; intervals] }
     }
 
     #[inline]
     pub(crate) fn add(&mut self, interval: usize, g: &[f64; 6], gc: &[f64], w: f64, lambda: f64) {
         let k = self.per_scanner;
-        let base = interval * 6 * k;
+        let (m0, m1) = (&mut self.m0[interval], &mut self.m1[interval]);
         let wl = w * lambda;
         for (a, ga) in g.iter().enumerate() {
-            let row = base + a * k;
-            for (j, gj) in gc.iter().enumerate() {
-                let q = ga * gj;
-                self.m0[row + j] += w * q;
-                self.m1[row + j] += wl * q;
+            let (wa, wla) = (w * ga, wl * ga);
+            for (j, gj) in gc.iter().enumerate().take(k) {
+                m0[a * 7 + j] += wa * gj;
+                m1[a * 7 + j] += wla * gj;
             }
         }
     }
@@ -117,7 +118,7 @@ impl CrossMoments {
         after: &mut Vec<f64>,
     ) {
         let k = self.per_scanner;
-        let base = interval * 6 * k;
+        let (m0, m1) = (&self.m0[interval], &self.m1[interval]);
         for block in [&mut *at, &mut *after] {
             if block.is_empty() {
                 block.resize(6 * total, 0.0);
@@ -125,9 +126,8 @@ impl CrossMoments {
         }
         for a in 0..6 {
             for j in 0..k {
-                let (m0, m1) = (self.m0[base + a * k + j], self.m1[base + a * k + j]);
-                at[a * total + offset + j] += m0 - m1;
-                after[a * total + offset + j] += m1;
+                at[a * total + offset + j] += m0[a * 7 + j] - m1[a * 7 + j];
+                after[a * total + offset + j] += m1[a * 7 + j];
             }
         }
     }
@@ -235,8 +235,9 @@ pub enum CalibrationError {
 /// The calibration's exact step given every trajectory's share: the Schur complement
 /// `Σ(H_cc − CᵀY) + P` and right-hand side `Σ(b_c − Cᵀx₀) − P·c`, with the prior `P` (σ per
 /// kind, centred on the manifest's mounting) holding the system regular. An unknown whose
-/// posterior σ exceeds its tolerance is held at the manifest's value (its step is `−c`) and the
-/// others are solved given it.
+/// posterior σ exceeds its tolerance, or whose separation from the trajectories is below
+/// `min_separation`, is held at the manifest's value (its step is `−c`) and the others are solved
+/// given it.
 pub fn solve_calibration<'a>(
     shares: impl IntoIterator<Item = &'a CalibrationShare>,
     current: &[f64],
@@ -285,7 +286,8 @@ pub fn solve_calibration<'a>(
             }
         })
         .collect();
-    let determined: Vec<bool> = (0..k).map(|i| inverse[(i, i)].sqrt() <= tolerance[i]).collect();
+    let determined: Vec<bool> =
+        (0..k).map(|i| inverse[(i, i)].sqrt() <= tolerance[i] && separation[i] >= options.min_separation).collect();
     let free: Vec<usize> = (0..k).filter(|&i| determined[i]).collect();
     let mut delta: Vec<f64> = (0..k).map(|i| -current[i]).collect();
     let mut covariance = vec![0.0; k * k];

@@ -215,7 +215,7 @@ fn estimate_tile_into<S: LatentSink>(
     check_chunks(tile, chunks, corrections, calibration)?;
     let cos_group = params.normal_group_angle_deg.to_radians().cos();
     // 1. Every point corrected and sorted into a patch, the patches joined into surface models.
-    let CorrectedPoints { position, measurement, vehicle, patch_of, patches } =
+    let CorrectedPoints { position, measurement, vehicle, patch_of, patches, attitude } =
         correct_points(tile, chunks, corrections, params, step, cos_group, calibration);
     let (models, model_of) = join_into_models(&patches, &patch_of, params, step, cos_group);
     drop((patch_of, patches));
@@ -245,6 +245,7 @@ fn estimate_tile_into<S: LatentSink>(
     let observations = Observations {
         t: &triangles,
         measurement: &measurement,
+        attitude: &attitude,
         vehicle: &vehicle,
         latent: &latent,
         weight: 1.0 / (params.sigma_distance_m * params.sigma_distance_m),

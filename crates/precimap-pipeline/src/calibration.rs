@@ -123,10 +123,14 @@ impl CalibrationState {
                 let sigma = covariance[i * k + i].max(0.0).sqrt();
                 let held = (!determined[i]).then(|| match &self.last {
                     None => "no step estimated the calibration (no iteration estimated the attitude)".to_string(),
-                    Some(_) => format!(
-                        "the campaign's geometry does not determine it within its tolerance of {} {unit} (prior σ {} {unit}); \
-                         it is held at the manifest's value. Drives that turn and that see it from both sides separate it; \
-                         or leave it out of parameters.calibration.estimate",
+                    Some(step) => format!(
+                        "the campaign's geometry does not separate it from the trajectories' own errors (separation {:.3}, \
+                         at least {} needed; σ {:.3} against a tolerance of {} {unit}, prior σ {} {unit}); it is held at the \
+                         manifest's value. Drives that turn and that see the same surfaces from both sides separate it; or \
+                         leave it out of parameters.calibration.estimate",
+                        step.separation[i],
+                        self.options.min_separation,
+                        sigma * scale,
                         tolerance * scale,
                         prior * scale
                     ),

@@ -208,6 +208,8 @@ pub(super) struct CorrectedPoints {
     pub(super) vehicle: Vec<[f64; 2]>,
     /// Patch of every point ([`NONE`] where its cell ran out of slots).
     pub(super) patch_of: Vec<u32>,
+    /// Body attitude of every point, where the campaign estimates the calibration (else empty).
+    pub(super) attitude: Vec<[[f64; 3]; 3]>,
     pub(super) patches: Vec<Patch>,
 }
 
@@ -230,6 +232,7 @@ pub(super) fn correct_points(
     let solves_field = step.solves_field(params);
     let mut vehicle: Vec<[f64; 2]> = Vec::with_capacity(if solves_field { total } else { 0 });
     let mut patch_of = Vec::with_capacity(total);
+    let mut attitudes = Vec::with_capacity(if calibration.is_some() { total } else { 0 });
     let mut patches: Vec<Patch> = Vec::new();
     // A cell is a column along its points' normal axis in the capture steps (column cells) and,
     // with segments, in every other step: a cell face across a surface would split the passes
@@ -253,12 +256,15 @@ pub(super) fn correct_points(
             let mut t0 = chunk.t0[k].map(f64::from);
             let mut r = chunk.r[k].map(f64::from);
             let mut normal = chunk.normal[k].map(f64::from);
+            if calibration.is_some() {
+                attitudes.push(attitude_matrix(chunk.attitude[k]));
+            }
             if let Some(mounting) = &mounting {
-                let attitude = attitude_matrix(chunk.attitude[k]);
-                let (head, beam) = mounting.apply(&attitude, r);
+                let attitude = attitudes.last().expect("pushed above");
+                let (head, beam) = mounting.apply(attitude, r);
                 t0 = [t0[0] + head[0], t0[1] + head[1], t0[2] + head[2]];
                 r = beam;
-                normal = mounting.turn(&attitude, normal);
+                normal = mounting.turn(attitude, normal);
             }
             let rr = rotation.apply(r);
             let p = [t0[0] + shift[0] + c[0] + rr[0], t0[1] + shift[1] + c[1] + rr[1], t0[2] + shift[2] + c[2] + rr[2]];
@@ -292,7 +298,7 @@ pub(super) fn correct_points(
             patch_of.push(sort_point(&mut patches, &mut last.1, seed, n, p, cos_group, plane_patches));
         }
     }
-    CorrectedPoints { position, measurement, vehicle, patch_of, patches }
+    CorrectedPoints { position, measurement, vehicle, patch_of, patches, attitude: attitudes }
 }
 
 /// Adds the point at `p` with normal `n` to the patch of its cell's `slots` whose normal agrees

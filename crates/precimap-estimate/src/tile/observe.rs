@@ -19,6 +19,8 @@ use std::collections::BTreeMap;
 pub(super) struct Observations<'a> {
     pub(super) t: &'a Triangles<'a>,
     pub(super) measurement: &'a [[f64; 3]],
+    /// Per point its body attitude, where the campaign estimates the calibration.
+    pub(super) attitude: &'a [[[f64; 3]; 3]],
     pub(super) vehicle: &'a [[f64; 2]],
     pub(super) latent: &'a [PointLatent],
     pub(super) weight: f64,
@@ -30,17 +32,19 @@ pub(super) struct Observations<'a> {
 }
 
 /// One chunk's calibration terms while its points are observed: the scanner's columns, the
-/// cross moments per anchor interval and the calibration's own normal equations.
+/// cross moments per anchor interval and the calibration's own normal equations (upper
+/// triangle of the scanner's block, at most 7 × 7).
 struct ChunkCalibration<'a> {
     layout: &'a precimap_core::CalibrationLayout,
+    per_scanner: usize,
     offset: usize,
     cross: CrossMoments,
-    normals: CalibrationNormals,
-    gc: [f64; 7],
+    h: [f64; 28],
+    b: [f64; 7],
 }
 
 impl ChunkCalibration<'_> {
-    /// One observation along `w` of a point with beam `m` and body attitude `attitude`, with
+    /// One observation along `w` of a point with beam `m` and body attitude `rotation`, with
     /// Jacobian row `g`, weighted residual `we` and weight `weight`.
     #[allow(clippy::too_many_arguments)]
     #[inline]
@@ -48,18 +52,43 @@ impl ChunkCalibration<'_> {
         &mut self,
         interval: usize,
         g: &[f64; 6],
-        attitude: [f32; 3],
+        rotation: &[[f64; 3]; 3],
         m: [f64; 3],
         w: [f64; 3],
         we: f64,
         weight: f64,
         lambda: f64,
     ) {
-        let k = self.layout.per_scanner();
-        let rotation = precimap_core::calibration::attitude_matrix(attitude);
-        self.layout.jacobian(&rotation, m, w, &mut self.gc[..k]);
-        self.cross.add(interval, g, &self.gc[..k], weight, lambda);
-        self.normals.add_observation(self.offset, &self.gc[..k], we, weight);
+        let k = self.per_scanner;
+        let mut gc = [0.0; 7];
+        self.layout.jacobian(rotation, m, w, &mut gc[..k]);
+        self.cross.add(interval, g, &gc[..k], weight, lambda);
+        let mut at = 0;
+        for i in 0..k {
+            let wi = weight * gc[i];
+            for &gj in &gc[i..k] {
+                self.h[at] += wi * gj;
+                at += 1;
+            }
+            self.b[i] -= we * gc[i];
+        }
+    }
+
+    /// The chunk's normal equations at the scanner's place among the campaign's unknowns.
+    fn normals(&self) -> CalibrationNormals {
+        let (k, total) = (self.per_scanner, self.layout.len());
+        let mut n = CalibrationNormals::zeros(total);
+        let mut at = 0;
+        for i in 0..k {
+            for j in i..k {
+                let (r, c) = (self.offset + i, self.offset + j);
+                n.h[r * total + c] = self.h[at];
+                n.h[c * total + r] = self.h[at];
+                at += 1;
+            }
+            n.b[self.offset + i] = self.b[i];
+        }
+        n
     }
 }
 
@@ -93,10 +122,11 @@ pub(super) fn observe_points(
             let k = c.layout.per_scanner();
             Some(ChunkCalibration {
                 layout: c.layout,
+                per_scanner: k,
                 offset: scanner as usize * k,
                 cross: CrossMoments::new(intervals.len(), k),
-                normals: CalibrationNormals::zeros(c.layout.len()),
-                gc: [0.0; 7],
+                h: [0.0; 28],
+                b: [0.0; 7],
             })
         });
         for k in 0..chunk.len() {
@@ -145,7 +175,7 @@ pub(super) fn observe_points(
                     };
                     moments.add_weighted(&g, weighted, total, lambda, observations);
                     if let Some(cal) = cal.as_mut() {
-                        cal.add(interval, &g, chunk.attitude[k], measurement[a], w, weighted, total, lambda);
+                        cal.add(interval, &g, &o.attitude[a], measurement[a], w, weighted, total, lambda);
                     }
                     if let Some(field) = field.as_deref_mut() {
                         let [x, y, share] = at.others;
@@ -167,14 +197,14 @@ pub(super) fn observe_points(
                 let g = jacobian(w, measurement[a]);
                 moments.add(&g, -we_sum / w_sum, w_sum, lambda);
                 if let Some(cal) = cal.as_mut() {
-                    cal.add(interval, &g, chunk.attitude[k], measurement[a], w, -we_sum, w_sum, lambda);
+                    cal.add(interval, &g, &o.attitude[a], measurement[a], w, -we_sum, w_sum, lambda);
                 }
             }
             while let Some(c) = control.next_if(|c| c.point == a) {
                 let g = jacobian(c.w, measurement[a]);
                 moments.add_weighted(&g, c.weight * c.e, c.weight, lambda, 1);
                 if let Some(cal) = cal.as_mut() {
-                    cal.add(interval, &g, chunk.attitude[k], measurement[a], c.w, c.weight * c.e, c.weight, lambda);
+                    cal.add(interval, &g, &o.attitude[a], measurement[a], c.w, c.weight * c.e, c.weight, lambda);
                 }
                 if let Some(field) = field.as_deref_mut() {
                     field.add(FieldRow {
@@ -193,7 +223,7 @@ pub(super) fn observe_points(
         let blocks = per_trajectory.entry(chunk.trajectory).or_default();
         scatter_intervals(blocks, first, &intervals, cal.as_ref());
         if let Some(cal) = cal {
-            calibration_normals.entry(chunk.trajectory).or_default().add(&cal.normals);
+            calibration_normals.entry(chunk.trajectory).or_default().add(&cal.normals());
         }
         base += chunk.len();
     }
