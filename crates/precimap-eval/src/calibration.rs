@@ -219,7 +219,7 @@ mod tests {
     use super::*;
 
     fn unknown(scanner: &str, name: &str, value: f64) -> ReportedUnknown {
-        ReportedUnknown { scanner: scanner.into(), name: name.into(), value, sigma: 1e-4, determined: true }
+        ReportedUnknown { scanner: scanner.into(), name: name.into(), value, sigma: 2e-4, determined: true }
     }
 
     fn truth() -> CalibrationErrors {
@@ -292,6 +292,26 @@ mod tests {
         let none = compare_calibration(&reported[..1], &CalibrationErrors::default());
         assert_eq!((none.unknowns[0].expected, none.largest_error.boresight_deg), (Some(0.0), Some(0.07)));
         assert_eq!(none.largest_error.lever_arm_m, None);
+    }
+
+    #[test]
+    fn the_reports_calibration_is_read_when_present() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("report.json");
+        std::fs::write(&path, r#"{"iterations": [{"points_used": 7}]}"#).unwrap();
+        let r = read_report(&path).unwrap();
+        assert_eq!((r.points_used, r.calibration), (Some(7), None));
+        std::fs::write(
+            &path,
+            r#"{"iterations": [], "calibration": {"unknowns": [{"scanner": "left", "name": "range_offset",
+                "unit": "m", "value": -0.004, "sigma": 0.0002, "determined": false, "separation": 0.3,
+                "held": "not determined"}], "correlation": [[1.0]]}}"#,
+        )
+        .unwrap();
+        let unknowns = read_report(&path).unwrap().calibration.unwrap();
+        assert_eq!(unknowns, [ReportedUnknown { determined: false, ..unknown("left", "range_offset", -0.004) }]);
+        std::fs::write(&path, r#"{"calibration": {"unknowns": [{"scanner": "left"}]}}"#).unwrap();
+        assert!(read_report(&path).is_err());
     }
 
     #[test]
