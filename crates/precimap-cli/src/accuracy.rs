@@ -1,6 +1,8 @@
 //! `precimap bench accuracy`: the scenario matrix. Every scenario (scene × error model × passes
 //! × heads) is simulated, adjusted in-process with the estimator's defaults and evaluated with
-//! `precimap evaluate`'s code; one row per scenario goes into a Markdown and a JSON table.
+//! `precimap evaluate`'s code; one row per scenario goes into a Markdown and a JSON table. A
+//! scenario with calibration errors is run a second time with the mounting calibration
+//! estimated (`/cal`), so that the two rows show what estimating it gains.
 
 use anyhow::{Context, Result};
 use precimap_sim::{ErrorModel, Scenario, Scene};
@@ -22,25 +24,77 @@ pub const FULL_SIZE: MatrixSize = MatrixSize { block_m: 48.0, revolutions_per_s:
 /// The fast subset's: a sparser scanner (for the test suite's dev profile).
 pub const FAST_SIZE: MatrixSize = MatrixSize { block_m: 40.0, revolutions_per_s: 15.0, points_per_revolution: 120 };
 
-/// The matrix: error models on the grid town at 4 passes, passes 2/4/8, one head and a
-/// multi-beam head under Gauss–Markov errors, and every other scene under sinusoid sums and
-/// Gauss–Markov errors.
-pub fn matrix() -> Vec<Scenario> {
+/// The calibration unknowns a `/cal` row estimates: all of them.
+pub const CALIBRATION_ESTIMATED: [&str; 3] = ["boresight", "lever_arm", "range_offset"];
+
+/// One row of the matrix: a campaign, adjusted with the estimator's defaults or with the mounting
+/// calibration estimated too ([`CALIBRATION_ESTIMATED`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MatrixCase {
+    pub scenario: Scenario,
+    pub estimate_calibration: bool,
+}
+
+impl From<Scenario> for MatrixCase {
+    fn from(scenario: Scenario) -> Self {
+        Self { scenario, estimate_calibration: false }
+    }
+}
+
+impl MatrixCase {
+    /// `scenario` with the calibration estimated.
+    pub fn calibrated(scenario: Scenario) -> Self {
+        Self { scenario, estimate_calibration: true }
+    }
+
+    /// The scenario's name, with `/cal` where the calibration is estimated: the two rows of a
+    /// scenario sort and filter together.
+    pub fn name(&self) -> String {
+        let suffix = if self.estimate_calibration { "/cal" } else { "" };
+        format!("{}{suffix}", self.scenario.name())
+    }
+
+    /// The manifest `parameters` of the run: `parameters` (the request's) with this case's
+    /// calibration on top.
+    fn parameters(&self, parameters: Option<&serde_json::Value>) -> Option<serde_json::Value> {
+        if !self.estimate_calibration {
+            return parameters.cloned();
+        }
+        let mut merged = parameters.filter(|p| p.is_object()).cloned().unwrap_or(serde_json::json!({}));
+        merged["calibration"] = serde_json::json!({ "estimate": CALIBRATION_ESTIMATED });
+        Some(merged)
+    }
+}
+
+/// The matrix: error models on the grid town at 4 passes (the calibration errors a second time
+/// with the calibration estimated), passes 2/4/8, one head and a multi-beam head under
+/// Gauss–Markov errors, and every other scene under sinusoid sums and Gauss–Markov errors.
+pub fn matrix() -> Vec<MatrixCase> {
     use ErrorModel as E;
     use Scene as S;
-    let mut out: Vec<Scenario> = ErrorModel::ALL.into_iter().map(|e| Scenario::new(S::Grid, e, 4, 2)).collect();
-    out.extend([
-        Scenario::new(S::Grid, E::GaussMarkov, 2, 2),
-        Scenario::new(S::Grid, E::GaussMarkov, 8, 2),
-        Scenario::new(S::Grid, E::GaussMarkov, 4, 1),
-        Scenario::new(S::Oblique, E::Sinusoids, 4, 2),
-        Scenario::new(S::Oblique, E::GaussMarkov, 4, 2),
-        Scenario::new(S::OpenRoad, E::Sinusoids, 2, 2),
-        Scenario::new(S::OpenRoad, E::GaussMarkov, 4, 2),
-        Scenario::new(S::Downtown, E::GaussMarkov, 4, 2),
-        Scenario::new(S::Downtown, E::RandomWalk, 8, 2),
-        Scenario::new(S::Grid, E::GaussMarkov, 4, 2).multibeam(),
-    ]);
+    let mut out: Vec<MatrixCase> = Vec::new();
+    for e in ErrorModel::ALL {
+        let scenario = Scenario::new(S::Grid, e, 4, 2);
+        out.push(scenario.into());
+        if e == E::Calibration {
+            out.push(MatrixCase::calibrated(scenario));
+        }
+    }
+    out.extend(
+        [
+            Scenario::new(S::Grid, E::GaussMarkov, 2, 2),
+            Scenario::new(S::Grid, E::GaussMarkov, 8, 2),
+            Scenario::new(S::Grid, E::GaussMarkov, 4, 1),
+            Scenario::new(S::Oblique, E::Sinusoids, 4, 2),
+            Scenario::new(S::Oblique, E::GaussMarkov, 4, 2),
+            Scenario::new(S::OpenRoad, E::Sinusoids, 2, 2),
+            Scenario::new(S::OpenRoad, E::GaussMarkov, 4, 2),
+            Scenario::new(S::Downtown, E::GaussMarkov, 4, 2),
+            Scenario::new(S::Downtown, E::RandomWalk, 8, 2),
+            Scenario::new(S::Grid, E::GaussMarkov, 4, 2).multibeam(),
+        ]
+        .map(MatrixCase::from),
+    );
     out
 }
 
@@ -107,24 +161,48 @@ pub struct Row {
     /// CPU seconds of the adjustment (`run` in-process, with its assignment pass).
     pub cpu_s: f64,
     pub wall_s: f64,
+    /// The estimated calibration's largest errors against the simulator's (rows that estimate it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration_error: Option<CalibrationError>,
 }
 
-/// Simulates, adjusts and evaluates `scenario` in `dir` (removed afterwards unless `keep`), with
+/// The largest |error| per kind of calibration unknown (`precimap evaluate`'s
+/// `calibration.largest_error`); `None` for a kind not estimated.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CalibrationError {
+    pub boresight_deg: Option<f64>,
+    pub lever_arm_mm: Option<f64>,
+    pub range_offset_mm: Option<f64>,
+}
+
+impl From<&precimap_eval::CalibrationLargestError> for CalibrationError {
+    fn from(l: &precimap_eval::CalibrationLargestError) -> Self {
+        Self {
+            boresight_deg: l.boresight_deg,
+            lever_arm_mm: l.lever_arm_m.map(|m| m * 1e3),
+            range_offset_mm: l.range_offset_m.map(|m| m * 1e3),
+        }
+    }
+}
+
+/// Simulates, adjusts and evaluates `case` in `dir` (removed afterwards unless `keep`), with
 /// the estimator's defaults changed by `parameters` (a manifest's `parameters` object, merged
-/// into the one the simulator wrote).
+/// into the one the simulator wrote) and by the case's calibration.
 pub fn run_scenario(
-    scenario: &Scenario,
+    case: &MatrixCase,
     size: MatrixSize,
     seed: u64,
     parameters: Option<&serde_json::Value>,
     dir: &Path,
     keep: bool,
 ) -> Result<Row> {
+    let scenario = &case.scenario;
+    let parameters = case.parameters(parameters);
     let config = scenario.config(seed, size.block_m, size.revolutions_per_s, size.points_per_revolution);
     let campaign = dir.join("campaign");
     let result = dir.join("result");
     let summary = precimap_sim::simulate(&config, &campaign, false).context("simulating")?;
-    if let Some(parameters) = parameters {
+    if let Some(parameters) = &parameters {
         let path = campaign.join("manifest.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
         let mut manifest: serde_json::Value = serde_json::from_str(&text)?;
@@ -152,7 +230,7 @@ pub fn run_scenario(
         |after: bool| [f.along_track, f.across_track, f.vertical].map(|m| 1e3 * if after { m.after } else { m.before });
     let used = a.points_used.map_or([f64::NAN; 4], |u| [u.all, u.up, u.facing_travel, u.facing_across]);
     Ok(Row {
-        scenario: scenario.name(),
+        scenario: case.name(),
         scene: scenario.scene,
         errors: scenario.errors,
         passes: scenario.passes,
@@ -176,6 +254,7 @@ pub fn run_scenario(
         used_share: used,
         cpu_s,
         wall_s,
+        calibration_error: e.calibration.as_ref().map(|c| (&c.largest_error).into()),
     })
 }
 
@@ -213,9 +292,13 @@ impl MatrixRequest {
     }
 }
 
-/// The scenarios and size of `fast` whose names contain `filter`.
-pub fn select(fast: bool, filter: Option<&str>) -> (Vec<Scenario>, MatrixSize) {
-    let (all, size) = if fast { (fast_subset(), FAST_SIZE) } else { (matrix(), FULL_SIZE) };
+/// The rows and size of `fast` whose names contain `filter`.
+pub fn select(fast: bool, filter: Option<&str>) -> (Vec<MatrixCase>, MatrixSize) {
+    let (all, size) = if fast {
+        (fast_subset().into_iter().map(MatrixCase::from).collect(), FAST_SIZE)
+    } else {
+        (matrix(), FULL_SIZE)
+    };
     let wanted = |name: String| filter.is_none_or(|f| f.split(',').any(|part| name.contains(part.trim())));
     (all.into_iter().filter(|s| wanted(s.name())).collect(), size)
 }
@@ -259,6 +342,9 @@ pub fn run_matrix(req: &MatrixRequest) -> Result<Vec<Row>> {
             row.iterations,
             row.cpu_s
         );
+        if let Some(c) = &row.calibration_error {
+            eprintln!("  largest calibration error {}", calibration_cell(c));
+        }
         rows.push(row);
     }
     let elapsed = started.elapsed().as_secs_f64();
@@ -273,6 +359,12 @@ pub fn run_matrix(req: &MatrixRequest) -> Result<Vec<Row>> {
     }
     eprintln!("wrote {} and {} ({elapsed:.0} s)", req.markdown.display(), req.json.display());
     Ok(rows)
+}
+
+/// `boresight ° / lever arm mm / range offset mm`, `—` for a kind not estimated.
+fn calibration_cell(c: &CalibrationError) -> String {
+    let shown = |v: Option<f64>, decimals: usize| v.map_or("—".to_string(), |v| format!("{v:.decimals$}"));
+    format!("{} / {} / {}", shown(c.boresight_deg, 4), shown(c.lever_arm_mm, 2), shown(c.range_offset_mm, 2))
 }
 
 #[derive(Serialize)]
@@ -317,12 +409,28 @@ fn markdown(rows: &[Row], size: MatrixSize, req: &MatrixRequest, elapsed_s: f64)
          across / vertical) and 3D with it. σ/noise: the last iteration's residual σ over the range noise. \
          Used: share of surface points used as observations at the end (all / up / travel / across, %).\n"
     );
+    // The calibration column only where a row estimates the calibration.
+    let calibrated = rows.iter().any(|r| r.calibration_error.is_some());
+    if calibrated {
+        let _ = writeln!(
+            s,
+            "Rows ending in /cal: the scenario before them with the scan heads' boresight, lever arm and range \
+             offset estimated as well. Calibration: the estimate's largest |error| against the correction that \
+             removes the simulator's error (boresight ° / lever arm mm / range offset mm; the range scale error \
+             is not estimated).\n"
+        );
+    }
     let _ = writeln!(
         s,
         "| scenario | points | tile spread before → after | per tile | local datum | same-surface | up | travel | across | \
-         trajectory datum-free | with datum | σ/noise | iterations | used % | CPU s |"
+         trajectory datum-free | with datum | σ/noise | iterations | used % | CPU s |{}",
+        if calibrated { " calibration |" } else { "" }
     );
-    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(
+        s,
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|{}",
+        if calibrated { "---:|" } else { "" }
+    );
     let triple = |t: &SpreadMm| format!("{:.2} / {:.2} / {:.2}", t.rms, t.p95, t.max);
     for r in rows {
         let [a, c, v] = r.trajectory_datum_free_mm;
@@ -355,6 +463,12 @@ fn markdown(rows: &[Row], size: MatrixSize, req: &MatrixRequest, elapsed_s: f64)
             u[3],
             r.cpu_s
         );
+        if calibrated {
+            // Before the row's line break: the calibration cell closes the row.
+            s.pop();
+            let cell = r.calibration_error.as_ref().map_or("—".to_string(), calibration_cell);
+            let _ = writeln!(s, " {cell} |");
+        }
     }
     let _ = writeln!(s, "\nIterations: count run (the last iteration's largest correction change, mm).");
     s
@@ -371,22 +485,43 @@ mod tests {
         let names: std::collections::BTreeSet<String> = m.iter().map(|s| s.name()).collect();
         assert_eq!(names.len(), m.len(), "scenario names are unique");
         for scene in Scene::ALL {
-            assert!(m.iter().any(|s| s.scene == scene), "{scene} is in the matrix");
+            assert!(m.iter().any(|s| s.scenario.scene == scene), "{scene} is in the matrix");
         }
         for errors in ErrorModel::ALL {
-            assert!(m.iter().any(|s| s.errors == errors), "{errors} is in the matrix");
+            assert!(m.iter().any(|s| s.scenario.errors == errors), "{errors} is in the matrix");
         }
         for passes in [2, 4, 8] {
-            assert!(m.iter().any(|s| s.passes == passes));
+            assert!(m.iter().any(|s| s.scenario.passes == passes));
         }
-        assert!(m.iter().any(|s| s.heads == 1));
+        assert!(m.iter().any(|s| s.scenario.heads == 1));
         assert_eq!(
             select(false, Some("mb32")).0,
-            vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam()]
+            vec![Scenario::new(Scene::Grid, ErrorModel::GaussMarkov, 4, 2).multibeam().into()]
         );
         assert_eq!(select(false, Some("downtown")).0.len(), 2);
         assert_eq!(select(false, Some("downtown,oblique/sinusoids")).0.len(), 3);
         assert_eq!(select(true, None).1, FAST_SIZE);
+    }
+
+    #[test]
+    fn the_calibration_scenario_runs_with_and_without_the_calibration_estimated() {
+        let scenario = Scenario::new(Scene::Grid, ErrorModel::Calibration, 4, 2);
+        let (rows, _) = select(false, Some("grid/calibration"));
+        assert_eq!(rows, vec![scenario.into(), MatrixCase::calibrated(scenario)]);
+        assert_eq!(rows[1].name(), "grid/calibration/4p/cal");
+        // `/cal` alone would match `grid/calibration` too.
+        assert_eq!(select(false, Some("4p/cal")).0, vec![MatrixCase::calibrated(scenario)]);
+        // No other row estimates the calibration, and none but the calibrated one changes the
+        // request's parameters.
+        assert_eq!(matrix().iter().filter(|c| c.estimate_calibration).count(), 1);
+        let request = serde_json::json!({ "max_iterations": 3 });
+        assert_eq!(rows[0].parameters(Some(&request)), Some(request.clone()));
+        assert_eq!(rows[0].parameters(None), None);
+        let merged = rows[1].parameters(Some(&request)).unwrap();
+        assert_eq!(merged["max_iterations"], 3);
+        assert_eq!(merged["calibration"]["estimate"], serde_json::json!(CALIBRATION_ESTIMATED));
+        let parsed: precimap_core::Parameters = serde_json::from_value(rows[1].parameters(None).unwrap()).unwrap();
+        assert!(parsed.problems().is_empty(), "{:?}", parsed.problems());
     }
 
     /// The fast subset against bounds today's estimator meets with margin (about 1.5× its
@@ -398,7 +533,8 @@ mod tests {
         for s in fast_subset() {
             let name = s.name();
             let b = FAST_BOUNDS.iter().find(|b| b.scenario == name).unwrap_or_else(|| panic!("{name}: no bounds"));
-            let row = run_scenario(&s, FAST_SIZE, 1, None, &dir.path().join(name.replace('/', "-")), false).unwrap();
+            let row =
+                run_scenario(&s.into(), FAST_SIZE, 1, None, &dir.path().join(name.replace('/', "-")), false).unwrap();
             eprintln!("{row:?}");
             assert!(row.tile_spread_mm < row.tile_spread_before_mm / 3.0, "{name}: tile spread");
             assert!(row.tile_spread_mm < b.tile_spread_mm, "{name}: tile spread {}", row.tile_spread_mm);

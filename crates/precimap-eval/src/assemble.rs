@@ -313,6 +313,7 @@ pub(crate) fn assemble(
         latent_map_error_without_campaign_shift_rms_m: None,
         latent_map_error_without_tile_shift_rms_m: None,
         stated_precision: None,
+        calibration: None,
         surface_points,
         points,
         strips: strip_jobs.len(),

@@ -267,6 +267,10 @@ pub struct Evaluation {
     /// errors after: absent when a trajectory has no corrections table.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stated_precision: Option<StatedPrecision>,
+    /// The estimated mounting calibration against the simulator's errors (when report.json has
+    /// `calibration`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationEvaluation>,
 }
 
 /// One tile's strips and their offsets from the tile's mean (metres, strip ids).

@@ -49,15 +49,32 @@ pub(crate) fn load_trajectory(
     Ok(LoadedTrajectory { input: read_trajectory_csv(input)?, truth, result: read_trajectory_csv(&result_path)? })
 }
 
-/// `points_used` of the last iteration in report.json; `None` without a report or that field.
-pub(crate) fn read_report(path: &Path) -> Result<Option<u64>, EvalError> {
+/// What the evaluation takes from report.json.
+#[derive(Debug, Default)]
+pub(crate) struct ReportFigures {
+    /// `points_used` of the last iteration.
+    pub(crate) points_used: Option<u64>,
+    /// `calibration.unknowns`, where the run estimated the mounting calibration.
+    pub(crate) calibration: Option<Vec<ReportedUnknown>>,
+}
+
+/// `points_used` of the last iteration and the calibration estimates in report.json; neither
+/// without a report or those fields.
+pub(crate) fn read_report(path: &Path) -> Result<ReportFigures, EvalError> {
     let text = match std::fs::read_to_string(path) {
         Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(ReportFigures::default()),
         Err(e) => return Err(EvalError::Report { path: path.into(), message: format!("cannot read: {e}") }),
     };
     let value: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| EvalError::Report { path: path.into(), message: format!("not valid JSON: {e}") })?;
     let last = value.get("iterations").and_then(|it| it.as_array()).and_then(|it| it.last());
-    Ok(last.and_then(|it| it.get("points_used")).and_then(|v| v.as_u64()))
+    let calibration = match value.pointer("/calibration/unknowns") {
+        None | Some(serde_json::Value::Null) => None,
+        Some(unknowns) => Some(
+            serde_json::from_value(unknowns.clone())
+                .map_err(|e| EvalError::Report { path: path.into(), message: format!("calibration.unknowns: {e}") })?,
+        ),
+    };
+    Ok(ReportFigures { points_used: last.and_then(|it| it.get("points_used")).and_then(|v| v.as_u64()), calibration })
 }

@@ -11,7 +11,9 @@
 //! - `OUT/segments/{strip}.seg` (optional): the segment id of every point, as `precimap run` wrote
 //!   it; with it, the segmentation is measured too ([`SegmentEvaluation`]);
 //! - `OUT/latent/*.las` (optional): the exported latent map, measured against the true surfaces
-//!   ([`LatentMapEvaluation`]).
+//!   ([`LatentMapEvaluation`]);
+//! - `CAMP/truth/truth.json`'s simulator config: with `calibration` in report.json, the estimated
+//!   mounting calibration against the simulator's calibration errors ([`CalibrationEvaluation`]).
 //!
 //! Strips are processed one at a time per thread (rayon across strips), so memory is bounded by
 //! a strip per worker; everything accumulated across strips is constant-size or per tile.
@@ -19,6 +21,7 @@
 mod agreement;
 mod assemble;
 mod assignments;
+mod calibration;
 mod error;
 mod evaluation;
 mod inputs;
@@ -33,6 +36,9 @@ mod trajectory;
 
 pub use agreement::{AgreementTally, Orientation, Spread, SpreadMetric, SurfaceAgreement, UsedShares};
 pub use assignments::{AssignmentEvaluation, AssignmentTally, ClassAssignments};
+pub use calibration::{
+    compare_calibration, CalibrationComparison, CalibrationEvaluation, CalibrationLargestError, ReportedUnknown,
+};
 pub use error::EvalError;
 pub use evaluation::{
     AttitudeMetric, ClassEvaluation, Evaluation, FrameLargest, FrameMetric, Metric, StripEvaluation, TileDisagreement,
@@ -52,6 +58,7 @@ pub use trajectory::{
 };
 
 use assemble::{assemble, totals};
+use calibration::read_truth_calibration;
 use evaluation::metric;
 use inputs::{check_id, load_trajectory, read_corrections_tables, read_report, LoadedTrajectory};
 use strip::{evaluate_strip, StripOutcome};
@@ -149,7 +156,11 @@ pub fn evaluate(truth_dir: &Path, result_dir: &Path) -> Result<Evaluation, EvalE
     drop(strip_trajectory);
     drop(loaded);
     let report = read_report(&result_dir.join("report.json"))?;
-    let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, &largest, report);
+    let mut evaluation = assemble(&strip_jobs, strips, &trajectory_jobs, trajectories, &largest, report.points_used);
+    evaluation.calibration = match &report.calibration {
+        Some(unknowns) => Some(compare_calibration(unknowns, &read_truth_calibration(&truth_dir)?)),
+        None => None,
+    };
     let [(before, before_m), (after, after_m)] = &unscanned;
     evaluation.trajectory_error_without_datum_unscanned_rms_m = (*before_m > 0.0 && *after_m > 0.0).then(|| {
         FrameMetric::new(

@@ -11,6 +11,9 @@ impl Evaluation {
         self.datum_and_precision(&mut out);
         self.counts_and_audits(&mut out);
         self.worst_tiles(&mut out);
+        if let Some(c) = &self.calibration {
+            c.summary(&mut out);
+        }
         out
     }
 

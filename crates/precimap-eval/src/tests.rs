@@ -229,6 +229,8 @@ fn end_to_end_metrics_match_hand_computed_values() {
     let json = serde_json::to_value(&e).unwrap();
     assert_eq!(json["tile_strip_pairs"], 2);
     assert!(json["strip_offset_spread_m"]["before"].as_f64().is_some());
+    // A run that estimated no calibration adds neither a JSON key nor a line.
+    assert!(json.get("calibration").is_none() && e.calibration.is_none());
     let text = e.summary();
     assert!(text.contains("strip offset spread") && text.contains("20.000") && text.contains("road"), "{text}");
 
