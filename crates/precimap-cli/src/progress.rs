@@ -104,5 +104,35 @@ impl Display {
                 ));
             }
         }
+        if let Some(calibration) = &report.calibration {
+            self.calibration(calibration);
+        }
+    }
+
+    /// One line per scanner: its estimated corrections, and the unknowns held.
+    fn calibration(&self, calibration: &precimap_pipeline::calibration::CalibrationReport) {
+        let mut scanners: Vec<&str> = Vec::new();
+        for u in &calibration.unknowns {
+            if !scanners.contains(&u.scanner.as_str()) {
+                scanners.push(&u.scanner);
+            }
+        }
+        for scanner in scanners {
+            let (estimated, held): (Vec<_>, Vec<_>) =
+                calibration.unknowns.iter().filter(|u| u.scanner == scanner).partition(|u| u.determined);
+            let value = |u: &&precimap_pipeline::calibration::CalibrationEstimate| match u.unit.as_str() {
+                "deg" => format!("{} {:+.4}°", u.name, u.value),
+                _ => format!("{} {:+.1} mm", u.name, u.value * 1e3),
+            };
+            let mut line =
+                format!("calibration of {scanner}: {}", estimated.iter().map(value).collect::<Vec<_>>().join(", "));
+            if !held.is_empty() {
+                line += &format!(
+                    "; held (not separated from the trajectories): {}",
+                    held.iter().map(|u| u.name.as_str()).collect::<Vec<_>>().join(", ")
+                );
+            }
+            self.permanent(&format!("{line} (qc/calibration.csv)"));
+        }
     }
 }
