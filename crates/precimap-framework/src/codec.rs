@@ -127,11 +127,7 @@ pub fn encode_blocks(blocks: &[AnchorBlock]) -> Vec<u8> {
     out.extend_from_slice(BLOCKS_MAGIC);
     out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
     for b in blocks {
-        out.extend_from_slice(&b.anchor.to_le_bytes());
-        out.extend_from_slice(&b.observations.to_le_bytes());
-        put_f64s(&mut out, &b.diag);
-        put_f64s(&mut out, &b.next);
-        put_f64s(&mut out, &b.rhs);
+        put_block(&mut out, b);
     }
     out
 }
@@ -146,11 +142,7 @@ pub fn encode_trajectory_blocks(blocks: &[AnchorBlock], calibration: Option<&Cal
     out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
     out.extend_from_slice(&(k as u32).to_le_bytes());
     for b in blocks {
-        out.extend_from_slice(&b.anchor.to_le_bytes());
-        out.extend_from_slice(&b.observations.to_le_bytes());
-        put_f64s(&mut out, &b.diag);
-        put_f64s(&mut out, &b.next);
-        put_f64s(&mut out, &b.rhs);
+        put_block(&mut out, b);
         if b.cross.len() == 6 * k {
             put_f64s(&mut out, &b.cross);
         } else {
@@ -172,13 +164,8 @@ pub fn decode_trajectory_blocks(bytes: &[u8]) -> Result<(Vec<AnchorBlock>, Optio
     let k = r.count(8)?;
     let mut blocks = Vec::with_capacity(n);
     for _ in 0..n {
-        let anchor = r.u32()?;
-        let observations = r.u32()?;
-        let diag = r.f64s::<21>()?;
-        let next = r.f64s::<21>()?;
-        let rhs = r.f64s::<6>()?;
-        let cross = r.f64_vec(6 * k)?;
-        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations, cross });
+        let block = read_block(&mut r)?;
+        blocks.push(AnchorBlock { cross: r.f64_vec(6 * k)?, ..block });
     }
     let h = r.f64_vec(k * k)?;
     let b = r.f64_vec(k)?;
@@ -213,15 +200,28 @@ pub fn decode_blocks(bytes: &[u8]) -> Result<Vec<AnchorBlock>, CodecError> {
     let n = r.count(BLOCK_BYTES)?;
     let mut blocks = Vec::with_capacity(n);
     for _ in 0..n {
-        let anchor = r.u32()?;
-        let observations = r.u32()?;
-        let diag = r.f64s::<21>()?;
-        let next = r.f64s::<21>()?;
-        let rhs = r.f64s::<6>()?;
-        blocks.push(AnchorBlock { anchor, diag, next, rhs, observations, cross: Vec::new() });
+        blocks.push(read_block(&mut r)?);
     }
     r.finish()?;
     Ok(blocks)
+}
+
+/// One block as both versions store it (version 2 follows it with its cross terms).
+fn put_block(out: &mut Vec<u8>, b: &AnchorBlock) {
+    out.extend_from_slice(&b.anchor.to_le_bytes());
+    out.extend_from_slice(&b.observations.to_le_bytes());
+    put_f64s(out, &b.diag);
+    put_f64s(out, &b.next);
+    put_f64s(out, &b.rhs);
+}
+
+fn read_block(r: &mut Reader) -> Result<AnchorBlock, CodecError> {
+    let anchor = r.u32()?;
+    let observations = r.u32()?;
+    let diag = r.f64s::<21>()?;
+    let next = r.f64s::<21>()?;
+    let rhs = r.f64s::<6>()?;
+    Ok(AnchorBlock { anchor, diag, next, rhs, observations, cross: Vec::new() })
 }
 
 /// The field object's version by what it carries (the tilt always comes with the heading).
