@@ -502,28 +502,7 @@ pub async fn execute(ctx: &TaskContext, input: TaskInput, token: Uuid) -> Result
         TaskInput::AndersonCombine { prefix, iteration, trajectory, results, coefficients } => {
             accelerate::anderson_combine(&at, prefix, iteration, trajectory, results, coefficients).await
         }
-        TaskInput::ApplyCalibration {
-            prefix,
-            iteration,
-            trajectory,
-            corrections,
-            share,
-            iteration_start,
-            delta,
-            report,
-        } => {
-            let task = calibrate::ApplyTask {
-                prefix,
-                iteration,
-                trajectory,
-                corrections,
-                share,
-                iteration_start,
-                delta,
-                report,
-            };
-            calibrate::apply_calibration(&at, task).await
-        }
+        TaskInput::ApplyCalibration(task) => calibrate::apply_calibration(&at, *task).await,
         TaskInput::ExportStrip { prefix, strip, anchor_spacing_m, corrections, mounting } => {
             export::export_strip(&at, prefix, strip, anchor_spacing_m, corrections, mounting).await
         }

@@ -1,23 +1,11 @@
 //! `apply_calibration`: one trajectory's corrections moved by the calibration's step.
 
 use super::*;
-use precimap_pipeline::report::TrajectoryReport;
+use crate::plan::ApplyCalibrationInput;
 
-/// The input of an `apply_calibration` task ([`TaskInput::ApplyCalibration`]).
-#[derive(Debug)]
-pub(super) struct ApplyTask {
-    pub(super) prefix: String,
-    pub(super) iteration: u32,
-    pub(super) trajectory: TrajectoryInput,
-    pub(super) corrections: CorrectionsRef,
-    pub(super) share: String,
-    pub(super) iteration_start: CorrectionsRef,
-    pub(super) delta: Vec<f64>,
-    pub(super) report: Box<TrajectoryReport>,
-}
-
-pub(super) async fn apply_calibration(at: &Attempt<'_>, task: ApplyTask) -> Result<TaskOutcome, TaskError> {
-    let ApplyTask { prefix, iteration, trajectory, corrections, share, iteration_start, delta, report } = task;
+pub(super) async fn apply_calibration(at: &Attempt<'_>, task: ApplyCalibrationInput) -> Result<TaskOutcome, TaskError> {
+    let ApplyCalibrationInput { prefix, iteration, trajectory, corrections, share, iteration_start, delta, report } =
+        task;
     let (ctx, tag, started) = (at.ctx, at.tag.as_str(), at.started);
     let (current, covariance) = read_corrections(ctx, &corrections).await?;
     let start = read_corrections_many(ctx, &[iteration_start]).await?.pop().expect("one corrections object");

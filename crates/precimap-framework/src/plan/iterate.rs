@@ -358,16 +358,16 @@ fn calibrate_stage(state: &mut PlanState, solved: Vec<(SolveResult, String, Opti
             |key: Option<String>| CorrectionsRef { trajectory: t, anchors: state.anchor_ranges[t as usize], key };
         let traj = state.trajectories[t as usize].clone();
         tasks.push(
-            TaskInput::ApplyCalibration {
+            TaskInput::ApplyCalibration(Box::new(ApplyCalibrationInput {
                 prefix: state.prefix.clone(),
                 iteration: state.iteration,
                 corrections: reference(Some(corrections)),
                 share,
                 iteration_start: reference(starts[t as usize].clone()),
                 delta: step.delta.clone(),
-                report: Box::new(r.report),
+                report: r.report,
                 trajectory: traj.clone(),
-            }
+            }))
             .task(traj.id.clone()),
         );
     }

@@ -29,8 +29,9 @@ mod task;
 
 pub use state::{new_campaign, PlanState};
 pub use task::{
-    ApplyResult, CalibrationInput, ChunkRef, CombineResult, CorrectionsRef, EstimateResult, ExportResult, FieldInput,
-    FieldResult, MomentsResult, SegmentResult, SolveResult, StripInput, TaskInput, TrajectoryInput,
+    ApplyCalibrationInput, ApplyResult, CalibrationInput, ChunkRef, CombineResult, CorrectionsRef, EstimateResult,
+    ExportResult, FieldInput, FieldResult, MomentsResult, SegmentResult, SolveResult, StripInput, TaskInput,
+    TrajectoryInput,
 };
 
 use accelerate::{after_accelerate, after_combine};

@@ -91,6 +91,24 @@ pub struct ChunkRef {
     pub key: String,
 }
 
+/// The input of an `apply_calibration` task ([`TaskInput::ApplyCalibration`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ApplyCalibrationInput {
+    pub prefix: String,
+    pub iteration: u32,
+    pub trajectory: TrajectoryInput,
+    /// The corrections the solve wrote (with an unchanged calibration).
+    pub corrections: CorrectionsRef,
+    /// The trajectory's share object.
+    pub share: String,
+    /// The corrections the iteration started from (the change is measured from them).
+    pub iteration_start: CorrectionsRef,
+    pub delta: Vec<f64>,
+    /// The solve's report of the trajectory (its observation counts), made again from the
+    /// moved corrections.
+    pub report: TrajectoryReport,
+}
+
 /// One task's input (the `input` column), tagged by kind.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -179,21 +197,7 @@ pub enum TaskInput {
     },
     /// One trajectory's corrections moved by the calibration's step the planner solved from
     /// every trajectory's share (`precimap_estimate::solve::apply_calibration_step`).
-    ApplyCalibration {
-        prefix: String,
-        iteration: u32,
-        trajectory: TrajectoryInput,
-        /// The corrections the solve wrote (with an unchanged calibration).
-        corrections: CorrectionsRef,
-        /// The trajectory's share object.
-        share: String,
-        /// The corrections the iteration started from (the change is measured from them).
-        iteration_start: CorrectionsRef,
-        delta: Vec<f64>,
-        /// The solve's report of the trajectory (its observation counts), made again from the
-        /// moved corrections.
-        report: Box<TrajectoryReport>,
-    },
+    ApplyCalibration(Box<ApplyCalibrationInput>),
     /// One trajectory's share of Anderson's coefficient problem from its settling iterations'
     /// history (`precimap_estimate::anderson::trajectory_moments`), oldest first. The shares
     /// are small; the planner sums them in trajectory order and solves for the coefficients.
@@ -261,7 +265,7 @@ impl TaskInput {
             }
             Self::AndersonMoments { .. }
             | Self::AndersonCombine { .. }
-            | Self::ApplyCalibration { .. }
+            | Self::ApplyCalibration(_)
             | Self::ExportStrip { .. }
             | Self::WriteReport { .. } => {}
         }
@@ -288,7 +292,7 @@ impl TaskInput {
             Self::SolveTrajectory { .. } => KIND_SOLVE_TRAJECTORY,
             Self::AndersonMoments { .. } => KIND_ANDERSON_MOMENTS,
             Self::AndersonCombine { .. } => KIND_ANDERSON_COMBINE,
-            Self::ApplyCalibration { .. } => KIND_APPLY_CALIBRATION,
+            Self::ApplyCalibration(_) => KIND_APPLY_CALIBRATION,
             Self::ExportStrip { .. } => KIND_EXPORT_STRIP,
             Self::ExportTrajectory { .. } => KIND_EXPORT_TRAJECTORY,
             Self::WriteReport { .. } => KIND_WRITE_REPORT,
