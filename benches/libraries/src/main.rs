@@ -1,6 +1,6 @@
 //! `precimap-library-bench`: the measurements behind docs/design/libraries.md.
 //!
-//!   precimap-library-bench sparse [BLOCKS…]   sparse Cholesky, precimap vs faer
+//!   precimap-library-bench sparse [BLOCKS…]   sparse Cholesky, precimap's settings vs faer's defaults
 //!   precimap-library-bench rng [COUNT]        random numbers, precimap vs rand
 //!   precimap-library-bench plots [ANCHORS]    a QC plot, precimap vs plotters
 //!

@@ -1,14 +1,12 @@
-//! precimap's sparse Cholesky (`precimap_solve::sparse`, geometric nested dissection) against
-//! faer's sparse Cholesky, with faer's own AMD ordering and with precimap's ordering, on the
-//! street-network systems of `precimap bench field-solve`. Single-threaded on both sides: the
-//! field solve runs on one thread, and faer is built without rayon. Indices are 32-bit on both
-//! sides, as precimap's are.
+//! The settings of precimap's sparse Cholesky (`precimap_solve::sparse`: faer, AMD order,
+//! fundamental supernodes) against faer's default supernode amalgamation, on the street-network
+//! systems of `precimap bench field-solve`. Single-threaded: the field solve runs on one
+//! thread, and faer is built without rayon. Indices are 32-bit, as precimap's are.
 
 use crate::alloc::peak_during;
 use crate::thread_cpu_s;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholeskyRaw, SymmetricOrdering,
 };
@@ -16,7 +14,7 @@ use faer::sparse::linalg::SymbolicSupernodalParams;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, Par, Side, Spec};
 use precimap_bench::solve::street_network_system;
-use precimap_solve::sparse::{geometric_nested_dissection, SymmetricSparse};
+use precimap_solve::sparse::SymmetricSparse;
 
 /// One solver's figures on one system.
 struct Run {
@@ -31,39 +29,24 @@ struct Run {
     kind: &'static str,
 }
 
-fn ours(m: &SymmetricSparse, rhs: &[f64], coordinates: &[[f64; 2]]) -> Run {
+fn ours(m: &SymmetricSparse, rhs: &[f64]) -> Run {
     let ((x, entries), peak) = peak_during(|| {
-        let factor = m.factorise_at(usize::MAX, coordinates).expect("the system is SPD");
+        let factor = m.factorise(usize::MAX).expect("the system is SPD");
         (factor.solve(rhs), factor.entries())
     });
-    Run { seconds: 0.0, entries, peak, x, kind: "up-looking" }
+    Run { seconds: 0.0, entries, peak, x, kind: "product" }
 }
 
-/// faer's LLᵀ ordered by precimap's nested dissection at `coordinates` or, without them, by
-/// faer's AMD; `relax`: faer's default supernode amalgamation (explicit zeros stored for denser
-/// blocks) or none (fundamental supernodes: the least memory).
-fn faer_llt(m: &SymmetricSparse, rhs: &[f64], coordinates: Option<&[[f64; 2]]>, relax: bool) -> Run {
+/// faer's LLᵀ in AMD order; `relax`: faer's default supernode amalgamation (explicit zeros
+/// stored for denser blocks) or none (fundamental supernodes: the least memory).
+fn faer_llt(m: &SymmetricSparse, rhs: &[f64], relax: bool) -> Run {
     let n = m.unknowns();
     let ((x, entries, kind), peak) = peak_during(|| {
-        let order = coordinates.map(|c| {
-            let forward: Vec<u32> = geometric_nested_dissection(c, m.lower_entries().map(|(i, j, _)| (i, j)))
-                .into_iter()
-                .map(|v| v as u32)
-                .collect();
-            let mut inverse = vec![0u32; n];
-            for (new, &old) in forward.iter().enumerate() {
-                inverse[old as usize] = new as u32;
-            }
-            (forward, inverse)
-        });
         let triplets: Vec<Triplet<u32, u32, f64>> =
             m.lower_entries().map(|(row, col, val)| Triplet { row: row as u32, col: col as u32, val }).collect();
         let a = SparseColMat::<u32, f64>::try_new_from_triplets(n, n, &triplets).expect("valid entries");
         drop(triplets);
-        let ordering = match &order {
-            Some((forward, inverse)) => SymmetricOrdering::Custom(PermRef::new_checked(forward, inverse, n)),
-            None => SymmetricOrdering::Amd,
-        };
+        let ordering = SymmetricOrdering::Amd;
         let mut params = CholeskySymbolicParams::default();
         if !relax {
             params.supernodal_params = SymbolicSupernodalParams { relax: None };
@@ -129,29 +112,27 @@ fn relative_residual(m: &SymmetricSparse, x: &[f64], b: &[f64]) -> f64 {
 }
 
 pub fn run(blocks: &[usize], per_node: usize, repeats: usize) {
-    println!("# sparse Cholesky: precimap (geometric nested dissection) vs faer 0.24, one thread, least CPU-seconds of {repeats}");
+    println!("# sparse Cholesky: precimap's settings (faer, AMD, fundamental supernodes) vs faer's defaults, one thread, least CPU-seconds of {repeats}");
     println!(
         "blocks unknowns | solver                 kind      CPU-seconds speed-up  factor-entries  peak-MiB  rel-residual  max|x-x_ours|/max|x_ours|"
     );
     for &b in blocks {
-        let (m, rhs, coordinates) = street_network_system(b, per_node, 0x5EED);
+        let (m, rhs) = street_network_system(b, per_node, 0x5EED);
         let n = m.unknowns();
         let runs = timed(
             repeats,
             &mut [
-                &mut || ours(&m, &rhs, &coordinates),
-                &mut || faer_llt(&m, &rhs, None, true),
-                &mut || faer_llt(&m, &rhs, None, false),
-                &mut || faer_llt(&m, &rhs, Some(&coordinates), true),
+                &mut || ours(&m, &rhs),
+                &mut || faer_llt(&m, &rhs, true),
+                &mut || faer_llt(&m, &rhs, false),
             ],
         );
-        let [base, amd, amd_tight, nd] = <[Run; 4]>::try_from(runs).ok().expect("four solvers");
+        let [base, amd, amd_tight] = <[Run; 3]>::try_from(runs).ok().expect("three solvers");
         let scale = base.x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
         for (name, run) in [
             ("precimap", &base),
             ("faer, AMD", &amd),
             ("faer, AMD, no relaxing", &amd_tight),
-            ("faer, precimap's order", &nd),
         ] {
             let diff = run.x.iter().zip(&base.x).fold(0.0f64, |a, (p, q)| a.max((p - q).abs())) / scale;
             println!(

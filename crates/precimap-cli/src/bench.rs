@@ -134,7 +134,7 @@ pub enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
-    /// The common-mode field's sparse solve (nested dissection + sparse Cholesky) on a synthetic street
+    /// The common-mode field's sparse solve (faer's sparse Cholesky, AMD order) on a synthetic street
     /// network of BLOCKS × BLOCKS city blocks at 15 m nodes, against a dense Cholesky where one
     /// fits (≤ 6,000 unknowns).
     FieldSolve {

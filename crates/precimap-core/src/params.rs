@@ -256,8 +256,8 @@ pub struct Parameters {
     /// place shares, which alternation relaxes by only a few per cent per iteration. 0 disables it.
     /// 7.5 m: medium seed 1's latent map lies 4.27 mm from the truth without the campaign's
     /// shift at 7.5 m against 5.52 mm at 15 m and 4.48 mm at 5 m. The field's sparse solve takes
-    /// a street network of ~40 km² at 7.5 m with the heading (~165 km² at 15 m; without the
-    /// heading ~70 and ~290 km²: `MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
+    /// a street network of ~50 km² at 7.5 m with the heading (~215 km² at 15 m; without the
+    /// heading ~85 and ~350 km²: `MAX_FIELD_FACTOR_ENTRIES` in `precimap-estimate`;
     /// docs/design/estimation.md, "The common-mode field").
     pub common_mode_field_m: f64,
     /// Whether momentum, in steps that solve the field, carries only the part of the last step

@@ -28,8 +28,8 @@
 //! The field has three unknowns per node (four with the heading), nodes every
 //! `common_mode_field_m` where anchors or observations reach, each coupled only to the nodes
 //! near it: its normal equations are solved
-//! by a sparse Cholesky in nested-dissection order, cut straight across the street network at the
-//! nodes' grid positions (`precimap_solve::sparse`), whose factor grows about as n log n.
+//! by a sparse Cholesky in approximate-minimum-degree order (`precimap_solve::sparse`, faer),
+//! whose factor grows about as n log n on a street network.
 //!
 //! With `Parameters::campaign_motion` the same solve also gives one rotation of the whole
 //! campaign ([`CampaignMotion`]): with the field's constant part, the rigid motion no residual

@@ -69,12 +69,6 @@ pub(super) fn number_nodes(
     index
 }
 
-/// The grid position of every unknown, `per_node` consecutive unknowns per node in the order of
-/// `index`: what the sparse solve's order cuts the street network by.
-pub(super) fn unknown_positions(index: &BTreeMap<FieldNode, usize>, per_node: usize) -> Vec<[f64; 2]> {
-    index.keys().flat_map(|&(x, y)| std::iter::repeat_n([x as f64, y as f64], per_node)).collect()
-}
-
 /// `previous` moved so that `current − previous` (the step momentum carries on) loses its
 /// least-squares fit by a field on the same nodes: the field re-solves that part itself in the
 /// next iteration, so carrying it as well overshoots and the two levels fight.
@@ -131,9 +125,7 @@ pub fn remove_field_share(
     for i in 0..nodes {
         a.add(i, i, 1e-3);
     }
-    let factor = a
-        .factorise_at(MAX_FIELD_FACTOR_ENTRIES, &unknown_positions(&index, 1))
-        .map_err(|e| FieldError::from_sparse(e, nodes))?;
+    let factor = a.factorise(MAX_FIELD_FACTOR_ENTRIES).map_err(|e| FieldError::from_sparse(e, nodes))?;
     let axes = 3 + rotation_axes;
     let per_axis: Vec<Vec<f64>> =
         (0..axes).map(|c| factor.solve(&b.iter().map(|v| v[c]).collect::<Vec<_>>())).collect();
@@ -163,7 +155,7 @@ pub enum FieldError {
     Singular { nodes: usize },
     #[error(
         "the common-mode field's {nodes} nodes need {entries} factor entries, more than the {limit} \
-         (12 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing), \
+         (8 bytes each) its solve may use; raise parameters.common_mode_field_m (the node spacing), \
          set parameters.common_mode_tilt to false (a third fewer unknowns) or \
          parameters.common_mode_heading to false (a quarter fewer), or set \
          parameters.common_mode_field_m to 0"
@@ -179,19 +171,20 @@ impl FieldError {
         match e {
             SparseError::TooLarge { entries, limit } => FieldError::TooLarge { nodes, entries, limit },
             SparseError::NotPositiveDefinite { .. } => FieldError::Singular { nodes },
-            e @ (SparseError::OutOfRange { .. } | SparseError::Coordinates { .. }) => FieldError::Solve(e),
+            e @ (SparseError::OutOfRange { .. } | SparseError::NotFinite { .. } | SparseError::Structure(_)) => {
+                FieldError::Solve(e)
+            }
         }
     }
 }
 
-/// Most factor entries the field's sparse solve may hold (12 bytes each: 1 GiB). After nested
-/// dissection a synthetic street network of 248 km² at 15 m nodes needs 82 % of this with three
-/// unknowns per node, so the limit lies near 290 km² of such a network; with the heading's
-/// fourth, 159 km² needs 89 % and the limit lies near 165 km²; with the tilt's six, 39.7 km²
-/// need 2.1× the entries of four and 89.3 km² need 1,096 MiB, so the limit lies near 85 km²
-/// (`precimap bench field-solve --blocks N --per-node 3|4|6`; docs/design/estimation.md, "The
-/// common-mode field").
-pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 12;
+/// Most factor entries the field's sparse solve may hold (8 bytes each: 1 GiB). A synthetic
+/// street network of 248 km² at 15 m nodes needs 69 % of this with three unknowns per node, so
+/// the limit lies near 350 km² of such a network; with the heading's fourth, 159 km² needs 71 %
+/// and the limit lies near 215 km²; with the tilt's six, 89.3 km² need 86 % and the limit lies
+/// near 100 km² (`precimap bench field-solve --blocks 150|120|90 --per-node 3|4|6`;
+/// docs/design/estimation.md, "The common-mode field").
+pub const MAX_FIELD_FACTOR_ENTRIES: usize = (1 << 30) / 8;
 
 /// Solves the common-mode field from the tiles' data equations plus every anchor's prior,
 /// smoothness and curvature terms, linearised about the current corrections.
@@ -247,7 +240,7 @@ pub(super) fn solve_field_within<'a>(
     system.add_anchor_terms(trajectories, &weights, &index, spacing);
     system.add_motion_prior(trajectories, &weights);
     system.add_field_prior(&weights);
-    let (solution, motion) = system.solve(max_factor_entries, &unknown_positions(&index, per_node), nodes)?;
+    let (solution, motion) = system.solve(max_factor_entries, nodes)?;
     Ok(FieldSolution {
         spacing_m: spacing,
         nodes: index.keys().copied().collect(),
@@ -535,17 +528,10 @@ impl FieldSystem {
         }
     }
 
-    /// Factorises the system (at most `max_factor_entries` entries, ordered by the unknowns'
-    /// grid `positions`; `nodes` for the errors) and solves it: the field's unknowns and, when
-    /// the system holds it, the campaign's rotation.
-    fn solve(
-        self,
-        max_factor_entries: usize,
-        positions: &[[f64; 2]],
-        nodes: usize,
-    ) -> Result<(Vec<f64>, Option<CampaignMotion>), FieldError> {
-        let factor =
-            self.h.factorise_at(max_factor_entries, positions).map_err(|e| FieldError::from_sparse(e, nodes))?;
+    /// Factorises the system (at most `max_factor_entries` entries; `nodes` for the errors) and
+    /// solves it: the field's unknowns and, when the system holds it, the campaign's rotation.
+    fn solve(self, max_factor_entries: usize, nodes: usize) -> Result<(Vec<f64>, Option<CampaignMotion>), FieldError> {
+        let factor = self.h.factorise(max_factor_entries).map_err(|e| FieldError::from_sparse(e, nodes))?;
         let mut solution = factor.solve(&self.rhs);
         // The rotation by the Schur complement of the field's block: the field's factor solves the
         // three coupling columns, then the 3×3 system gives the rotation and the field follows.
