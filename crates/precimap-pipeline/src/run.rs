@@ -383,19 +383,8 @@ fn run_campaign_in(
                 step_index = next;
             }
             AfterIteration::Done { converged: c } => {
-                let ids: Vec<&str> = campaign.strips.iter().map(|s| s.id.as_str()).collect();
-                let problem = overlap_problem(prepared.tiles.len(), iterations.last(), &ids);
-                if let Some(problem) = &problem {
-                    if !campaign.params.allow_low_usable_share {
-                        return Err(PipelineError::Input {
-                            what: format!("campaign {}", campaign.name),
-                            message: problem.clone(),
-                        });
-                    }
-                    tracing::warn!("campaign {}: {problem}", campaign.name);
-                }
                 // Nothing observed is nothing adjusted, however still the corrections stood.
-                converged = c && problem.is_none();
+                converged = c && observed_enough(&campaign, prepared.tiles.len(), iterations.last())?;
                 break;
             }
         }
@@ -427,14 +416,37 @@ fn run_campaign_in(
         calibration: calibration.as_ref().map(|c| c.report(&campaign.scanners)),
         timings: Timings { prepare_s, estimate_s, export_s, total_s: started.elapsed().as_secs_f64(), task_s: None },
     };
+    write_report(&campaign, &report, [&first_latent_std, &last_latent_std], out)?;
+    Ok(report)
+}
+
+/// Whether the last iteration observed enough of the campaign (`overlap_problem`): an error
+/// naming the strips and the reason, or with `allow_low_usable_share` a warning and `false`.
+fn observed_enough(campaign: &Campaign, tiles: usize, last: Option<&IterationReport>) -> Result<bool, PipelineError> {
+    let ids: Vec<&str> = campaign.strips.iter().map(|s| s.id.as_str()).collect();
+    let Some(problem) = overlap_problem(tiles, last, &ids) else { return Ok(true) };
+    if !campaign.params.allow_low_usable_share {
+        return Err(PipelineError::Input { what: format!("campaign {}", campaign.name), message: problem });
+    }
+    tracing::warn!("campaign {}: {problem}", campaign.name);
+    Ok(false)
+}
+
+/// `report.json` and the QC plots, with the latent map's σ per tile in the first and the last
+/// iteration.
+fn write_report(
+    campaign: &Campaign,
+    report: &Report,
+    [first_latent_std, last_latent_std]: [&[(TileKey, LatentStdMap)]; 2],
+    out: &Path,
+) -> Result<(), PipelineError> {
     let path = out.join("report.json");
-    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    let json = serde_json::to_vec_pretty(report).expect("report serialises");
     std::fs::write(&path, json).map_err(|e| PipelineError::io(&path, e))?;
     let georef = campaign.strips.first().and_then(|s| s.georef.as_deref());
     let latent_std =
-        crate::qc::latent_std_plots(campaign.params.tile_size_m, &first_latent_std, &last_latent_std, georef);
-    crate::tasks::write_plots(out, crate::qc::report_qc(&report).into_iter().chain(latent_std))?;
-    Ok(report)
+        crate::qc::latent_std_plots(campaign.params.tile_size_m, first_latent_std, last_latent_std, georef);
+    crate::tasks::write_plots(out, crate::qc::report_qc(report).into_iter().chain(latent_std))
 }
 
 /// Exports every strip (in parallel) and every trajectory with its final corrections; the last

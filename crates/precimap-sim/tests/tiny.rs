@@ -170,8 +170,13 @@ fn tiny_campaign_is_consistent() {
     assert!(foliage < 0.1, "foliage is {:.1} % of the points", 100.0 * foliage);
     assert!(class_counts["facade"] > class_counts["pole"]);
 
-    // Trajectory errors: the measured CSV differs from the truth by the error processes, whose
-    // statistics truth.json reports.
+    check_trajectory_errors(&truth, &trajectories);
+    check_stop_and_outage(&truth, &trajectories);
+}
+
+/// Trajectory errors: the measured CSV differs from the truth by the error processes, whose
+/// statistics truth.json reports.
+fn check_trajectory_errors(truth: &Value, trajectories: &BTreeMap<String, (Trajectory, Trajectory)>) {
     for (k, (id, (true_, meas))) in trajectories.iter().enumerate() {
         let stats = &truth["trajectories"][k]["errors"];
         assert_eq!(truth["trajectories"][k]["id"], id.as_str());
@@ -192,7 +197,10 @@ fn tiny_campaign_is_consistent() {
             assert!((lo..=hi).contains(&s), "{id}: σ_att[{axis}] {s}");
         }
     }
-    // The stop: the vehicle stands ~5 s and its error (ZUPT) barely moves; the outage lasts 15–20 s.
+}
+
+/// The stop: the vehicle stands ~5 s and its error (ZUPT) barely moves; the outage lasts 15–20 s.
+fn check_stop_and_outage(truth: &Value, trajectories: &BTreeMap<String, (Trajectory, Trajectory)>) {
     let stop = &truth["stop"];
     let (t0, t1) = (stop["start"].as_f64().unwrap(), stop["end"].as_f64().unwrap());
     assert!((t1 - t0 - 5.0).abs() < 1e-6);
