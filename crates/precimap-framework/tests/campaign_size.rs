@@ -62,8 +62,16 @@ fn reset_peak() {
     std::fs::write("/proc/self/clear_refs", "5").expect("reset the peak RSS (Linux /proc/self/clear_refs)");
 }
 
-fn sqlite_bytes(dir: &Path) -> u64 {
-    ["jobs.db", "jobs.db-wal"].iter().map(|f| std::fs::metadata(dir.join(f)).map_or(0, |m| m.len())).sum()
+/// The database's size as SQLite counts it (pages × page size, the write-ahead log's committed
+/// frames included): the files' sizes depend on whether the log was checkpointed yet when the
+/// store closed, which a loaded machine may not have done.
+async fn sqlite_bytes(url: &str) -> u64 {
+    use sqlx::Connection;
+    let mut c = sqlx::SqliteConnection::connect(url).await.unwrap();
+    let pages: i64 = sqlx::query_scalar("PRAGMA page_count").fetch_one(&mut c).await.unwrap();
+    let size: i64 = sqlx::query_scalar("PRAGMA page_size").fetch_one(&mut c).await.unwrap();
+    c.close().await.unwrap();
+    (pages * size) as u64
 }
 
 fn psql(url: &str, sql: &str) -> String {
@@ -98,12 +106,12 @@ async fn a_33k_strip_manifest_is_refused_by_default_and_fits_the_bounds_when_all
     let objects = Objects::from_url(&format!("file://{}", store.display())).unwrap();
     let raised = CampaignLimits { max_strips: 50_000, ..CampaignLimits::default() };
 
-    // SQLite: the database file (after the WAL's checkpoint at close) before and after.
+    // SQLite: the database's pages before and after.
     let db_dir = dir.path().join("sqlite");
     std::fs::create_dir_all(&db_dir).unwrap();
     let url = format!("sqlite://{}", db_dir.join("jobs.db").display());
     JobStore::connect(&url).await.unwrap().close().await;
-    let empty = sqlite_bytes(&db_dir);
+    let empty = sqlite_bytes(&url).await;
     let jobs = JobStore::connect(&url).await.unwrap();
     let framework = Framework { jobs: jobs.clone(), objects: objects.clone(), queue: default_queue() };
 
@@ -119,7 +127,7 @@ async fn a_33k_strip_manifest_is_refused_by_default_and_fits_the_bounds_when_all
     let id = accepted.expect("accepted with the bounds raised");
     assert_eq!(jobs.strips(id).await.unwrap().len(), STRIPS);
     jobs.close().await;
-    let grown = sqlite_bytes(&db_dir) - empty;
+    let grown = sqlite_bytes(&url).await - empty;
     eprintln!(
         "SQLite: accepted in {seconds:.2} s, peak RSS +{:.1} MB, database +{:.1} MB ({:.0} bytes per strip)",
         peak as f64 / 1e6,
