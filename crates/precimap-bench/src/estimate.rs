@@ -5,7 +5,9 @@ use crate::fixtures::{cached_campaign, with_changes};
 use crate::system::{peak_rss_bytes, reset_peak_rss, thread_cpu_s, ThreadKernelUse};
 use crate::{BenchError, Progress};
 use precimap_core::corrections::TrajectoryCorrections;
-use precimap_core::{IterationStep, Parameters, TileKey};
+use precimap_core::{CalibrationUnknown, IterationStep, Parameters, ScannerCalibration, TileKey};
+use precimap_estimate::{LatentGather, TileCalibration};
+use precimap_pipeline::calibration::CalibrationState;
 use precimap_pipeline::{tasks, Campaign};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -24,6 +26,9 @@ pub struct EstimateRequest<'a> {
     pub step: IterationStep,
     /// Only the single-thread pass, once.
     pub one_pass: bool,
+    /// Also measure what estimating the scanners' mounting calibration costs: the chunks carry
+    /// what it needs, and interleaved single-thread passes with and without it are compared.
+    pub calibration: bool,
 }
 
 #[derive(Debug, Serialize)]
@@ -55,7 +60,26 @@ pub struct EstimateBench {
     /// The passes after the first (absent with `--one-pass`).
     #[serde(flatten)]
     pub more: Option<MorePasses>,
+    /// With `--calibration`: what estimating the mounting calibration costs the map task.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationCost>,
 }
+
+/// Thread CPU of single-thread passes that estimate every scanner's boresight, lever arm and
+/// range offset (at a non-zero current calibration, so that the points are corrected by it)
+/// against the same passes without the calibration, on the same chunks. The passes alternate,
+/// and each side's fastest counts: robust when other processes share the machine.
+#[derive(Debug, Serialize)]
+pub struct CalibrationCost {
+    pub passes: usize,
+    pub cpu_s_with: f64,
+    pub cpu_s_without: f64,
+    /// `cpu_s_with / cpu_s_without`.
+    pub cpu_ratio: f64,
+}
+
+/// Alternating passes with and without the calibration of [`CalibrationCost`].
+const CALIBRATION_PASSES: usize = 3;
 
 /// What [`bench_estimate`]'s passes after the single-thread one measure.
 #[derive(Debug, Serialize)]
@@ -119,6 +143,8 @@ struct PreparedTiles {
     /// Each tile with the indices of the strips that have chunks in it.
     tiles: Vec<(TileKey, Vec<usize>)>,
     step: IterationStep,
+    /// With `--calibration`: the campaign's calibration at a non-zero value.
+    calibration: Option<CalibrationState>,
 }
 
 impl PreparedTiles {
@@ -128,26 +154,62 @@ impl PreparedTiles {
         if let Some(changes) = request.parameters {
             campaign.params = with_changes(&campaign.params, changes)?;
         }
+        if request.calibration && campaign.params.calibration.is_empty() {
+            campaign.params.calibration.estimate =
+                vec![CalibrationUnknown::Boresight, CalibrationUnknown::LeverArm, CalibrationUnknown::RangeOffset];
+        }
+        let calibration = match request.calibration {
+            true => CalibrationState::new(&campaign).map(|mut state| {
+                // A mounting error's size (the small preset's), so that every point is corrected.
+                let scanner = ScannerCalibration {
+                    boresight_rad: [0.05f64.to_radians(), -0.08f64.to_radians(), 0.1f64.to_radians()],
+                    lever_arm_m: [0.02, -0.03, 0.05],
+                    range_offset_m: 0.01,
+                };
+                state.scanners.iter_mut().for_each(|s| *s = scanner);
+                state
+            }),
+            false => None,
+        };
         let work = dir.join("work");
         progress(&format!("preparing tile chunks in {}", work.display()));
         let prepared = precimap_pipeline::run::prepare_all(&campaign, &work, &|_| {})?;
         let corrections = prepared.anchor_ranges.iter().map(|&(a, b)| TrajectoryCorrections::zeros(a, b)).collect();
         let tiles = prepared.tiles.iter().map(|(tile, strips)| (*tile, strips.clone())).collect();
-        Ok(Self { campaign, work, corrections, tiles, step: request.step })
+        Ok(Self { campaign, work, corrections, tiles, step: request.step, calibration })
     }
 
     /// One pass over all tiles on `pool` with `params`.
     fn pass(&self, pool: &rayon::ThreadPool, params: &Parameters) -> Result<EstimatePass, BenchError> {
+        self.pass_with(pool, params, None)
+    }
+
+    /// [`Self::pass`] estimating the calibration `calibration` too.
+    fn pass_with(
+        &self,
+        pool: &rayon::ThreadPool,
+        params: &Parameters,
+        calibration: Option<&TileCalibration>,
+    ) -> Result<EstimatePass, BenchError> {
         let started = Instant::now();
         let per_tile = pool.install(|| {
-            self.tiles.par_iter().map(|(tile, strips)| self.tile(*tile, strips, params)).collect::<Result<Vec<_>, _>>()
+            self.tiles
+                .par_iter()
+                .map(|(tile, strips)| self.tile(*tile, strips, params, calibration))
+                .collect::<Result<Vec<_>, _>>()
         })?;
         let sum = per_tile.into_iter().fold(EstimatePass::default(), EstimatePass::plus);
         Ok(EstimatePass { wall_s: started.elapsed().as_secs_f64(), ..sum })
     }
 
     /// One tile's estimate, timed.
-    fn tile(&self, tile: TileKey, strips: &[usize], params: &Parameters) -> Result<EstimatePass, BenchError> {
+    fn tile(
+        &self,
+        tile: TileKey,
+        strips: &[usize],
+        params: &Parameters,
+        calibration: Option<&TileCalibration>,
+    ) -> Result<EstimatePass, BenchError> {
         let ids: Vec<&str> = strips.iter().map(|&s| self.campaign.strips[s].id.as_str()).collect();
         let chunks = tasks::load_tile(&self.work, tile, &ids)?;
         let copies: u64 = chunks.iter().map(|c| c.len() as u64).sum();
@@ -156,7 +218,17 @@ impl PreparedTiles {
         let kernel = ThreadKernelUse::now();
         let t = Instant::now();
         let cpu = thread_cpu_s();
-        let est = precimap_estimate::estimate_tile(tile, &chunks, &self.corrections, params, &self.step, &[])?;
+        let est = precimap_estimate::estimate_tile_recording(
+            tile,
+            &chunks,
+            &self.corrections,
+            params,
+            &self.step,
+            &[],
+            calibration,
+            None,
+            LatentGather::default(),
+        )?;
         let cpu_s = match (cpu, thread_cpu_s()) {
             (Some(a), Some(b)) => b - a,
             _ => f64::NAN,
@@ -195,6 +267,26 @@ impl PreparedTiles {
     }
 }
 
+impl PreparedTiles {
+    /// [`CalibrationCost`]'s alternating passes, `None` without `--calibration`.
+    fn calibration_cost(&self, single: &rayon::ThreadPool) -> Result<Option<CalibrationCost>, BenchError> {
+        let Some(state) = &self.calibration else { return Ok(None) };
+        let tile = state.tile();
+        let params = &self.campaign.params;
+        let (mut with, mut without) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..CALIBRATION_PASSES {
+            with = with.min(self.pass_with(single, params, Some(&tile))?.cpu_s);
+            without = without.min(self.pass(single, params)?.cpu_s);
+        }
+        Ok(Some(CalibrationCost {
+            passes: CALIBRATION_PASSES,
+            cpu_s_with: with,
+            cpu_s_without: without,
+            cpu_ratio: with / without,
+        }))
+    }
+}
+
 /// Runs the passes of `request`.
 pub fn bench_estimate(request: &EstimateRequest<'_>, progress: Progress<'_>) -> Result<EstimateBench, BenchError> {
     let prepared = PreparedTiles::new(request, progress)?;
@@ -219,6 +311,10 @@ pub fn bench_estimate(request: &EstimateRequest<'_>, progress: Progress<'_>) -> 
             (Some(more), fastest)
         }
     };
+    if prepared.calibration.is_some() {
+        progress(&format!("{CALIBRATION_PASSES} single-thread passes each with and without the calibration"));
+    }
+    let calibration = prepared.calibration_cost(&single)?;
     Ok(EstimateBench {
         scale: format!("{:?}", request.scale).to_lowercase(),
         points_in_tiles: points,
@@ -235,6 +331,7 @@ pub fn bench_estimate(request: &EstimateRequest<'_>, progress: Progress<'_>) -> 
         minor_faults_per_point: first.kernel.map_or(f64::NAN, |k| k.minor_faults as f64 / points as f64),
         system_cpu_share: first.kernel.map_or(f64::NAN, |k| k.system_share()),
         more,
+        calibration,
     })
 }
 
@@ -275,6 +372,12 @@ impl EstimateBench {
                 more.parallel_efficiency * 100.0,
                 more.field_cpu_ratio,
                 more.consistent_gradient_cpu_ratio
+            ));
+        }
+        if let Some(c) = &self.calibration {
+            out.push_str(&format!(
+                "\n  calibration (boresight, lever arm, range offset): {:.3}× the CPU of the same pass without it ({:.3} s against {:.3} s, fastest of {})",
+                c.cpu_ratio, c.cpu_s_with, c.cpu_s_without, c.passes
             ));
         }
         out

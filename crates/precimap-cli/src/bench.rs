@@ -31,6 +31,11 @@ pub enum BenchCommand {
         /// so that precimap does not restart itself outside valgrind).
         #[arg(long)]
         one_pass: bool,
+        /// Also estimate every scanner's boresight, lever arm and range offset (unless
+        /// `--parameters` sets `calibration`), and compare alternating single-thread passes with
+        /// and without the calibration: what it costs the map task.
+        #[arg(long)]
+        calibration: bool,
         /// The step's grid (metres): below `point_latent_below_grid_m` (3 cm by default) the
         /// latent map is sampled at pixel centres, from it up rasterised at this pixel size.
         #[arg(long, default_value_t = 0.02, value_name = "METRES")]
@@ -156,7 +161,18 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             let request = crate::accuracy::MatrixRequest { filter, fast, seed, work, markdown, json, keep, parameters };
             crate::accuracy::run_matrix(&request).map(|_| ())
         }
-        BenchCommand::Estimate { scale, seed, cache, parameters, one_pass, grid, threshold, capture, json } => {
+        BenchCommand::Estimate {
+            scale,
+            seed,
+            cache,
+            parameters,
+            one_pass,
+            calibration,
+            grid,
+            threshold,
+            capture,
+            json,
+        } => {
             let step = match capture {
                 true => precimap_core::params::default_schedule()[0],
                 false => IterationStep::new(grid, threshold),
@@ -166,8 +182,15 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             if let Some(problem) = with_step.problems().first() {
                 anyhow::bail!("--grid / --threshold: {problem}");
             }
-            let request =
-                EstimateRequest { scale, seed, cache: &cache, parameters: parameters.as_deref(), step, one_pass };
+            let request = EstimateRequest {
+                scale,
+                seed,
+                cache: &cache,
+                parameters: parameters.as_deref(),
+                step,
+                one_pass,
+                calibration,
+            };
             let result = precimap_bench::estimate::bench_estimate(&request, &note)?;
             match json {
                 true => outln!("{}", serde_json::to_string_pretty(&result)?),
