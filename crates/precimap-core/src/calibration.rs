@@ -239,6 +239,68 @@ impl ScannerCalibration {
     }
 }
 
+impl ScannerCalibration {
+    /// The calibration at body attitude `rotation`, in the world frame.
+    pub fn in_world(&self, rotation: &[[f64; 3]; 3]) -> WorldMounting {
+        let turn = SmallRotation::new(self.boresight_rad);
+        let mul_t = |v: [f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|a| rotation[0][a] * v[0] + rotation[1][a] * v[1] + rotation[2][a] * v[2])
+        };
+        let mul = |v: [f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|a| rotation[a][0] * v[0] + rotation[a][1] * v[1] + rotation[a][2] * v[2])
+        };
+        let columns: [[f64; 3]; 3] =
+            std::array::from_fn(|b| mul(turn.apply(mul_t(std::array::from_fn(|a| (a == b) as u8 as f64)))));
+        WorldMounting {
+            turn: std::array::from_fn(|a| std::array::from_fn(|b| columns[b][a])),
+            head: mul(self.lever_arm_m),
+            range_offset_m: self.range_offset_m,
+        }
+    }
+}
+
+/// A scanner's calibration at one body attitude `R`, in the world frame: the beam's turn
+/// `R·Exp(β)·Rᵀ` (rows), the scan head's shift `R·δℓ` and the range offset. A point between two
+/// anchors takes the linear interpolation of the two anchors' values ([`Self::lerp`]), as it
+/// does of their corrections: per point no trigonometry and no attitude, and the boresight's
+/// and lever arm's derivatives are those of [`CalibrationLayout::jacobian`] at the interpolated
+/// attitude `(1−λ)R_i + λR_i+1`, linear in `λ` (docs/design/calibration.md).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WorldMounting {
+    pub turn: [[f64; 3]; 3],
+    pub head: [f64; 3],
+    pub range_offset_m: f64,
+}
+
+impl WorldMounting {
+    /// `(1−λ)·self + λ·next`.
+    #[inline]
+    pub fn lerp(&self, next: &Self, lambda: f64) -> Self {
+        let mix = |a: f64, b: f64| a + (b - a) * lambda;
+        Self {
+            turn: std::array::from_fn(|r| std::array::from_fn(|c| mix(self.turn[r][c], next.turn[r][c]))),
+            head: std::array::from_fn(|a| mix(self.head[a], next.head[a])),
+            range_offset_m: self.range_offset_m,
+        }
+    }
+
+    /// `v` (a world-frame direction, e.g. a normal) turned by the boresight alone.
+    #[inline]
+    pub fn turn(&self, v: [f64; 3]) -> [f64; 3] {
+        let t = &self.turn;
+        std::array::from_fn(|a| t[a][0] * v[0] + t[a][1] * v[1] + t[a][2] * v[2])
+    }
+
+    /// The calibrated scan head's shift and beam of a point along the world-frame beam `r` (both
+    /// from the manifest's mounting), as [`ScannerCalibration::apply`].
+    #[inline]
+    pub fn apply(&self, r: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+        let range = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
+        let scale = if range > 0.0 { 1.0 + self.range_offset_m / range } else { 1.0 };
+        (self.head, self.turn(r).map(|v| v * scale))
+    }
+}
+
 /// The body attitude of a rotation vector (`Exp(θ)`) as rows.
 #[inline]
 pub fn attitude_matrix(theta: [f32; 3]) -> [[f64; 3]; 3] {
@@ -293,6 +355,30 @@ mod tests {
             minus[j] = -h;
             let numeric = (point(&plus) - point(&minus)) / (2.0 * h);
             assert!((numeric - g[j]).abs() < 1e-6, "unknown {j}: {numeric} against {}", g[j]);
+        }
+    }
+
+    /// At an anchor the world-frame form corrects a point as the body-frame one does.
+    #[test]
+    fn world_mounting_equals_the_body_frame_form() {
+        let s = ScannerCalibration {
+            boresight_rad: [1e-3, -2e-3, 3e-3],
+            lever_arm_m: [0.01, 0.02, -0.03],
+            range_offset_m: 0.004,
+        };
+        let rotation = attitude_matrix([0.1, -0.2, 2.5]);
+        let (r, n) = ([3.0, -12.0, -1.5], [0.3, -0.2, 0.93]);
+        let world = s.in_world(&rotation);
+        let ((head, beam), (h2, b2)) = (s.apply(&rotation, r), world.apply(r));
+        for a in 0..3 {
+            assert!((head[a] - h2[a]).abs() < 1e-15 && (beam[a] - b2[a]).abs() < 1e-12, "{beam:?} {b2:?}");
+            assert!((s.turn(&rotation, n)[a] - world.turn(n)[a]).abs() < 1e-15);
+        }
+        // Half-way between two attitudes: the mean of the two.
+        let next = s.in_world(&attitude_matrix([0.1, -0.2, 2.6]));
+        let half = world.lerp(&next, 0.5);
+        for a in 0..3 {
+            assert!((half.head[a] - 0.5 * (world.head[a] + next.head[a])).abs() < 1e-15);
         }
     }
 

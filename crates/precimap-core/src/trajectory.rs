@@ -215,6 +215,27 @@ impl Trajectory {
         }
         out
     }
+
+    /// The body attitude (a rotation vector, `R = Exp(θ)`) at each of the arc lengths
+    /// `first·spacing, (first+1)·spacing, …` (`count` of them; where anchors sit), along the
+    /// geodesic between samples as [`Self::pose_in_segment`] interpolates, clamped to the ends;
+    /// in the segments [`Self::positions_along`] chooses.
+    pub fn attitudes_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 3]> {
+        let mut out = Vec::with_capacity(count);
+        let mut i = 0usize;
+        let last = self.arc.len() - 1;
+        for k in 0..count {
+            let s = (first as f64 + k as f64) * spacing;
+            while i + 1 < last && self.arc[i + 1] < s {
+                i += 1;
+            }
+            let (a, b) = (self.arc[i], self.arc[i + 1]);
+            let lambda = if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 };
+            let theta = so3_log(&self.pose_in_segment(i, lambda).rotation);
+            out.push([theta.x, theta.y, theta.z]);
+        }
+        out
+    }
 }
 
 #[cfg(test)]
@@ -239,6 +260,22 @@ mod tests {
         assert!(tr.pose_at(99.0).is_none());
         assert!(tr.pose_at(105.0).is_some());
         assert_eq!(tr.length_m(), 50.0);
+    }
+
+    /// At an anchor's arc length, the attitude of the pose at the time the trajectory reaches it
+    /// (10 m/s, yaw 2°/s: anchor `k` at 0.5 m is at 0.05·k s and 0.1·k°), clamped at the end.
+    #[test]
+    fn attitudes_along_follow_the_arc_length() {
+        let tr = straight();
+        let attitudes = tr.attitudes_along(0.5, 7, 100);
+        for (i, theta) in attitudes.iter().enumerate() {
+            let t = (100.0 + (7 + i) as f64 * 0.05).min(105.0);
+            let expected = so3_log(&tr.pose_at(t).unwrap().rotation);
+            for a in 0..3 {
+                assert!((theta[a] - expected[a]).abs() < 1e-12, "anchor {}: {theta:?}", 7 + i);
+            }
+        }
+        assert!((attitudes[3][2] - 1.0f64.to_radians()).abs() < 1e-12);
     }
 
     /// From any hint, at sample times, between them, at both ends and outside the span: the

@@ -125,6 +125,27 @@ impl IntervalMoments {
     pub(crate) fn is_empty(&self) -> bool {
         self.count == 0
     }
+
+    /// The interval's 12×12 block over anchors `i`, `i+1` and its right-hand side: what
+    /// [`Self::scatter`] adds (`H_i,i+1` given whole, both ways).
+    pub(crate) fn block(&self) -> ([[f64; 12]; 12], [f64; 12]) {
+        let mut h = [[0.0; 12]; 12];
+        let mut rhs = [0.0; 12];
+        for i in 0..6 {
+            for j in i..6 {
+                let k = sym_index(i, j);
+                let (diag, next, after) =
+                    (self.s0[k] - 2.0 * self.s1[k] + self.s2[k], self.s1[k] - self.s2[k], self.s2[k]);
+                for (r, c, v) in [(i, j, diag), (i, 6 + j, next), (j, 6 + i, next), (6 + i, 6 + j, after)] {
+                    h[r][c] = v;
+                    h[c][r] = v;
+                }
+            }
+            rhs[i] = -(self.v0[i] - self.v1[i]);
+            rhs[6 + i] = -self.v1[i];
+        }
+        (h, rhs)
+    }
 }
 
 /// Merges many block lists of one trajectory into one sorted list.

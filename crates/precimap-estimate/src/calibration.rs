@@ -1,10 +1,11 @@
 //! The scanners' mounting calibration in estimation (docs/design/calibration.md): what a tile
 //! needs to apply it and to linearise it ([`TileCalibration`]), the cross terms between anchors
-//! and calibration unknowns its observations add ([`CrossMoments`]), the calibration's own
-//! normal equations ([`CalibrationNormals`]), and the exact joint solve of the calibration with
-//! every trajectory's chain by the Schur complement ([`solve_calibration`]).
+//! and calibration unknowns and the calibration's own normal equations an anchor interval's
+//! observations add ([`interval_terms`], [`CalibrationNormals`]), and the exact joint solve of
+//! the calibration with every trajectory's chain by the Schur complement
+//! ([`solve_calibration`]).
 
-use precimap_core::{CalibrationLayout, ScannerCalibration};
+use precimap_core::{CalibrationLayout, CalibrationUnknown, ScannerCalibration};
 use serde::{Deserialize, Serialize};
 
 /// What a tile task needs of the calibration: the layout of the unknowns, each strip's scanner
@@ -77,59 +78,92 @@ impl CalibrationNormals {
     }
 }
 
-/// Per anchor interval of one chunk (one scanner): `Σ w·g·gcᵀ` and `Σ w·λ·g·gcᵀ` (6 × the
-/// scanner's unknowns, at most 7, row-major), from which anchor `i` gets `(1−λ)` and anchor
-/// `i+1` `λ`.
-#[derive(Clone, Debug)]
-pub(crate) struct CrossMoments {
-    per_scanner: usize,
-    m0: Vec<[f64; 42]>,
-    m1: Vec<[f64; 42]>,
+/// The boresight's and lever arm's derivatives of an observation as a linear map of its anchor
+/// Jacobian row `g = [w, m × w]` (translation, rotation about the scan head): at body attitude
+/// `R` they are `Rᵀ(m × w)` and `Rᵀw` ([`CalibrationLayout::jacobian`]), so each is a column of
+/// `R` dotted with one half of `g`. One row per such unknown of a scanner's block, in the
+/// layout's order (the range offset, last, is not such a map): the half of `g` it reads (0:
+/// translation, 3: rotation) and the column of `R`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct AttitudeRows {
+    rows: [(usize, [f64; 3]); 6],
+    len: usize,
 }
 
-impl CrossMoments {
-    pub(crate) fn new(intervals: usize, per_scanner: usize) -> Self {
-        assert!(per_scanner <= 7, "at most 7 calibration unknowns per scanner");
-        Self { per_scanner, m0: vec![[0.0; 42]; intervals], m1: vec![[0.0; 42]; intervals] }
+impl AttitudeRows {
+    pub(crate) fn new(layout: &CalibrationLayout, rotation: &[[f64; 3]; 3]) -> Self {
+        let mut rows = [(0, [0.0; 3]); 6];
+        let mut len = 0;
+        for &kind in &layout.kinds {
+            let half = match kind {
+                CalibrationUnknown::Boresight => 3,
+                CalibrationUnknown::LeverArm => 0,
+                CalibrationUnknown::RangeOffset => continue,
+            };
+            for a in 0..3 {
+                rows[len] = (half, [rotation[0][a], rotation[1][a], rotation[2][a]]);
+                len += 1;
+            }
+        }
+        Self { rows, len }
     }
 
+    /// The unknowns this map gives (the scanner's block but its range offset).
+    pub(crate) fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Row `j` of `[L_i, L_i+1]` (this map at anchor `i`, `next` at anchor `i+1`) dotted with
+    /// the 12-vector `v` over the two anchors.
     #[inline]
-    pub(crate) fn add(&mut self, interval: usize, g: &[f64; 6], gc: &[f64], w: f64, lambda: f64) {
-        let k = self.per_scanner;
-        let (m0, m1) = (&mut self.m0[interval], &mut self.m1[interval]);
-        let wl = w * lambda;
-        for (a, ga) in g.iter().enumerate() {
-            let (wa, wla) = (w * ga, wl * ga);
-            for (j, gj) in gc.iter().enumerate().take(k) {
-                m0[a * 7 + j] += wa * gj;
-                m1[a * 7 + j] += wla * gj;
-            }
+    fn dot(&self, next: &Self, j: usize, v: impl Fn(usize) -> f64) -> f64 {
+        let ((half, a), (_, b)) = (self.rows[j], next.rows[j]);
+        (0..3).map(|k| a[k] * v(half + k) + b[k] * v(6 + half + k)).sum()
+    }
+}
+
+/// One anchor interval's calibration terms. Between anchors `i` and `i+1` a point's body
+/// attitude is `(1−λ)R_i + λR_i+1` ([`precimap_core::calibration::WorldMounting`]), so the
+/// boresight's and lever arm's columns of each of its observations are `L·J` with
+/// `L = [L_i, L_i+1]` (`at`, `next`: [`AttitudeRows`]) and `J = [(1−λ)g, λg]` its anchor columns:
+/// from the interval's block `K = Σ w·J·Jᵀ` and right-hand side `r = −Σ w·e·J`
+/// ([`crate::blocks::IntervalMoments::block`]) the cross terms are `K·Lᵀ`, the calibration's own
+/// `L·K·Lᵀ` and `L·r`, exactly and with no product per point. The range offset's column (per
+/// point, `m̂·w`) comes as its cross column `range` (`Σ w·J·g_ρ`); its own terms are the
+/// caller's. Writes the cross terms into `cross` (12 rows, the scanner's unknowns as columns)
+/// and adds the rest to `h` (upper triangle of the scanner's block, row-major) and `b`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn interval_terms(
+    block: &[[f64; 12]; 12],
+    rhs: &[f64; 12],
+    at: &AttitudeRows,
+    next: &AttitudeRows,
+    range: Option<&[f64; 12]>,
+    cross: &mut [[f64; 7]; 12],
+    h: &mut [f64; 28],
+    b: &mut [f64; 7],
+) {
+    let n = at.len();
+    let k = n + range.is_some() as usize;
+    for (c, row) in block.iter().enumerate() {
+        for j in 0..n {
+            cross[c][j] = at.dot(next, j, |q| row[q]);
+        }
+        if let Some(range) = range {
+            cross[c][n] = range[c];
         }
     }
-
-    /// Adds interval `interval`'s terms to the cross blocks (6 × `total` unknowns, row-major)
-    /// of anchors `i` (`at`) and `i+1` (`after`), at the scanner's columns from `offset`.
-    pub(crate) fn scatter(
-        &self,
-        interval: usize,
-        offset: usize,
-        total: usize,
-        at: &mut Vec<f64>,
-        after: &mut Vec<f64>,
-    ) {
-        let k = self.per_scanner;
-        let (m0, m1) = (&self.m0[interval], &self.m1[interval]);
-        for block in [&mut *at, &mut *after] {
-            if block.is_empty() {
-                block.resize(6 * total, 0.0);
-            }
+    let mut index = 0;
+    for i in 0..k {
+        if i == n {
+            // The range offset's own terms are added per point.
+            break;
         }
-        for a in 0..6 {
-            for j in 0..k {
-                at[a * total + offset + j] += m0[a * 7 + j] - m1[a * 7 + j];
-                after[a * total + offset + j] += m1[a * 7 + j];
-            }
+        for j in i..k {
+            h[index] += at.dot(next, i, |q| cross[q][j]);
+            index += 1;
         }
+        b[i] += at.dot(next, i, |q| rhs[q]);
     }
 }
 
@@ -309,4 +343,96 @@ pub fn solve_calibration<'a>(
         }
     }
     Ok(CalibrationStep { delta, covariance, determined, separation })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::blocks::IntervalMoments;
+    use precimap_core::calibration::attitude_matrix;
+    use precimap_core::CalibrationOptions;
+
+    /// An interval's terms from its moments equal the sums over its observations of their
+    /// calibration columns ([`CalibrationLayout::jacobian`]) at the attitude interpolated between
+    /// the interval's anchors.
+    #[test]
+    fn interval_terms_equal_the_sums_over_observations() {
+        use CalibrationUnknown::{Boresight, LeverArm, RangeOffset};
+        let mut seed = 5u64;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        for kinds in [vec![Boresight, LeverArm, RangeOffset], vec![Boresight], vec![LeverArm, RangeOffset]] {
+            let layout = CalibrationOptions { estimate: kinds, ..Default::default() }.layout(1);
+            let k = layout.per_scanner();
+            let has_range = layout.kinds.contains(&RangeOffset);
+            let (ra, rb) = (attitude_matrix([0.1, -0.2, 2.5]), attitude_matrix([0.13, -0.18, 2.58]));
+            let mut moments = IntervalMoments::default();
+            let (mut range, mut h_rr, mut b_r) = ([0.0; 12], 0.0, 0.0);
+            let (mut cross_direct, mut h_direct, mut b_direct) = ([[0.0; 7]; 12], [[0.0; 7]; 7], [0.0; 7]);
+            for _ in 0..25 {
+                let m = [rand() * 30.0, rand() * 30.0, rand() * 5.0];
+                let w = [rand(), rand(), rand() + 1.0];
+                let n = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+                let w = w.map(|v| v / n);
+                let (lambda, weight, e) = (rand() + 0.5, 1e4 * (1.0 + rand()), rand() * 0.02);
+                let g =
+                    [w[0], w[1], w[2], m[1] * w[2] - m[2] * w[1], m[2] * w[0] - m[0] * w[2], m[0] * w[1] - m[1] * w[0]];
+                moments.add(&g, e, weight, lambda);
+                let r: [[f64; 3]; 3] =
+                    std::array::from_fn(|a| std::array::from_fn(|b| (1.0 - lambda) * ra[a][b] + lambda * rb[a][b]));
+                let mut gc = [0.0; 7];
+                layout.jacobian(&r, m, w, &mut gc[..k]);
+                let j: [f64; 12] =
+                    std::array::from_fn(|c| if c < 6 { (1.0 - lambda) * g[c] } else { lambda * g[c - 6] });
+                for c in 0..12 {
+                    for q in 0..k {
+                        cross_direct[c][q] += weight * j[c] * gc[q];
+                    }
+                    if has_range {
+                        range[c] += weight * j[c] * gc[k - 1];
+                    }
+                }
+                for a in 0..k {
+                    for q in 0..k {
+                        h_direct[a][q] += weight * gc[a] * gc[q];
+                    }
+                    b_direct[a] -= weight * e * gc[a];
+                }
+                if has_range {
+                    h_rr += weight * gc[k - 1] * gc[k - 1];
+                    b_r -= weight * e * gc[k - 1];
+                }
+            }
+            let (block, rhs) = moments.block();
+            let (mut cross, mut h, mut b) = ([[0.0; 7]; 12], [0.0; 28], [0.0; 7]);
+            let (at, next) = (AttitudeRows::new(&layout, &ra), AttitudeRows::new(&layout, &rb));
+            interval_terms(&block, &rhs, &at, &next, has_range.then_some(&range), &mut cross, &mut h, &mut b);
+            if has_range {
+                h[k * (k + 1) / 2 - 1] += h_rr;
+                b[k - 1] += b_r;
+            }
+            let close = |x: f64, y: f64, scale: f64| (x - y).abs() <= 1e-9 * scale;
+            let scale = h_direct.iter().flatten().fold(0.0f64, |s, v| s.max(v.abs()));
+            for c in 0..12 {
+                for q in 0..k {
+                    assert!(close(cross[c][q], cross_direct[c][q], scale), "cross {c},{q}");
+                }
+            }
+            let mut index = 0;
+            for a in 0..k {
+                for q in a..k {
+                    assert!(
+                        close(h[index], h_direct[a][q], scale),
+                        "h {a},{q}: {} against {}",
+                        h[index],
+                        h_direct[a][q]
+                    );
+                    index += 1;
+                }
+                assert!(close(b[a], b_direct[a], scale), "b {a}");
+            }
+        }
+    }
 }

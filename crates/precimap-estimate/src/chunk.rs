@@ -13,10 +13,11 @@
 //! those differences are small: the scan head moves micrometres between points, anchors and
 //! strip indices step by 0 or 1, a neighbour along the profile is the next point. Every tile's
 //! chunks are read again in every iteration (from an object store, by executors elsewhere), so
-//! their size is traffic. Version 5 is version 4 with the body attitude of every point (its
-//! rotation vector, three more such columns), written only for campaigns that estimate the
-//! scanners' mounting calibration. Versions 3–5 are read; older chunks are rejected (re-run the
-//! preparation).
+//! their size is traffic. Version 6 is version 4 with the body attitude at every anchor of the
+//! chunk's range (its rotation vector, three more such columns of one value per anchor),
+//! written only for campaigns that estimate the scanners' mounting calibration. Versions 3–6
+//! are read; version 5's attitudes (one per point) are skipped, so its chunks serve campaigns
+//! that do not estimate the calibration. Older chunks are rejected (re-run the preparation).
 
 use precimap_core::TileKey;
 
@@ -26,8 +27,10 @@ pub const NO_NEIGHBOUR: u32 = u32::MAX;
 const MAGIC: &[u8; 7] = b"PMCHUNK";
 /// The version written.
 const VERSION: u8 = 4;
-/// The version written when the chunk carries the points' body attitudes.
-const VERSION_ATTITUDE: u8 = 5;
+/// The version written when the chunk carries the body attitudes at its anchors.
+const VERSION_ATTITUDE: u8 = 6;
+/// The version that carried one body attitude per point (read, its attitudes skipped).
+const VERSION_POINT_ATTITUDE: u8 = 5;
 /// The fixed-width version still read.
 const VERSION_FIXED: u8 = 3;
 const HEADER_BYTES: usize = 8 + 4 * 4 + 3 * 8 + 8;
@@ -81,8 +84,9 @@ pub struct TileChunk {
     pub segment: Vec<u32>,
     /// Index of the point in its strip file (acquisition order).
     pub source: Vec<u32>,
-    /// Body attitude at the point's time as a rotation vector (`R = Exp(θ)`), world frame; empty
-    /// unless the campaign estimates the scanners' calibration.
+    /// Body attitude as a rotation vector (`R = Exp(θ)`, world frame) at every anchor of
+    /// [`Self::anchor_range`], first to last inclusive; empty unless the campaign estimates the
+    /// scanners' calibration.
     pub attitude: Vec<[f32; 3]>,
 }
 
@@ -166,7 +170,7 @@ impl TileChunk {
         Some((min, max + 1))
     }
 
-    /// The chunk in the current version: 4, or 5 with the points' attitudes.
+    /// The chunk in the current version: 4, or 6 with the attitudes at its anchors.
     pub fn encode(&self) -> Vec<u8> {
         let n = self.len();
         let with_attitude = !self.attitude.is_empty();
@@ -187,8 +191,9 @@ impl TileChunk {
         put_column(&mut out, n, deltas(self.segment.iter().copied()));
         put_column(&mut out, n, deltas(self.source.iter().copied()));
         if with_attitude {
+            let m = self.attitude.len();
             for axis in 0..3 {
-                put_column(&mut out, n, deltas(self.attitude.iter().map(|v| v[axis].to_bits())));
+                put_column(&mut out, m, deltas(self.attitude.iter().map(|v| v[axis].to_bits())));
             }
         }
         out
@@ -206,7 +211,7 @@ impl TileChunk {
         out.extend_from_slice(&(self.len() as u64).to_le_bytes());
     }
 
-    /// A chunk of version 3, 4 or 5.
+    /// A chunk of version 3, 4, 5 or 6.
     pub fn decode(bytes: &[u8]) -> Result<Self, ChunkError> {
         if bytes.len() < HEADER_BYTES {
             return Err(ChunkError::TooShort(bytes.len()));
@@ -215,7 +220,7 @@ impl TileChunk {
             return Err(ChunkError::BadMagic);
         }
         let version = bytes[7];
-        if ![VERSION_FIXED, VERSION, VERSION_ATTITUDE].contains(&version) {
+        if ![VERSION_FIXED, VERSION, VERSION_POINT_ATTITUDE, VERSION_ATTITUDE].contains(&version) {
             return Err(ChunkError::Version(version));
         }
         let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes"));
@@ -228,7 +233,7 @@ impl TileChunk {
         if version == VERSION_FIXED {
             chunk.decode_fixed_body(&bytes[HEADER_BYTES..], points)?;
         } else {
-            chunk.decode_body(bytes, points, version == VERSION_ATTITUDE)?;
+            chunk.decode_body(bytes, points, version)?;
         }
         let n = chunk.len();
         for (index, &neighbour) in chunk.right.iter().chain(chunk.down.iter()).enumerate() {
@@ -239,9 +244,10 @@ impl TileChunk {
         Ok(chunk)
     }
 
-    /// Version 4's columns (and version 5's attitudes) into this chunk (`bytes` is the whole
-    /// chunk, for the offsets in errors).
-    fn decode_body(&mut self, bytes: &[u8], points: u64, with_attitude: bool) -> Result<(), ChunkError> {
+    /// Version 4's columns (and version 6's attitudes; version 5's are skipped) into this chunk
+    /// (`bytes` is the whole chunk, for the offsets in errors).
+    fn decode_body(&mut self, bytes: &[u8], points: u64, version: u8) -> Result<(), ChunkError> {
+        let with_attitude = version != VERSION;
         // Each point takes at least one byte in every column: a count beyond the bytes is corrupt,
         // and found before anything of its size is allocated.
         let body = bytes.len() - HEADER_BYTES;
@@ -262,8 +268,11 @@ impl TileChunk {
         self.edge_limit = columns.values(13, n)?.into_iter().map(f32::from_bits).collect();
         self.segment = columns.values(14, n)?;
         self.source = columns.values(15, n)?;
-        if with_attitude {
-            self.attitude = columns.vec3(16, n)?;
+        if version == VERSION_POINT_ATTITUDE {
+            columns.vec3(16, n)?;
+        } else if version == VERSION_ATTITUDE {
+            let anchors = self.anchor_range().map_or(0, |(first, last)| (last - first + 1) as usize);
+            self.attitude = columns.vec3(16, anchors)?;
         }
         if columns.at != bytes.len() {
             return Err(ChunkError::Length { points, expected: columns.at - HEADER_BYTES, found: body });
@@ -550,7 +559,8 @@ mod tests {
         c.push([1.0, 2.0, 3.0], [4.0, -5.0, 6.5], [0.0, 0.0, 1.0], 17, 0.25, 1, NO_NEIGHBOUR, 0.1, 4, 1_000_001);
         c.push([1.5, 2.0, 3.0], [4.0, -5.5, 6.5], [0.0, 0.6, 0.8], 18, 0.75, NO_NEIGHBOUR, 0, 0.2, 4, 1_000_003);
         let mut with_attitude = c.clone();
-        with_attitude.attitude = vec![[0.01, -0.02, 3.1], [0.011, -0.02, 3.099]];
+        // One attitude per anchor of 17..=19.
+        with_attitude.attitude = vec![[0.01, -0.02, 3.1], [0.011, -0.02, 3.099], [0.012, -0.021, 3.098]];
         for (chunk, bytes, version) in [
             (&c, c.encode(), VERSION),
             (&c, encode_fixed(&c), VERSION_FIXED),
@@ -572,6 +582,13 @@ mod tests {
         }
         assert_eq!(encode_fixed(&c).len(), HEADER_BYTES + 2 * FIXED_BYTES_PER_POINT);
         assert_eq!(c.anchor_range(), Some((17, 19)));
+        // Version 5 (one attitude per point) reads without its attitudes.
+        let mut v5 = c.encode();
+        v5[7] = VERSION_POINT_ATTITUDE;
+        for axis in 0..3 {
+            put_column(&mut v5, 2, deltas([0.5f32 + axis as f32, 0.25].iter().map(|v| v.to_bits())));
+        }
+        assert_eq!(TileChunk::decode(&v5).unwrap(), c);
     }
 
     /// A chunk like the preparation writes: a scan head moving along a street, profiles of

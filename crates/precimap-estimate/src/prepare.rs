@@ -583,8 +583,6 @@ struct HeadGeometry {
     head: Vec<[f64; 3]>,
     anchor: Vec<u32>,
     lambda: Vec<f32>,
-    /// Body attitudes (rotation vectors), only for campaigns that estimate the calibration.
-    attitude: Vec<[f32; 3]>,
 }
 
 impl HeadGeometry {
@@ -599,13 +597,8 @@ impl HeadGeometry {
 fn strip_geometry(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<HeadGeometry, PrepareError> {
     let (start, end) = ctx.trajectory_data.time_span();
     let n = samples.len();
-    let with_attitude = !ctx.params.calibration.is_empty();
-    let mut out = HeadGeometry {
-        head: Vec::with_capacity(n),
-        anchor: Vec::with_capacity(n),
-        lambda: Vec::with_capacity(n),
-        attitude: Vec::with_capacity(if with_attitude { n } else { 0 }),
-    };
+    let mut out =
+        HeadGeometry { head: Vec::with_capacity(n), anchor: Vec::with_capacity(n), lambda: Vec::with_capacity(n) };
     let mut previous = f64::NEG_INFINITY;
     let mut cursor = GeometryCursor::new(ctx.trajectory_data, &ctx.lever_arm, ctx.params.anchor_spacing_m);
     for k in 0..samples.len() {
@@ -627,9 +620,6 @@ fn strip_geometry(samples: &StripSamples<'_>, ctx: &StripContext<'_>) -> Result<
         out.head.push(g.t0);
         out.anchor.push(g.anchor);
         out.lambda.push(g.lambda);
-        if with_attitude {
-            out.attitude.push(cursor.attitude(t).map(|v| v as f32));
-        }
     }
     Ok(out)
 }
@@ -822,6 +812,7 @@ fn emit_tiles(
     segment: &[u32],
 ) -> (Vec<TileChunk>, u64) {
     let params = ctx.params;
+    let with_attitude = !params.calibration.is_empty();
     // Points per tile, in acquisition order. Consecutive points mostly fall in the tiles of the
     // previous point: a small cache of recent tiles saves the map look-up.
     let mut tiles: Vec<(TileKey, Vec<u32>)> = Vec::new();
@@ -882,12 +873,20 @@ fn emit_tiles(
                     segment[k],
                     g,
                 );
-                if let Some(a) = geometry.attitude.get(k) {
-                    chunk.attitude.push(*a);
-                }
             }
             for &g in &globals {
                 local[g as usize] = NO_NEIGHBOUR;
+            }
+            // The body attitude at every anchor of the chunk's range, where the campaign
+            // estimates the scanners' calibration.
+            if let Some((first, last)) = chunk.anchor_range().filter(|_| with_attitude) {
+                let count = (last - first + 1) as usize;
+                chunk.attitude = ctx
+                    .trajectory_data
+                    .attitudes_along(params.anchor_spacing_m, first, count)
+                    .into_iter()
+                    .map(|a| a.map(|v| v as f32))
+                    .collect();
             }
             chunk
         })

@@ -61,7 +61,7 @@ pub enum EstimateError {
     UnknownTrajectory { strip: u32, trajectory: u32, known: usize },
     #[error("chunk of strip {strip} has no scanner in the calibration ({known} strips known)")]
     UnknownScanner { strip: u32, known: usize },
-    #[error("chunk of strip {strip} carries no body attitudes, which estimating the calibration needs: prepare the strips again with the calibration switched on")]
+    #[error("chunk of strip {strip} carries no body attitudes at its anchors, which estimating the calibration needs: prepare the strips again with the calibration switched on")]
     NoAttitude { strip: u32 },
 }
 
@@ -215,7 +215,7 @@ fn estimate_tile_into<S: LatentSink>(
     check_chunks(tile, chunks, corrections, calibration)?;
     let cos_group = params.normal_group_angle_deg.to_radians().cos();
     // 1. Every point corrected and sorted into a patch, the patches joined into surface models.
-    let CorrectedPoints { position, measurement, vehicle, patch_of, patches, attitude } =
+    let CorrectedPoints { position, measurement, vehicle, patch_of, patches, anchor_attitude } =
         correct_points(tile, chunks, corrections, params, step, cos_group, calibration);
     let (models, model_of) = join_into_models(&patches, &patch_of, params, step, cos_group);
     drop((patch_of, patches));
@@ -245,7 +245,7 @@ fn estimate_tile_into<S: LatentSink>(
     let observations = Observations {
         t: &triangles,
         measurement: &measurement,
-        attitude: &attitude,
+        anchor_attitude: &anchor_attitude,
         vehicle: &vehicle,
         latent: &latent,
         weight: 1.0 / (params.sigma_distance_m * params.sigma_distance_m),
@@ -266,7 +266,7 @@ fn estimate_tile_into<S: LatentSink>(
 }
 
 /// Every chunk in `tile`, every chunk's trajectory among `corrections`, and with a calibration
-/// every chunk's strip with a scanner and its points with attitudes.
+/// every chunk's strip with a scanner and the attitudes at its anchors.
 fn check_chunks(
     tile: TileKey,
     chunks: &[TileChunk],
@@ -291,7 +291,8 @@ fn check_chunks(
                     known: calibration.scanner_of_strip.len(),
                 });
             }
-            if c.attitude.len() != c.len() {
+            let anchors = c.anchor_range().map_or(0, |(first, last)| (last - first + 1) as usize);
+            if c.attitude.len() != anchors {
                 return Err(EstimateError::NoAttitude { strip: c.strip });
             }
         }

@@ -5,7 +5,7 @@
 use super::{cross, dominant_axis, dot, floor_i64, normalize, NONE};
 use crate::calibration::TileCalibration;
 use crate::chunk::TileChunk;
-use precimap_core::calibration::attitude_matrix;
+use precimap_core::calibration::{attitude_matrix, WorldMounting};
 use precimap_core::corrections::TrajectoryCorrections;
 use precimap_core::geom::SmallRotation;
 use precimap_core::hash::FxHashMap;
@@ -208,8 +208,9 @@ pub(super) struct CorrectedPoints {
     pub(super) vehicle: Vec<[f64; 2]>,
     /// Patch of every point ([`NONE`] where its cell ran out of slots).
     pub(super) patch_of: Vec<u32>,
-    /// Body attitude of every point, where the campaign estimates the calibration (else empty).
-    pub(super) attitude: Vec<[[f64; 3]; 3]>,
+    /// Per chunk the body attitude at each anchor of its range, where the campaign estimates the
+    /// calibration (else empty).
+    pub(super) anchor_attitude: Vec<Vec<[[f64; 3]; 3]>>,
     pub(super) patches: Vec<Patch>,
 }
 
@@ -232,7 +233,7 @@ pub(super) fn correct_points(
     let solves_field = step.solves_field(params);
     let mut vehicle: Vec<[f64; 2]> = Vec::with_capacity(if solves_field { total } else { 0 });
     let mut patch_of = Vec::with_capacity(total);
-    let mut attitudes = Vec::with_capacity(if calibration.is_some() { total } else { 0 });
+    let mut anchor_attitude = Vec::with_capacity(if calibration.is_some() { chunks.len() } else { 0 });
     let mut patches: Vec<Patch> = Vec::new();
     // A cell is a column along its points' normal axis in the capture steps (column cells) and,
     // with segments, in every other step: a cell face across a surface would split the passes
@@ -248,23 +249,31 @@ pub(super) fn correct_points(
         let shift = [chunk.origin[0] - ox, chunk.origin[1] - oy, chunk.origin[2]];
         let mut last = ((u64::MAX, 0u32, 0u32), CellModels::default());
         // The scanner's current calibration, where the campaign estimates it (checked by
-        // `check_chunks`: every chunk then carries its points' attitudes).
+        // `check_chunks`: every chunk then carries the attitudes at its anchors), in the world
+        // frame at every anchor; a point takes the interpolation of its two anchors' values.
+        let attitudes: Vec<[[f64; 3]; 3]> = match calibration {
+            Some(_) => chunk.attitude.iter().map(|&a| attitude_matrix(a)).collect(),
+            None => Vec::new(),
+        };
         let mounting = calibration.and_then(|c| c.of_strip(chunk.strip)).map(|(_, s)| *s).filter(|s| !s.is_zero());
+        let world: Vec<WorldMounting> = match mounting {
+            Some(m) => attitudes.iter().map(|a| m.in_world(a)).collect(),
+            None => Vec::new(),
+        };
+        let first = chunk.anchor_range().map_or(0, |(first, _)| first);
         for k in 0..chunk.len() {
             let c = corr.at(chunk.anchor[k], chunk.lambda[k]);
             let rotation = SmallRotation::new([c[3], c[4], c[5]]);
             let mut t0 = chunk.t0[k].map(f64::from);
             let mut r = chunk.r[k].map(f64::from);
             let mut normal = chunk.normal[k].map(f64::from);
-            if calibration.is_some() {
-                attitudes.push(attitude_matrix(chunk.attitude[k]));
-            }
-            if let Some(mounting) = &mounting {
-                let attitude = attitudes.last().expect("pushed above");
-                let (head, beam) = mounting.apply(attitude, r);
+            if !world.is_empty() {
+                let o = (chunk.anchor[k] - first) as usize;
+                let mounting = world[o].lerp(&world[o + 1], chunk.lambda[k] as f64);
+                let (head, beam) = mounting.apply(r);
                 t0 = [t0[0] + head[0], t0[1] + head[1], t0[2] + head[2]];
                 r = beam;
-                normal = mounting.turn(attitude, normal);
+                normal = mounting.turn(normal);
             }
             let rr = rotation.apply(r);
             let p = [t0[0] + shift[0] + c[0] + rr[0], t0[1] + shift[1] + c[1] + rr[1], t0[2] + shift[2] + c[2] + rr[2]];
@@ -297,8 +306,11 @@ pub(super) fn correct_points(
             };
             patch_of.push(sort_point(&mut patches, &mut last.1, seed, n, p, cos_group, plane_patches));
         }
+        if calibration.is_some() {
+            anchor_attitude.push(attitudes);
+        }
     }
-    CorrectedPoints { position, measurement, vehicle, patch_of, patches, attitude: attitudes }
+    CorrectedPoints { position, measurement, vehicle, patch_of, patches, anchor_attitude }
 }
 
 /// Adds the point at `p` with normal `n` to the patch of its cell's `slots` whose normal agrees

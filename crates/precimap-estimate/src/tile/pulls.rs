@@ -26,7 +26,8 @@ pub(super) struct CornerPulls {
 impl CornerPulls {
     /// The pull on point `a` (a triangle corner) through triangles on its own model, as
     /// (Σ weight, Σ weight × residual), if any; and the pulls through triangles on other models
-    /// added to its interval's moments. `a` must increase from call to call.
+    /// added to its interval's moments, and to `apart` too where given (they carry no
+    /// calibration columns). `a` must increase from call to call.
     #[inline]
     pub(super) fn take(
         &mut self,
@@ -34,6 +35,7 @@ impl CornerPulls {
         models: &[SurfaceModel],
         measurement: &[[f64; 3]],
         moments: &mut IntervalMoments,
+        mut apart: Option<&mut IntervalMoments>,
         lambda: f64,
     ) -> Option<[f64; 2]> {
         // A cursor, not a binary search per point: the calls come in point order.
@@ -44,7 +46,11 @@ impl CornerPulls {
         while self.next_other < others.len() && others[self.next_other].0 == a {
             let (_, model, [w_sum, we_sum]) = others[self.next_other];
             if w_sum > 0.0 {
-                moments.add(&jacobian(models[model as usize].w, measurement[a]), -we_sum / w_sum, w_sum, lambda);
+                let g = jacobian(models[model as usize].w, measurement[a]);
+                moments.add(&g, -we_sum / w_sum, w_sum, lambda);
+                if let Some(apart) = apart.as_deref_mut() {
+                    apart.add(&g, -we_sum / w_sum, w_sum, lambda);
+                }
             }
             self.next_other += 1;
         }

@@ -522,8 +522,8 @@ fn corner_pulls_of_other_models_reach_their_corners() {
     let mut pulls = CornerPulls { sums: sums.clone(), other_models: other_models.clone(), next_other: 0 };
     let mut reached = 0;
     for a in 0..n {
-        let mut got = IntervalMoments::default();
-        let own = pulls.take(a, &models, &measurement, &mut got, 0.25);
+        let (mut got, mut apart) = (IntervalMoments::default(), IntervalMoments::default());
+        let own = pulls.take(a, &models, &measurement, &mut got, Some(&mut apart), 0.25);
         assert_eq!(own, (a == 2).then_some(sums[2]), "point {a}");
         let mut want = IntervalMoments::default();
         let entries = other_models.iter().filter(|o| o.0 == a && o.2[0] > 0.0);
@@ -534,6 +534,8 @@ fn corner_pulls_of_other_models_reach_their_corners() {
             reached += 1;
         }
         assert_eq!(format!("{got:?}"), format!("{want:?}"), "point {a}");
+        // The same pulls summed apart, for the calibration's terms to leave out.
+        assert_eq!(format!("{apart:?}"), format!("{want:?}"), "point {a}");
     }
     assert_eq!(reached, 4);
 }
