@@ -193,27 +193,31 @@ impl Trajectory {
         &self.arc
     }
 
-    /// Position at each of the arc lengths `first·spacing, (first+1)·spacing, …` (`count` of
-    /// them; where anchors sit), linearly interpolated and clamped to the ends.
-    pub fn positions_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 3]> {
-        let mut out = Vec::with_capacity(count);
-        let mut i = 0usize;
+    /// The segment and the share along it of each of the arc lengths `first·spacing,
+    /// (first+1)·spacing, …` (`count` of them; where anchors sit), clamped to the ends. A
+    /// trajectory has at least two samples, so there is always a segment.
+    fn segments_along(&self, spacing: f64, first: u32, count: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
         let last = self.arc.len() - 1;
-        for k in 0..count {
+        let mut i = 0usize;
+        (0..count).map(move |k| {
             let s = (first as f64 + k as f64) * spacing;
             while i + 1 < last && self.arc[i + 1] < s {
                 i += 1;
             }
-            let p = if last == 0 {
-                self.positions[0]
-            } else {
-                let (a, b) = (self.arc[i], self.arc[i + 1]);
-                let lambda = if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 };
-                self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda
-            };
-            out.push([p.x, p.y, p.z]);
-        }
-        out
+            let (a, b) = (self.arc[i], self.arc[i + 1]);
+            (i, if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 })
+        })
+    }
+
+    /// Position at each of the arc lengths `first·spacing, (first+1)·spacing, …` (`count` of
+    /// them; where anchors sit), linearly interpolated and clamped to the ends.
+    pub fn positions_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 3]> {
+        self.segments_along(spacing, first, count)
+            .map(|(i, lambda)| {
+                let p = self.positions[i] + (self.positions[i + 1] - self.positions[i]) * lambda;
+                [p.x, p.y, p.z]
+            })
+            .collect()
     }
 
     /// The body attitude (a rotation vector, `R = Exp(θ)`) at each of the arc lengths
@@ -221,20 +225,12 @@ impl Trajectory {
     /// geodesic between samples as [`Self::pose_in_segment`] interpolates, clamped to the ends;
     /// in the segments [`Self::positions_along`] chooses.
     pub fn attitudes_along(&self, spacing: f64, first: u32, count: usize) -> Vec<[f64; 3]> {
-        let mut out = Vec::with_capacity(count);
-        let mut i = 0usize;
-        let last = self.arc.len() - 1;
-        for k in 0..count {
-            let s = (first as f64 + k as f64) * spacing;
-            while i + 1 < last && self.arc[i + 1] < s {
-                i += 1;
-            }
-            let (a, b) = (self.arc[i], self.arc[i + 1]);
-            let lambda = if b > a { ((s - a) / (b - a)).clamp(0.0, 1.0) } else { 0.0 };
-            let theta = so3_log(&self.pose_in_segment(i, lambda).rotation);
-            out.push([theta.x, theta.y, theta.z]);
-        }
-        out
+        self.segments_along(spacing, first, count)
+            .map(|(i, lambda)| {
+                let theta = so3_log(&self.pose_in_segment(i, lambda).rotation);
+                [theta.x, theta.y, theta.z]
+            })
+            .collect()
     }
 }
 
