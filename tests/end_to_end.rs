@@ -244,14 +244,14 @@ fn the_reported_change_is_the_change_between_iterations() {
         .map(|&(a, b)| precimap_core::corrections::TrajectoryCorrections::zeros(a, b))
         .collect();
     let place = Place { first: false, last: false };
-    let captured = iterate(&campaign, &work, &prepared, &zeros, None, capture, place, None).unwrap();
+    let captured = iterate(&campaign, &work, &prepared, &zeros, None, capture, place, None, None).unwrap();
     assert!(captured.field.is_none());
     let start: Vec<_> = captured.solutions.iter().map(|s| s.corrections.clone()).collect();
     for (s, z) in captured.solutions.iter().zip(&zeros) {
         assert_eq!(s.max_change_m, s.corrections.max_change_m(z, CHANGE_RANGE_M));
     }
     let Iterated { solutions, field, started_from, .. } =
-        iterate(&campaign, &work, &prepared, &start, None, fine, place, None).unwrap();
+        iterate(&campaign, &work, &prepared, &start, None, fine, place, None, None).unwrap();
     assert!(field.is_some(), "the fine step solved the common-mode field");
     let mut field_moved = false;
     for ((s, from), solve_start) in solutions.iter().zip(&start).zip(&started_from) {

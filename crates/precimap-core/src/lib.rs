@@ -22,6 +22,6 @@ pub use control::{ControlOffset, ControlPlane, ControlRole, ControlSums, Control
 pub use corrections::{AnchorCovariance, ChangeHistogram, Correction, TrajectoryCorrections};
 pub use geom::{Mat3, Vec3};
 pub use latent::LatentMapPoint;
-pub use params::{IterationStep, NormalSource, Parameters, RingSource};
+pub use params::{IterationStep, NormalSource, Parameters, ProcessModel, RingSource};
 pub use tile::TileKey;
 pub use trajectory::{Pose, Trajectory, TrajectoryError};

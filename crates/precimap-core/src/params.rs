@@ -69,6 +69,15 @@ impl IterationStep {
         params.anderson_depth > 0 && !momentum_carried && self.grid_m < params.point_latent_below_grid_m
     }
 
+    /// Whether the trajectories' estimated process model ([`Parameters::process_model`]) is
+    /// updated after an iteration on this step: a point-sampled step that estimates the
+    /// attitude, where the corrections are near their final shape and every axis is solved.
+    pub fn updates_process_model(&self, params: &Parameters) -> bool {
+        params.process_model == ProcessModel::Estimated
+            && self.rotation
+            && self.grid_m < params.point_latent_below_grid_m
+    }
+
     /// Whether an accelerated iteration with `previous`'s settings and this one belong to one
     /// history: the same unknowns and cells. Grid and threshold may differ (clearing the history
     /// at the 2 cm → 1 cm change left small seed 1 at 0.18 mm in iteration 18 instead of 0.13).
@@ -204,6 +213,17 @@ pub struct Parameters {
     /// σ of the second difference of the attitude correction; 0 disables the term. 0.0003°,
     /// loose enough for the smoothness above.
     pub sigma_curvature_rotation_deg: f64,
+    /// The curvature σ's above as every trajectory's process model (`fixed`), or as the floor
+    /// from which each trajectory estimates its own, per axis (`estimated`): after every
+    /// point-sampled iteration that estimates the attitude, each σ² moves halfway (in log space)
+    /// towards the variance-component estimate `mean[(Δ²x̂)² + Var(Δ²x)]` over the trajectory's
+    /// anchors, with `Var` from the solve's posterior covariance, and stays between the σ above
+    /// and `√2 ×` the smoothness σ (the curvature of a random walk of that step). Where the data
+    /// say little the posterior term keeps the σ where it is; where they are strong it follows
+    /// them. Smooth (sinusoidal) GNSS/IMU errors want a stiff curvature term, Gauss–Markov and
+    /// random-walk errors a loose one.
+    #[serde(skip_serializing_if = "ProcessModel::is_fixed")]
+    pub process_model: ProcessModel,
     /// An anchor's own observations are trusted only in directions carrying at least this share
     /// of its strongest direction's information (rotations compared as displacements at 10 m).
     pub weak_information_ratio: f64,
@@ -355,6 +375,7 @@ impl Default for Parameters {
             sigma_smooth_rotation_deg: 0.004,
             sigma_curvature_position_m: 0.0001,
             sigma_curvature_rotation_deg: 0.0003,
+            process_model: ProcessModel::Fixed,
             weak_information_ratio: 0.01,
             point_latent_below_grid_m: 0.03,
             latent_pixel_share: 0.7,
@@ -372,6 +393,23 @@ impl Default for Parameters {
             convergence_tolerance_m: 1e-4,
             latent_map_grid_m: 0.1,
         }
+    }
+}
+
+/// How each trajectory's curvature σ is chosen ([`Parameters::process_model`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProcessModel {
+    /// The campaign's σ for every trajectory.
+    #[default]
+    Fixed,
+    /// Each trajectory's own, estimated per axis from the campaign's σ upwards.
+    Estimated,
+}
+
+impl ProcessModel {
+    pub fn is_fixed(&self) -> bool {
+        *self == Self::Fixed
     }
 }
 
@@ -542,6 +580,12 @@ impl Parameters {
             out.push(ParameterProblem {
                 field: "sigma_curvature_rotation_deg".into(),
                 problem: "the curvature terms are on or off together: set both positive or both 0".into(),
+            });
+        }
+        if self.process_model == ProcessModel::Estimated && self.sigma_curvature_position_m <= 0.0 {
+            out.push(ParameterProblem {
+                field: "process_model".into(),
+                problem: "an estimated process model starts from the curvature σ's: set both positive".into(),
             });
         }
         if !(self.end_extension_m.is_finite() && self.end_extension_m >= 0.0) {
@@ -739,6 +783,22 @@ mod tests {
         assert!(p.schedule.iter().all(|s| s.momentum == (s.threshold_m >= 0.02)));
         assert!(p.schedule.iter().skip(12).all(|s| !s.momentum));
         assert!(p.problems().is_empty());
+    }
+
+    #[test]
+    fn an_estimated_process_model_needs_the_curvature_terms_and_updates_in_fine_steps() {
+        let p: Parameters = serde_json::from_str(r#"{"process_model": "estimated"}"#).unwrap();
+        assert_eq!(p.process_model, ProcessModel::Estimated);
+        assert!(p.problems().is_empty());
+        // The capture and coarse raster steps keep the σ's, the point-sampled steps update them.
+        let updating: Vec<usize> = (0..p.schedule.len()).filter(|&i| p.schedule[i].updates_process_model(&p)).collect();
+        assert_eq!(updating, (6..18).collect::<Vec<_>>());
+        assert!(!Parameters::default().schedule[10].updates_process_model(&Parameters::default()));
+        let off = Parameters { sigma_curvature_position_m: 0.0, sigma_curvature_rotation_deg: 0.0, ..p };
+        assert_eq!(off.problems()[0].field, "process_model");
+        // The default is not written, so that default parameters serialise as they always did.
+        assert!(!serde_json::to_string(&Parameters::default()).unwrap().contains("process_model"));
+        assert!(serde_json::from_str::<Parameters>(r#"{"process_model": "adaptive"}"#).is_err());
     }
 
     #[test]

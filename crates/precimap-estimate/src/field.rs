@@ -81,12 +81,14 @@ fn accumulate(row: &mut Vec<(usize, f64)>, index: usize, value: f64) {
 /// One trajectory as the field sees it: the position of each anchor of `corrections` (same
 /// order; the field acts at the horizontal one, the campaign's rotation about the centre of all
 /// of them), the current corrections, and each anchor's prior weights when it has its own (as
-/// `crate::solve_trajectory` takes them; `None`: the campaign's).
+/// `crate::solve_trajectory` takes them; `None`: the campaign's), and its own curvature σ's
+/// where the campaign estimates them (`None`: the campaign's).
 #[derive(Debug)]
 pub struct FieldTrajectory<'a> {
     pub positions: &'a [[f64; 3]],
     pub corrections: &'a TrajectoryCorrections,
     pub prior: Option<&'a [[f64; 6]]>,
+    pub curvature: Option<&'a crate::CurvatureModel>,
 }
 
 #[cfg(test)]

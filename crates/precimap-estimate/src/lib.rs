@@ -16,6 +16,7 @@ pub mod control;
 pub mod field;
 pub mod latent;
 pub mod prepare;
+pub mod process;
 pub mod solve;
 pub mod stats;
 pub mod tile;
@@ -32,6 +33,9 @@ pub use prepare::{
     NO_SEGMENT,
 };
 pub use prepare::{usable_share_problem, TIME_GAP_S};
-pub use solve::{campaign_prior_weights, extend_corrections, solve_trajectory, TrajectorySolution};
+pub use process::{CurvatureModel, CurvatureMoments};
+pub use solve::{
+    campaign_prior_weights, extend_corrections, solve_trajectory, solve_trajectory_with_process, TrajectorySolution,
+};
 pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
 pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, LatentGather, TileEstimate, UsedPoint};

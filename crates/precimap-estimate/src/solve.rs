@@ -5,6 +5,7 @@
 
 use crate::blocks::{sym_index, AnchorBlock};
 use crate::calibration::{CalibrationNormals, CalibrationShare};
+use crate::process::{CurvatureModel, CurvatureMoments};
 use precimap_core::corrections::{AnchorCovariance, ChangeHistogram, TrajectoryCorrections};
 use precimap_core::Parameters;
 use precimap_solve::{BlockTridiagonal, Mat6, Vec6};
@@ -34,6 +35,10 @@ pub struct TrajectorySolution {
     /// [`CalibrationShare::apply`] moves them by the calibration's step.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<CalibrationShare>,
+    /// The sums that estimate the trajectory's curvature σ's, from solves given a
+    /// [`CurvatureModel`] that estimate every axis (see [`solve_trajectory_with_process`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curvature_moments: Option<CurvatureMoments>,
 }
 
 /// Nominal range at which a rotation change is expressed as a displacement.
@@ -163,15 +168,65 @@ fn add_curvature(sys: &mut BlockTridiagonal, current: &[[f64; 6]], weight: &Vec6
 type Mat12 = nalgebra::SMatrix<f64, 12, 12>;
 type Vec12 = nalgebra::SVector<f64, 12>;
 
+/// What [`solve_pairs`] returns: the step, the anchors' marginal covariances (when asked), the
+/// extra right-hand sides solved, and (when asked) the band of the pair system's inverse.
+struct PairSolution {
+    delta: Vec<Vec6>,
+    sigma: Option<Vec<Mat6>>,
+    solved: Vec<Vec<Vec6>>,
+    band: Option<PairBand>,
+}
+
+/// The band of the inverse of the anchor-pair system: pair `j`'s covariance and its covariance
+/// with pair `j + 1`. Holds every covariance between anchors up to two apart.
+struct PairBand {
+    diag: Vec<Mat12>,
+    next: Vec<Mat12>,
+}
+
+impl PairBand {
+    /// Unknown `a`'s covariance between anchors `i ≤ j ≤ i + 2`.
+    fn covariance(&self, i: usize, j: usize, a: usize) -> f64 {
+        let (p, q) = (i / 2, j / 2);
+        let (r, c) = ((i % 2) * 6 + a, (j % 2) * 6 + a);
+        if p == q {
+            self.diag[p][(r, c)]
+        } else {
+            self.next[p][(r, c)]
+        }
+    }
+}
+
+/// The sums over the interior anchors that estimate the curvature σ's: the squared second
+/// differences of the posterior mean `current + delta` and their posterior variances,
+/// `Var(x_{i−1} − 2x_i + x_{i+1})` from the band of the inverse.
+fn second_difference_moments(current: &[[f64; 6]], delta: &[Vec6], band: &PairBand) -> CurvatureMoments {
+    let n = current.len();
+    let mut moments = CurvatureMoments::default();
+    let x = |i: usize, a: usize| current[i][a] + delta[i][a];
+    for i in 1..n.saturating_sub(1) {
+        for a in 0..6 {
+            let d = x(i - 1, a) - 2.0 * x(i, a) + x(i + 1, a);
+            let c = |p: usize, q: usize| band.covariance(p, q, a);
+            let variance = c(i - 1, i - 1) + 4.0 * c(i, i) + c(i + 1, i + 1) - 4.0 * c(i - 1, i) - 4.0 * c(i, i + 1)
+                + 2.0 * c(i - 1, i + 1);
+            moments.squares[a] += d * d;
+            moments.variances[a] += variance.max(0.0);
+        }
+        moments.terms += 1;
+    }
+    moments
+}
+
 /// Solves the system with couplings up to two anchors apart exactly: anchor pairs
 /// `(2j, 2j+1)` form 12×12 super-blocks, which makes it block-tridiagonal again.
-#[allow(clippy::type_complexity)]
 fn solve_pairs(
     sys: &BlockTridiagonal,
     skip: &[Mat6],
     with_sigma: bool,
     extra: &[Vec<Vec6>],
-) -> Result<(Vec<Vec6>, Option<Vec<Mat6>>, Vec<Vec<Vec6>>), precimap_solve::SolveError> {
+    with_band: bool,
+) -> Result<PairSolution, precimap_solve::SolveError> {
     let n = sys.len();
     let m = n.div_ceil(2);
     let block = |i: usize, j: usize| -> Mat6 {
@@ -238,7 +293,11 @@ fn solve_pairs(
             .collect();
         solved.push(unpair(&factor.solve(&paired)?));
     }
-    Ok((delta, sigma, solved))
+    let band = with_band.then(|| {
+        let (diag, next) = factor.covariance_band();
+        PairBand { diag, next }
+    });
+    Ok(PairSolution { delta, sigma, solved, band })
 }
 
 fn sym_to_mat(s: &[f64; 21]) -> Mat6 {
@@ -413,6 +472,36 @@ pub fn solve_trajectory<'a>(
     with_sigma: bool,
     calibration: Option<&CalibrationNormals>,
 ) -> Result<TrajectorySolution, precimap_solve::SolveError> {
+    solve_trajectory_with_process(
+        blocks,
+        current,
+        previous,
+        change_from,
+        params,
+        prior,
+        estimate_rotation,
+        with_sigma,
+        calibration,
+        None,
+    )
+}
+
+/// [`solve_trajectory`] with the trajectory's own curvature σ's (`process`, where the campaign
+/// estimates them) instead of the campaign's. With the curvature terms on and every axis
+/// estimated, the solution carries the [`CurvatureMoments`] that update them.
+#[allow(clippy::too_many_arguments)]
+pub fn solve_trajectory_with_process<'a>(
+    blocks: impl IntoIterator<Item = &'a AnchorBlock>,
+    current: &TrajectoryCorrections,
+    previous: Option<&TrajectoryCorrections>,
+    change_from: Option<&TrajectoryCorrections>,
+    params: &Parameters,
+    prior: Option<&[[f64; 6]]>,
+    estimate_rotation: bool,
+    with_sigma: bool,
+    calibration: Option<&CalibrationNormals>,
+    process: Option<&CurvatureModel>,
+) -> Result<TrajectorySolution, precimap_solve::SolveError> {
     let n = current.values.len();
     let first = current.first_anchor;
     let mut sys = BlockTridiagonal::zeros(n);
@@ -469,7 +558,8 @@ pub fn solve_trajectory<'a>(
         // Rotations frozen: so are their couplings with the calibration.
         cross.iter_mut().flatten().for_each(|v| v.fixed_rows_mut::<3>(3).fill(0.0));
     }
-    let curvature = curvature_weights(params);
+    let curvature = curvature_weights(params).map(|w| process.map_or(w, |m| Vec6::from(m.weights())));
+    let mut curvature_moments = None;
     let (delta, marginals, solved) = match curvature {
         None => {
             if !estimate_rotation {
@@ -485,7 +575,11 @@ pub fn solve_trajectory<'a>(
             if !estimate_rotation {
                 freeze_rotation(&mut sys, Some(&mut skip));
             }
-            solve_pairs(&sys, &skip, with_sigma, &cross)?
+            let with_band = process.is_some() && estimate_rotation;
+            let solution = solve_pairs(&sys, &skip, with_sigma, &cross, with_band)?;
+            curvature_moments =
+                solution.band.as_ref().map(|b| second_difference_moments(&current.values, &solution.delta, b));
+            (solution.delta, solution.sigma, solution.solved)
         }
     };
     let calibration = calibration.map(|normals| CalibrationShare::new(normals.clone(), first, &cross, &solved, &delta));
@@ -517,6 +611,7 @@ pub fn solve_trajectory<'a>(
         observations,
         covariance,
         calibration,
+        curvature_moments,
     })
 }
 

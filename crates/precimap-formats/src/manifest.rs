@@ -544,6 +544,7 @@ impl Checker {
         // Optional fields absent from the defaults' JSON; their values are checked by parsing.
         if let Some(t) = template.as_object_mut() {
             t.entry("ring").or_insert(Value::Null);
+            t.entry("process_model").or_insert(Value::Null);
             // Checked on its own below: its fields are all optional.
             t.entry("calibration").or_insert(Value::Null);
         }

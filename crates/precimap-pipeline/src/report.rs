@@ -178,6 +178,10 @@ pub struct TrajectoryReport {
     /// Mean posterior standard deviation of the position corrections over observed anchors.
     pub position_sigma_mean_m: f64,
     pub rotation_sigma_mean_deg: f64,
+    /// The trajectory's estimated curvature σ's (x, y, z in m, rotations about x, y, z in
+    /// degrees), where the campaign estimates its process model (`parameters.process_model`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curvature_sigma: Option<[f64; 6]>,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]

@@ -15,7 +15,8 @@ use precimap_core::corrections::{AnchorCovariance, TrajectoryCorrections};
 use precimap_core::TileKey;
 use precimap_estimate::anderson::AndersonHistory;
 use precimap_estimate::{
-    solve_field, CalibrationNormals, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap, TileStats,
+    solve_field, CalibrationNormals, CurvatureModel, FieldSolution, FieldTrajectory, LatentGather, LatentStdMap,
+    TileStats,
 };
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -148,7 +149,8 @@ impl Place {
 
 /// One iteration: every tile's map task, then (in steps that solve it) the common-mode field,
 /// then every trajectory's reduce task, and with `calibration` the calibration's step from
-/// every trajectory's share.
+/// every trajectory's share. `process`: every trajectory's own curvature σ's, where the campaign
+/// estimates them (its solutions then carry the sums that update them).
 #[allow(clippy::too_many_arguments)]
 pub fn iterate(
     campaign: &Campaign,
@@ -159,6 +161,7 @@ pub fn iterate(
     step: &precimap_core::IterationStep,
     place: Place,
     calibration: Option<&mut CalibrationState>,
+    process: Option<&[CurvatureModel]>,
 ) -> Result<Iterated, PipelineError> {
     let latent = place.latent_gather();
     let tile_calibration = calibration.as_deref().map(CalibrationState::tile);
@@ -216,7 +219,13 @@ pub fn iterate(
             .iter()
             .zip(&prepared.anchor_positions)
             .zip(&prepared.anchor_priors)
-            .map(|((c, positions), prior)| FieldTrajectory { positions, corrections: c, prior: prior.as_deref() })
+            .enumerate()
+            .map(|(t, ((c, positions), prior))| FieldTrajectory {
+                positions,
+                corrections: c,
+                prior: prior.as_deref(),
+                curvature: process.and_then(|p| p.get(t)),
+            })
             .collect();
         let solved = solve_field(estimates.iter().filter_map(|e| e.field.as_ref()), &trajectories, &campaign.params)
             .map_err(PipelineError::Field)?;
@@ -258,6 +267,7 @@ pub fn iterate(
                 step,
                 place.last,
                 calibration_normals[t].as_ref(),
+                process.and_then(|p| p.get(t)),
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
@@ -317,6 +327,10 @@ fn run_campaign_in(
     let mut previous: Option<(Vec<TrajectoryCorrections>, precimap_core::IterationStep)> = None;
     let mut anderson = AndersonHistory::default();
     let mut calibration = CalibrationState::new(&campaign);
+    // Every trajectory's own curvature σ's, where the campaign estimates them.
+    let mut process: Option<Vec<CurvatureModel>> = CurvatureModel::from_params(&campaign.params)
+        .filter(|_| !campaign.params.process_model.is_fixed())
+        .map(|m| vec![m; corrections.len()]);
     // The coefficients that made the next iteration's start (its report names them).
     let mut anderson_coefficients = Vec::new();
     // An iteration's clock starts where the previous one's stopped, so that the Anderson
@@ -339,7 +353,19 @@ fn run_campaign_in(
             step,
             Place { first, last },
             calibration.as_mut(),
+            process.as_deref(),
         )?;
+        // The process model moves once per iteration, after the solves, and the last iteration
+        // reports the σ's it solved with.
+        if let (Some(models), false) = (process.as_mut(), last) {
+            if step.updates_process_model(&campaign.params) {
+                for (model, s) in models.iter_mut().zip(&sol) {
+                    if let Some(moments) = &s.curvature_moments {
+                        model.update(moments, &campaign.params);
+                    }
+                }
+            }
+        }
         if first {
             first_latent_std = latent_std.clone();
         }
@@ -400,8 +426,17 @@ fn run_campaign_in(
     }
     move_results_out_of_work(&work, out, options.keep_work)?;
 
-    let trajectories =
-        campaign.trajectories.iter().zip(&solutions).map(|(entry, sol)| trajectory_report(&entry.id, sol)).collect();
+    let trajectories = campaign
+        .trajectories
+        .iter()
+        .zip(&solutions)
+        .enumerate()
+        .map(|(t, (entry, sol))| {
+            let mut report = trajectory_report(&entry.id, sol);
+            report.curvature_sigma = process.as_ref().and_then(|p| p.get(t)).map(CurvatureModel::sigma_m_deg);
+            report
+        })
+        .collect();
     let report = Report {
         campaign: campaign.name.clone(),
         manifest: manifest.display().to_string(),
@@ -590,6 +625,7 @@ pub fn trajectory_report(id: &str, sol: &precimap_estimate::TrajectorySolution) 
         rotation_correction_max_deg: values.iter().map(rot).fold(0.0, f64::max),
         position_sigma_mean_m: sig_p,
         rotation_sigma_mean_deg: sig_r,
+        curvature_sigma: None,
     }
 }
 

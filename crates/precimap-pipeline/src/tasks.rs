@@ -9,9 +9,9 @@ use precimap_core::geom::{rpy_from_rot, so3_exp, Mat3};
 use precimap_core::{IterationStep, LatentMapPoint, Parameters, ScannerCalibration, TileKey, Vec3};
 use precimap_estimate::usable_share_problem;
 use precimap_estimate::{
-    estimate_tile_recording, prepare_strip_observed, AnchorBlock, CalibrationNormals, GeometryCursor, LatentGather,
-    PreparePhase, PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples, TileCalibration, TileChunk,
-    TileEstimate, TrajectorySolution, UsedPoint,
+    estimate_tile_recording, prepare_strip_observed, AnchorBlock, CalibrationNormals, CurvatureModel, GeometryCursor,
+    LatentGather, PreparePhase, PrepareStats, PreparedStrip, SegmentParams, StripContext, StripSamples,
+    TileCalibration, TileChunk, TileEstimate, TrajectorySolution, UsedPoint,
 };
 use precimap_formats::crs::Georeference;
 use std::fs;
@@ -195,7 +195,8 @@ pub fn anchor_positions(
 }
 
 /// `solve_trajectory` over the blocks every tile emitted for one trajectory; the change is
-/// measured from `iteration_start`.
+/// measured from `iteration_start`. `process`: the trajectory's own curvature σ's, where the
+/// campaign estimates them.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_trajectory_task<'a>(
     campaign: &Campaign,
@@ -208,8 +209,9 @@ pub fn solve_trajectory_task<'a>(
     step: &IterationStep,
     with_sigma: bool,
     calibration: Option<&CalibrationNormals>,
+    process: Option<&CurvatureModel>,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory(
+    precimap_estimate::solve_trajectory_with_process(
         blocks,
         current,
         previous,
@@ -219,6 +221,7 @@ pub fn solve_trajectory_task<'a>(
         step.rotation,
         with_sigma,
         calibration,
+        process,
     )
     .map_err(|source| PipelineError::Solve { trajectory: campaign.trajectories[trajectory].id.clone(), source })
 }

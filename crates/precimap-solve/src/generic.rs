@@ -99,6 +99,27 @@ impl<const N: usize> BlocksLdlt<N> {
         }
         cov
     }
+
+    /// The block band of `H⁻¹`: its diagonal blocks `Σ_ii` and the neighbours' `Σ_{i,i+1}`
+    /// (`Σ_{i+1,i}` is its transpose), by the backward recursion `Σ_{i,i+1} = −G_i Σ_{i+1,i+1}`,
+    /// `Σ_ii = D_i⁻¹ − Σ_{i,i+1} G_iᵀ`. The covariance of anything the band's unknowns form
+    /// linearly over two neighbouring blocks, e.g. a difference between them.
+    #[allow(clippy::type_complexity)]
+    pub fn covariance_band(&self) -> (Vec<SMatrix<f64, N, N>>, Vec<SMatrix<f64, N, N>>) {
+        let n = self.len();
+        let mut cov = vec![SMatrix::<f64, N, N>::zeros(); n];
+        let mut next = vec![SMatrix::<f64, N, N>::zeros(); n.saturating_sub(1)];
+        for i in (0..n).rev() {
+            let mut s = self.chol[i].inverse();
+            if i + 1 < n {
+                let cross = -self.gain[i] * cov[i + 1];
+                s -= cross * self.gain[i].transpose();
+                next[i] = cross;
+            }
+            cov[i] = (s + s.transpose()) * 0.5;
+        }
+        (cov, next)
+    }
 }
 
 #[cfg(test)]
@@ -145,6 +166,19 @@ mod tests {
             let chol = dense.clone().cholesky().expect("test system is SPD");
             let exact = chol.solve(&b);
             let inverse = chol.inverse();
+            let (band, next) = BlocksLdlt::factor(&diag, &upper).unwrap().covariance_band();
+            for i in 0..n {
+                for a in 0..N {
+                    for c in 0..N {
+                        assert!((band[i][(a, c)] - inverse[(i * N + a, i * N + c)]).abs() < 1e-10);
+                        if i + 1 < n {
+                            assert!((next[i][(a, c)] - inverse[(i * N + a, (i + 1) * N + c)]).abs() < 1e-10);
+                        }
+                    }
+                }
+            }
+            // The neighbours' covariances are not negligible beside the marginals.
+            assert!(next.iter().all(|m| m.amax() > 0.001 * band[0].amax()), "n {n}");
             let (x, cov) = solve_blocks(&diag, &upper, &rhs, true).unwrap();
             let cov = cov.unwrap();
             for i in 0..n {

@@ -466,6 +466,11 @@ impl FieldSystem {
                 .collect()
         };
         for tr in trajectories {
+            // The trajectory's own curvature σ's where it has them (the term is on for all or none).
+            let (curvature, curvature_rotation) = match tr.curvature.map(crate::CurvatureModel::weights) {
+                Some(w) if curvature > 0.0 => ([w[0], w[1], w[2]], [w[3], w[4], w[5]]),
+                _ => ([curvature; 3], [curvature_rotation; 3]),
+            };
             let values = &tr.corrections.values;
             let rows: Vec<Vec<(usize, f64)>> = tr.positions.iter().map(row_at).collect();
             let d: Vec<[f64; 3]> = tr.positions.iter().map(|p| std::array::from_fn(|a| p[a] - origin[a])).collect();
@@ -481,7 +486,7 @@ impl FieldSystem {
                     let dd = std::array::from_fn(|a| d[k + 1][a] - d[k][a]);
                     self.add_term(&diff, dd, dv, [smooth; 3], [smooth_rotation; 3], false);
                 }
-                if curvature > 0.0 && k >= 1 && k + 1 < rows.len() {
+                if curvature[0] > 0.0 && k >= 1 && k + 1 < rows.len() {
                     let mut second: Vec<(usize, f64)> = Vec::with_capacity(12);
                     for (r, f) in [(&rows[k - 1], 1.0), (row, -2.0), (&rows[k + 1], 1.0)] {
                         for &(a, ra) in r {
@@ -491,7 +496,7 @@ impl FieldSystem {
                     let dv: [f64; 6] =
                         std::array::from_fn(|c| values[k - 1][c] - 2.0 * values[k][c] + values[k + 1][c]);
                     let dd = std::array::from_fn(|c| d[k - 1][c] - 2.0 * d[k][c] + d[k + 1][c]);
-                    self.add_term(&second, dd, dv, [curvature; 3], [curvature_rotation; 3], false);
+                    self.add_term(&second, dd, dv, curvature, curvature_rotation, false);
                 }
             }
         }

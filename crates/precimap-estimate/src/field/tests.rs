@@ -270,8 +270,8 @@ fn field_share_of_a_step_is_removed_and_the_rest_kept() {
         v[0] += zigzag(k);
     }
     let trajectories = [
-        FieldTrajectory { positions: &positions, corrections: &current, prior: None },
-        FieldTrajectory { positions: &positions, corrections: &current, prior: None },
+        FieldTrajectory { positions: &positions, corrections: &current, prior: None, curvature: None },
+        FieldTrajectory { positions: &positions, corrections: &current, prior: None, curvature: None },
     ];
     let moved = remove_field_share(&trajectories, &[previous.clone(), previous.clone()], spacing, 0).unwrap();
     // Inconsistent inputs are errors, not panics.
@@ -302,7 +302,7 @@ fn without_data_the_prior_takes_a_shared_offset_out() {
     let params = Parameters { common_mode_field_m: 20.0, ..Default::default() };
     let positions: Vec<[f64; 3]> = (0..200).map(|k| [1000.0 + 0.5 * k as f64, 2000.0 + 0.1 * k as f64, 50.0]).collect();
     let corrections = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 200] };
-    let tr = [FieldTrajectory { positions: &positions, corrections: &corrections, prior: None }];
+    let tr = [FieldTrajectory { positions: &positions, corrections: &corrections, prior: None, curvature: None }];
     let field = solve_field(std::iter::empty(), &tr, &params).unwrap();
     let shifted = field.apply(&positions, &corrections);
     // Within 1 % (the weak prior on the nodes themselves keeps a trace of it).
@@ -315,7 +315,7 @@ fn without_data_the_prior_takes_a_shared_offset_out() {
     let fine = Parameters { common_mode_field_m: 0.01, ..Default::default() };
     let many: Vec<[f64; 3]> = (0..800).map(|k| [1000.0031 + 0.5 * k as f64, 2000.0047, 50.0]).collect();
     let long = TrajectoryCorrections { first_anchor: 0, values: vec![[0.1, -0.2, 0.05, 0.0, 0.0, 0.0]; 800] };
-    let tr_long = [FieldTrajectory { positions: &many, corrections: &long, prior: None }];
+    let tr_long = [FieldTrajectory { positions: &many, corrections: &long, prior: None, curvature: None }];
     let field = solve_field(std::iter::empty(), &tr_long, &fine).unwrap();
     assert_eq!(field.nodes.len(), 3200);
     // Each node is touched by one anchor only, so the nodes' own weak prior keeps more of the
@@ -325,7 +325,8 @@ fn without_data_the_prior_takes_a_shared_offset_out() {
     }
     let err = solve_field_within(std::iter::empty(), &tr_long, &fine, 10_000).unwrap_err();
     assert!(matches!(err, FieldError::TooLarge { nodes: 3200, limit: 10_000, .. }), "{err}");
-    let short = [FieldTrajectory { positions: &positions[..10], corrections: &corrections, prior: None }];
+    let short =
+        [FieldTrajectory { positions: &positions[..10], corrections: &corrections, prior: None, curvature: None }];
     assert!(matches!(solve_field(std::iter::empty(), &short, &params), Err(FieldError::Positions { .. })));
 }
 
@@ -342,8 +343,8 @@ fn per_anchor_prior_weights_decide_the_shared_offset() {
     let tight = vec![crate::campaign_prior_weights(&params).map(|w| 100.0 * w); 200];
     let solve = |prior_a: Option<&[[f64; 6]]>| {
         let tr = [
-            FieldTrajectory { positions: &positions, corrections: &a, prior: prior_a },
-            FieldTrajectory { positions: &positions, corrections: &b, prior: None },
+            FieldTrajectory { positions: &positions, corrections: &a, prior: prior_a, curvature: None },
+            FieldTrajectory { positions: &positions, corrections: &b, prior: None, curvature: None },
         ];
         solve_field(std::iter::empty(), &tr, &params).unwrap()
     };
@@ -374,7 +375,7 @@ fn solve_without_data(
     let tr: Vec<FieldTrajectory> = positions
         .iter()
         .zip(values)
-        .map(|(p, c)| FieldTrajectory { positions: p, corrections: c, prior: None })
+        .map(|(p, c)| FieldTrajectory { positions: p, corrections: c, prior: None, curvature: None })
         .collect();
     solve_field(std::iter::empty(), &tr, params).unwrap()
 }

@@ -48,8 +48,18 @@ fn pair_solve_with_curvature_matches_dense() {
         let chol = dense.cholesky().expect("SPD");
         let exact = chol.solve(&b);
         let inverse = chol.inverse();
-        let (x, cov, _) = solve_pairs(&sys, &skip, true, &[]).unwrap();
-        let cov = cov.unwrap();
+        let solution = solve_pairs(&sys, &skip, true, &[], true).unwrap();
+        // The band of the inverse holds every covariance between anchors up to two apart.
+        let band = solution.band.unwrap();
+        for i in 0..n {
+            for j in i..(i + 3).min(n) {
+                for a in 0..6 {
+                    let dense = inverse[(6 * i + a, 6 * j + a)];
+                    assert!((band.covariance(i, j, a) - dense).abs() < 1e-9, "n {n}, anchors {i} {j}");
+                }
+            }
+        }
+        let (x, cov) = (solution.delta, solution.sigma.unwrap());
         for i in 0..n {
             for a in 0..6 {
                 assert!((x[i][a] - exact[6 * i + a]).abs() < 1e-9, "n {n}, anchor {i}");
@@ -368,4 +378,85 @@ fn joint_calibration_solve_matches_the_dense_bordered_system() {
             }
         }
     }
+}
+
+/// A standard normal deviate per call (Box–Muller over a linear congruential generator).
+fn normal_deviates(mut seed: u64) -> impl FnMut() -> f64 {
+    let mut uniform = move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    move || (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos()
+}
+
+/// The estimated process model recovers the σ of a simulated random walk of the slope (white
+/// second differences) from noisy observations of every anchor, on every axis, starting from
+/// the campaign's stiffer σ, within the few per cent a 1000-anchor sample allows.
+#[test]
+fn estimated_curvature_recovers_a_random_walk_of_the_slope() {
+    // Prior and smoothness loose, so that the curvature term is the process model.
+    let params = Parameters {
+        weak_information_ratio: 0.0,
+        sigma_prior_position_m: 1e4,
+        sigma_prior_rotation_deg: 1e3,
+        sigma_prior_heading_deg: 0.0,
+        sigma_smooth_position_m: 1.0,
+        sigma_smooth_rotation_deg: 10.0,
+        ..Default::default()
+    };
+    let truth_sigma = [5e-4, 5e-4, 5e-4, 2e-5, 2e-5, 2e-5];
+    let noise = [2e-3, 2e-3, 2e-3, 1e-4, 1e-4, 1e-4];
+    let n = 1000;
+    let mut normal = normal_deviates(5);
+    let mut truth = vec![[0.0f64; 6]; n];
+    let mut slope = [0.0f64; 6];
+    for i in 1..n {
+        for a in 0..6 {
+            slope[a] += truth_sigma[a] * normal();
+            truth[i][a] = truth[i - 1][a] + slope[a];
+        }
+    }
+    let observed: Vec<[f64; 6]> = truth.iter().map(|t| std::array::from_fn(|a| t[a] + noise[a] * normal())).collect();
+    let mut model = CurvatureModel::from_params(&params).unwrap();
+    let mut current = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; n] };
+    for _ in 0..40 {
+        let blocks: Vec<AnchorBlock> = (0..n)
+            .map(|i| {
+                let mut b = AnchorBlock::new(i as u32);
+                for a in 0..6 {
+                    let w = 1.0 / (noise[a] * noise[a]);
+                    b.diag[sym_index(a, a)] = w;
+                    b.rhs[a] = w * (observed[i][a] - current.values[i][a]);
+                }
+                b.observations = 1;
+                b
+            })
+            .collect();
+        let solution = solve_trajectory_with_process(
+            &blocks,
+            &current,
+            None,
+            None,
+            &params,
+            None,
+            true,
+            false,
+            None,
+            Some(&model),
+        )
+        .unwrap();
+        let moments = solution.curvature_moments.expect("moments with a process model");
+        assert_eq!(moments.terms, n as u64 - 2);
+        model.update(&moments, &params);
+        current = solution.corrections;
+    }
+    for a in 0..6 {
+        let ratio = model.sigma[a] / truth_sigma[a];
+        assert!((0.85..1.15).contains(&ratio), "axis {a}: σ {} against {}", model.sigma[a], truth_sigma[a]);
+    }
+    // The campaign's σ alone (no process model) reports no moments.
+    let short = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 5] };
+    let defaults = Parameters::default();
+    let plain = solve_trajectory(std::iter::empty(), &short, None, None, &defaults, None, true, false, None).unwrap();
+    assert!(plain.curvature_moments.is_none());
 }

@@ -37,6 +37,7 @@ pub(super) async fn apply_calibration(at: &Attempt<'_>, task: ApplyCalibrationIn
             observations: report.observations,
             covariance,
             calibration: Some(share),
+            curvature_moments: None,
         };
         precimap_estimate::solve::apply_calibration_step(&mut solution, &delta, &start);
         let bytes = encode_corrections(&solution.corrections, solution.covariance.as_deref());

@@ -63,6 +63,7 @@ pub(super) async fn solve_field(at: &Attempt<'_>, task: FieldTask) -> Result<Tas
                 positions: p,
                 corrections: c,
                 prior: prior.as_deref(),
+                curvature: None,
             })
             .collect();
         let field = precimap_estimate::solve_field(decoded.iter(), &field_trajectories, &params)?;
