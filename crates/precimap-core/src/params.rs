@@ -71,10 +71,14 @@ impl IterationStep {
 
     /// Whether the trajectories' estimated process model ([`Parameters::process_model`]) is
     /// updated after an iteration on this step: a point-sampled step that estimates the
-    /// attitude, where the corrections are near their final shape and every axis is solved.
+    /// attitude, where the corrections are near their final shape and every axis is solved, and
+    /// that allows momentum. The settling steps (no momentum, where Anderson acceleration
+    /// combines iterations as one fixed map of the corrections) keep the σ's: a process model
+    /// still moving there keeps the corrections moving to the last iteration.
     pub fn updates_process_model(&self, params: &Parameters) -> bool {
         params.process_model == ProcessModel::Estimated
             && self.rotation
+            && self.momentum
             && self.grid_m < params.point_latent_below_grid_m
     }
 
@@ -215,7 +219,7 @@ pub struct Parameters {
     pub sigma_curvature_rotation_deg: f64,
     /// The curvature σ's above as every trajectory's process model (`fixed`), or as the floor
     /// from which each trajectory estimates its own, per axis (`estimated`): after every
-    /// point-sampled iteration that estimates the attitude, each σ² moves halfway (in log space)
+    /// point-sampled iteration with momentum that estimates the attitude, each σ² moves halfway (in log space)
     /// towards the variance-component estimate `mean[(Δ²x̂)² + Var(Δ²x)]` over the trajectory's
     /// anchors, with `Var` from the solve's posterior covariance, and stays between the σ above
     /// and `√2 ×` the smoothness σ (the curvature of a random walk of that step). Where the data
@@ -790,9 +794,10 @@ mod tests {
         let p: Parameters = serde_json::from_str(r#"{"process_model": "estimated"}"#).unwrap();
         assert_eq!(p.process_model, ProcessModel::Estimated);
         assert!(p.problems().is_empty());
-        // The capture and coarse raster steps keep the σ's, the point-sampled steps update them.
+        // The capture and coarse raster steps keep the σ's, the point-sampled steps with momentum
+        // update them, the settling steps keep them.
         let updating: Vec<usize> = (0..p.schedule.len()).filter(|&i| p.schedule[i].updates_process_model(&p)).collect();
-        assert_eq!(updating, (6..18).collect::<Vec<_>>());
+        assert_eq!(updating, (6..12).collect::<Vec<_>>());
         assert!(!Parameters::default().schedule[10].updates_process_model(&Parameters::default()));
         let off = Parameters { sigma_curvature_position_m: 0.0, sigma_curvature_rotation_deg: 0.0, ..p };
         assert_eq!(off.problems()[0].field, "process_model");

@@ -117,6 +117,16 @@ impl Framework {
             return Err(SubmitError::Invalid { problems });
         }
         let mut problems = Vec::new();
+        if !manifest.parameters.process_model.is_fixed() {
+            // The estimated σ's are a state carried between iterations, which the framework's
+            // tasks do not carry: it would solve with the fixed σ's without saying so.
+            problems.push(ManifestProblem {
+                path: "$.parameters.process_model".into(),
+                message: "an estimated process model runs in the in-process driver only (`precimap run`); \
+                          the job framework solves with the fixed curvature σ's"
+                    .into(),
+            });
+        }
         let named = manifest
             .trajectories
             .iter()
