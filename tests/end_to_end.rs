@@ -285,6 +285,34 @@ fn the_common_mode_field_beats_alternation_alone() {
     assert!(a < 0.7 * b, "same-surface spread {a} (field) vs {b} (alternation)");
 }
 
+/// An estimated process model starts at the campaign's curvature σ's, moves within its bounds,
+/// and adjusts the campaign as the fixed one does; the fixed one reports no σ's.
+#[test]
+fn an_estimated_process_model_reports_its_sigmas_within_bounds() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = simulate_tiny(dir.path(), 3);
+    let manifest = manifest_with(&campaign, "estimated", serde_json::json!({ "process_model": "estimated" }));
+    let out = dir.path().join("estimated");
+    let report = run(&manifest, &out).unwrap();
+    let params =
+        precimap_core::Parameters { process_model: precimap_core::ProcessModel::Estimated, ..Default::default() };
+    let (floor, cap) = precimap_estimate::CurvatureModel::bounds(&params).unwrap();
+    let mut moved = false;
+    for t in &report.trajectories {
+        let sigma = t.curvature_sigma.unwrap_or_else(|| panic!("{}: no curvature σ reported", t.id));
+        for a in 0..6 {
+            let (lo, hi) = if a < 3 { (floor[a], cap[a]) } else { (floor[a].to_degrees(), cap[a].to_degrees()) };
+            assert!(sigma[a] >= lo * (1.0 - 1e-9) && sigma[a] <= hi * (1.0 + 1e-9), "{}: σ[{a}] {}", t.id, sigma[a]);
+            moved |= sigma[a] > lo * 1.01;
+        }
+    }
+    assert!(moved, "no σ moved from the campaign's: {:?}", report.trajectories[0].curvature_sigma);
+    let e = precimap_eval::evaluate(&campaign.join("truth"), &out).unwrap();
+    assert!(e.same_surface_spread_m.after < 0.05 * e.same_surface_spread_m.before, "{}", e.summary());
+    let fixed = run(&campaign.join("manifest.json"), &dir.path().join("fixed")).unwrap();
+    assert!(fixed.trajectories.iter().all(|t| t.curvature_sigma.is_none()));
+}
+
 /// The assignment audit, and what the segment-aware latent map is for: on the same campaign,
 /// grouping a cell's points by normal alone puts sidewalk and road (12 cm apart across a curb,
 /// both facing up) into one surface model; forming models per scan-image segment keeps them

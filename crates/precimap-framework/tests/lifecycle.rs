@@ -249,6 +249,14 @@ async fn manifests_name_only_complete_inputs_within_the_bounds() {
         .collect();
     assert_eq!(temporary, std::slice::from_ref(&partial));
 
+    // A setting only the in-process driver carries out.
+    let mut estimated = manifest.clone();
+    estimated.parameters.process_model = precimap_core::ProcessModel::Estimated;
+    let found = problems(s.framework.submit(&estimated).await.unwrap_err());
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert_eq!(found[0].0, "$.parameters.process_model");
+    assert!(found[0].1.contains("in-process"), "{}", found[0].1);
+
     // Bounds: each count, then the bytes, each with its path; nothing is created.
     let tight = CampaignLimits { max_strips: 3, max_trajectories: 1, max_input_bytes: 1000 };
     let found = problems(s.framework.submit_with_limits(&manifest, &tight).await.unwrap_err());

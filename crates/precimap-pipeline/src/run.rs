@@ -355,16 +355,8 @@ fn run_campaign_in(
             calibration.as_mut(),
             process.as_deref(),
         )?;
-        // The process model moves once per iteration, after the solves, and the last iteration
-        // reports the σ's it solved with.
-        if let (Some(models), false) = (process.as_mut(), last) {
-            if step.updates_process_model(&campaign.params) {
-                for (model, s) in models.iter_mut().zip(&sol) {
-                    if let Some(moments) = &s.curvature_moments {
-                        model.update(moments, &campaign.params);
-                    }
-                }
-            }
+        if !last {
+            update_process_models(process.as_deref_mut(), step, &sol, &campaign.params);
         }
         if first {
             first_latent_std = latent_std.clone();
@@ -426,17 +418,7 @@ fn run_campaign_in(
     }
     move_results_out_of_work(&work, out, options.keep_work)?;
 
-    let trajectories = campaign
-        .trajectories
-        .iter()
-        .zip(&solutions)
-        .enumerate()
-        .map(|(t, (entry, sol))| {
-            let mut report = trajectory_report(&entry.id, sol);
-            report.curvature_sigma = process.as_ref().and_then(|p| p.get(t)).map(CurvatureModel::sigma_m_deg);
-            report
-        })
-        .collect();
+    let trajectories = trajectory_reports(&campaign, &solutions, process.as_deref());
     let report = Report {
         campaign: campaign.name.clone(),
         manifest: manifest.display().to_string(),
@@ -453,6 +435,41 @@ fn run_campaign_in(
     };
     write_report(&campaign, &report, [&first_latent_std, &last_latent_std], out)?;
     Ok(report)
+}
+
+/// Moves every trajectory's process model by what its solve found, after an iteration of a step
+/// that updates it; the last iteration reports the σ's it solved with.
+fn update_process_models(
+    models: Option<&mut [CurvatureModel]>,
+    step: &precimap_core::IterationStep,
+    solutions: &[precimap_estimate::TrajectorySolution],
+    params: &precimap_core::Parameters,
+) {
+    let Some(models) = models.filter(|_| step.updates_process_model(params)) else { return };
+    for (model, s) in models.iter_mut().zip(solutions) {
+        if let Some(moments) = &s.curvature_moments {
+            model.update(moments, params);
+        }
+    }
+}
+
+/// Every trajectory's report, with its estimated curvature σ's where the campaign estimates them.
+fn trajectory_reports(
+    campaign: &Campaign,
+    solutions: &[precimap_estimate::TrajectorySolution],
+    process: Option<&[CurvatureModel]>,
+) -> Vec<TrajectoryReport> {
+    campaign
+        .trajectories
+        .iter()
+        .zip(solutions)
+        .enumerate()
+        .map(|(t, (entry, sol))| {
+            let mut report = trajectory_report(&entry.id, sol);
+            report.curvature_sigma = process.and_then(|p| p.get(t)).map(CurvatureModel::sigma_m_deg);
+            report
+        })
+        .collect()
 }
 
 /// Whether the last iteration observed enough of the campaign (`overlap_problem`): an error
