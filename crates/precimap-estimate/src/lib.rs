@@ -34,8 +34,6 @@ pub use prepare::{
 };
 pub use prepare::{usable_share_problem, TIME_GAP_S};
 pub use process::{CurvatureModel, CurvatureMoments};
-pub use solve::{
-    campaign_prior_weights, extend_corrections, solve_trajectory, solve_trajectory_with_process, TrajectorySolution,
-};
+pub use solve::{campaign_prior_weights, extend_corrections, solve_trajectory, TrajectorySolution};
 pub use stats::{LatentStdMap, ResidualHistogram, TileStats};
 pub use tile::{estimate_tile, estimate_tile_recording, EstimateError, LatentGather, TileEstimate, UsedPoint};

@@ -36,7 +36,7 @@ pub struct TrajectorySolution {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<CalibrationShare>,
     /// The sums that estimate the trajectory's curvature σ's, from solves given a
-    /// [`CurvatureModel`] that estimate every axis (see [`solve_trajectory_with_process`]).
+    /// [`CurvatureModel`] that estimate every axis (see [`solve_trajectory`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curvature_moments: Option<CurvatureMoments>,
 }
@@ -460,37 +460,12 @@ pub fn campaign_prior_weights(params: &Parameters) -> [f64; 6] {
 /// With `calibration` (the calibration's normal equations this trajectory's observations
 /// summed, in steps that estimate it) the blocks' cross terms are solved for as well and the
 /// solution carries the trajectory's [`CalibrationShare`].
+///
+/// With `process` (the trajectory's own curvature σ's, where the campaign estimates them) the
+/// curvature terms use those instead of the campaign's; with the curvature terms on and every
+/// axis estimated, the solution then carries the [`CurvatureMoments`] that update them.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_trajectory<'a>(
-    blocks: impl IntoIterator<Item = &'a AnchorBlock>,
-    current: &TrajectoryCorrections,
-    previous: Option<&TrajectoryCorrections>,
-    change_from: Option<&TrajectoryCorrections>,
-    params: &Parameters,
-    prior: Option<&[[f64; 6]]>,
-    estimate_rotation: bool,
-    with_sigma: bool,
-    calibration: Option<&CalibrationNormals>,
-) -> Result<TrajectorySolution, precimap_solve::SolveError> {
-    solve_trajectory_with_process(
-        blocks,
-        current,
-        previous,
-        change_from,
-        params,
-        prior,
-        estimate_rotation,
-        with_sigma,
-        calibration,
-        None,
-    )
-}
-
-/// [`solve_trajectory`] with the trajectory's own curvature σ's (`process`, where the campaign
-/// estimates them) instead of the campaign's. With the curvature terms on and every axis
-/// estimated, the solution carries the [`CurvatureMoments`] that update them.
-#[allow(clippy::too_many_arguments)]
-pub fn solve_trajectory_with_process<'a>(
     blocks: impl IntoIterator<Item = &'a AnchorBlock>,
     current: &TrajectoryCorrections,
     previous: Option<&TrajectoryCorrections>,

@@ -211,7 +211,7 @@ pub fn solve_trajectory_task<'a>(
     calibration: Option<&CalibrationNormals>,
     process: Option<&CurvatureModel>,
 ) -> Result<TrajectorySolution, PipelineError> {
-    precimap_estimate::solve_trajectory_with_process(
+    precimap_estimate::solve_trajectory(
         blocks,
         current,
         previous,

@@ -77,7 +77,7 @@ fn the_heading_prior_has_its_own_sigma() {
     let current = TrajectoryCorrections { first_anchor: 7, values: vec![[0.0; 6]] };
     let sigma = |params: &Parameters| {
         let solution =
-            solve_trajectory(std::iter::empty(), &current, None, None, params, None, true, true, None).unwrap();
+            solve_trajectory(std::iter::empty(), &current, None, None, params, None, true, true, None, None).unwrap();
         solution.covariance.unwrap()[0].sigma()
     };
     let tilt = 0.02f64.to_radians();
@@ -99,9 +99,10 @@ fn momentum_adds_beta_times_the_previous_step() {
     let params = Parameters { momentum: 0.5, weak_information_ratio: 0.0, ..Default::default() };
     let current = TrajectoryCorrections { first_anchor: 3, values: vec![[0.02, -0.01, 0.005, 1e-4, -2e-4, 3e-4]; n] };
     let previous = TrajectoryCorrections { first_anchor: 3, values: vec![[0.01, 0.0, 0.0, 0.0, 0.0, 1e-4]; n] };
-    let plain = solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false, None).unwrap();
+    let plain =
+        solve_trajectory(std::iter::empty(), &current, None, None, &params, None, true, false, None, None).unwrap();
     let carried =
-        solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false, None)
+        solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, true, false, None, None)
             .unwrap();
     for k in 0..n {
         for a in 0..6 {
@@ -110,7 +111,7 @@ fn momentum_adds_beta_times_the_previous_step() {
         }
     }
     let frozen =
-        solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false, None)
+        solve_trajectory(std::iter::empty(), &current, Some(&previous), None, &params, None, false, false, None, None)
             .unwrap();
     for k in 0..n {
         assert_eq!(frozen.corrections.values[k][5], current.values[k][5], "rotation must stay fixed");
@@ -162,7 +163,7 @@ fn extended_corrections_match_the_solve_with_the_estimated_anchors_pinned() {
             .collect();
         let current = TrajectoryCorrections::zeros(range.0, range.1);
         let solved =
-            solve_trajectory(&blocks, &current, None, None, params, None, true, false, None).unwrap().corrections;
+            solve_trajectory(&blocks, &current, None, None, params, None, true, false, None, None).unwrap().corrections;
         for (k, (e, s)) in extended.values.iter().zip(&solved.values).enumerate() {
             for a in 0..6 {
                 let scale = if a < 3 { 1e-6 } else { 1e-9 };
@@ -213,7 +214,7 @@ fn per_anchor_prior_weights_replace_the_campaigns() {
         })
         .collect();
     let solve = |prior: Option<&[[f64; 6]]>| {
-        solve_trajectory(blocks.iter(), &current, None, None, &params, prior, true, true, None).unwrap()
+        solve_trajectory(blocks.iter(), &current, None, None, &params, prior, true, true, None, None).unwrap()
     };
     let plain = solve(None);
     let campaign = vec![campaign_prior_weights(&params); 41];
@@ -249,7 +250,8 @@ fn curvature_removes_a_kink() {
     kinked[4][0] += 0.05;
     let current_kinked = TrajectoryCorrections { first_anchor: 0, values: kinked };
     let sol_kinked =
-        solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false, None).unwrap();
+        solve_trajectory(std::iter::empty(), &current_kinked, None, None, &params, None, true, false, None, None)
+            .unwrap();
     let second = |v: &[[f64; 6]], i: usize| v[i - 1][0] - 2.0 * v[i][0] + v[i + 1][0];
     assert!(second(&current_kinked.values, 4).abs() > 0.09);
     assert!(second(&sol_kinked.corrections.values, 4).abs() < 0.001, "kink not removed");
@@ -309,7 +311,7 @@ fn joint_calibration_solve_matches_the_dense_bordered_system() {
     }
     let current = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; n] };
     let solve = |blocks: &[AnchorBlock], normals: Option<&CalibrationNormals>| {
-        solve_trajectory(blocks, &current, None, None, &params, None, true, false, normals).unwrap()
+        solve_trajectory(blocks, &current, None, None, &params, None, true, false, normals, None).unwrap()
     };
     let mut solutions: Vec<_> = trajectories.iter().map(|(b, c)| solve(b, Some(c))).collect();
     let step =
@@ -432,19 +434,8 @@ fn estimated_curvature_recovers_a_random_walk_of_the_slope() {
                 b
             })
             .collect();
-        let solution = solve_trajectory_with_process(
-            &blocks,
-            &current,
-            None,
-            None,
-            &params,
-            None,
-            true,
-            false,
-            None,
-            Some(&model),
-        )
-        .unwrap();
+        let solution =
+            solve_trajectory(&blocks, &current, None, None, &params, None, true, false, None, Some(&model)).unwrap();
         let moments = solution.curvature_moments.expect("moments with a process model");
         assert_eq!(moments.terms, n as u64 - 2);
         model.update(&moments, &params);
@@ -457,6 +448,7 @@ fn estimated_curvature_recovers_a_random_walk_of_the_slope() {
     // The campaign's σ alone (no process model) reports no moments.
     let short = TrajectoryCorrections { first_anchor: 0, values: vec![[0.0; 6]; 5] };
     let defaults = Parameters::default();
-    let plain = solve_trajectory(std::iter::empty(), &short, None, None, &defaults, None, true, false, None).unwrap();
+    let plain =
+        solve_trajectory(std::iter::empty(), &short, None, None, &defaults, None, true, false, None, None).unwrap();
     assert!(plain.curvature_moments.is_none());
 }

@@ -71,6 +71,9 @@ pub(super) async fn solve_trajectory(at: &Attempt<'_>, task: TrajectoryTask) -> 
             step.rotation,
             with_sigma,
             normals.as_ref(),
+            // The framework solves with the campaign's curvature σ's: it refuses an estimated
+            // process model at submission.
+            None,
         )
     })
     .await?
